@@ -1,0 +1,36 @@
+"""GauSem: one ament_python package, pip-installable too (see README)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "gausem"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="Online RGB-D semantic SLAM with semantic Gaussian-splatting submaps and loop closure (ROS 2 Jazzy)",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    packages=find_packages(include=["gausem_core*", "msg_adapters*", "gausem_ros*"]),
+    package_data={"gausem_core": ["data/assets/*"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/params", glob("params/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("gausem_ros/launch/*.launch.py")),
+    ],
+    install_requires=["numpy", "torch", "opencv-python-headless", "PyYAML", "tqdm", "packaging"],
+    extras_require={
+        "loop": ["gtsam>=4.3.0"],
+        "faiss": ["faiss-cpu"],
+        "dinov2": ["transformers"],
+        "cuda": ["gsplat"],
+        "bags": ["rosbags"],
+    },
+    zip_safe=True,
+    entry_points={
+        "console_scripts": [
+            "gausem = gausem_core.cli:main",
+        ],
+    },
+)
