@@ -1,0 +1,173 @@
+"""Every hyper-parameter of GauSem, in typed dataclasses, read from ROS-format parameter YAML files.
+
+The files in ``params/`` use the ROS 2 layout (``/**: ros__parameters: {section: {name: value}}``) so the nodes load
+them with ``--params-file`` and the offline pipeline reads the very same files through :func:`load_config`. Nested
+sections become dotted ROS parameter names (``tracking.iterations``); :func:`flatten` and :func:`from_flat` convert.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+@dataclass
+class TrackingConfig:
+    """Frame-to-model pose optimisation (paper Eq. 2)."""
+
+    iterations: int = 40
+    lr_translation: float = 2e-3
+    lr_rotation: float = 2e-3
+    w_color: float = 1.0
+    w_depth: float = 0.5
+    w_semantic: float = 0.5
+    silhouette_threshold: float = 0.99
+    constant_velocity: bool = True
+    # stop when the loss improved by less than this fraction over `patience` iterations
+    convergence_tolerance: float = 1e-4
+    patience: int = 5
+
+
+@dataclass
+class MappingConfig:
+    """Submap initialisation and keyframe-window bundle adjustment (paper Eq. 3-4)."""
+
+    every: int = 5  # d_map: map (and take a keyframe) every this many frames
+    iterations: int = 30
+    init_iterations: int = 200  # the paper uses 1000 on a GPU
+    window: int = 8  # keyframes sampled from the most recent this many (plus the current frame)
+    init_samples_fraction: float = 1.0  # N_tot as a fraction of the image area
+    sampling_gamma: float = 0.5  # n_c proportional to A_c ** gamma
+    init_opacity: float = 0.5
+    w_color: float = 1.0
+    w_depth: float = 1.0
+    w_semantic: float = 0.5
+    ssim_lambda: float = 0.8  # L = lambda * L1 + (1 - lambda) * (1 - SSIM)  (Eq. 4)
+    optimise_poses: bool = True
+    lr_means: float = 1e-3
+    lr_log_radii: float = 5e-3
+    lr_opacity: float = 5e-2
+    lr_colors: float = 5e-3
+    lr_semantics: float = 5e-3
+    lr_pose: float = 5e-4
+    densify_silhouette_threshold: float = 0.5  # tau_sil
+    densify_depth_margin: float = 0.05  # metres; new Gaussians where rendered depth lies this far behind the measurement
+    prune_opacity: float = 0.005
+    prune_radius: float = 0.5  # metres
+
+
+@dataclass
+class SubmapConfig:
+    """Spatial-semantic submap allocation (paper §III-A)."""
+
+    policy: str = "semantic"  # "semantic" (overlap AND class KL) or "motion" (LoopSplat's 0.5 m / 50 deg rule)
+    max_overlap: float = 0.5
+    min_class_kl: float = 0.4
+    motion_translation: float = 0.5
+    motion_rotation_deg: float = 50.0
+
+
+@dataclass
+class SemanticsConfig:
+    segmenter: str = "labels"  # "labels" (class ids with the data) or "dinov2"
+    dinov2_weights: str = ""
+    head_weights: str = ""
+    descriptor: str = "auto"  # "auto", "dinov2" or "fallback"
+
+
+@dataclass
+class LoopConfig:
+    enabled: bool = True
+    keyframe_every: int = 5
+    check_every: int = 6
+    max_descriptor_distance: float = 0.2
+    exclude_recent: int = 6
+    robust_kernel: str = "huber"
+
+
+@dataclass
+class SlamConfig:
+    backend: str = "auto"  # renderer back-end: "auto", "torch" or "gsplat"
+    device: str = "auto"  # "auto" (CUDA when available), "cpu" or "cuda"
+    seed: int = 0
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    submaps: SubmapConfig = field(default_factory=SubmapConfig)
+    semantics: SemanticsConfig = field(default_factory=SemanticsConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+
+
+def flatten(cfg: Any, prefix: str = "") -> dict[str, Any]:
+    """Dataclass tree -> {"tracking.iterations": 40, ...} (ROS parameter names)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            out.update(flatten(value, f"{prefix}{f.name}."))
+        else:
+            out[f"{prefix}{f.name}"] = value
+    return out
+
+
+def from_flat(values: dict[str, Any], base: SlamConfig | None = None) -> SlamConfig:
+    """Apply dotted-name values onto a config (defaults when ``base`` is None); unknown names are an error."""
+    cfg = copy.deepcopy(base) if base else SlamConfig()
+    known = flatten(cfg)
+    for name, value in values.items():
+        if name not in known:
+            raise ValueError(f"unknown parameter '{name}' (known: {', '.join(sorted(known))})")
+        *path, leaf = name.split(".")
+        node = cfg
+        for part in path:
+            node = getattr(node, part)
+        setattr(node, leaf, _coerce(name, value, known[name]))
+    return cfg
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> SlamConfig:
+    """Read a ROS-format params YAML (``/**: ros__parameters: ...``); ``overrides`` are dotted names on top."""
+    values: dict[str, Any] = {}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"parameter file {path} does not exist")
+        doc = yaml.safe_load(path.read_text()) or {}
+        for node_name, body in doc.items():
+            if not isinstance(body, dict) or "ros__parameters" not in body:
+                raise ValueError(f"{path}: '{node_name}' has no 'ros__parameters' section (ROS 2 params layout expected)")
+            values.update(_flatten_dict(body["ros__parameters"]))
+        values = {k: v for k, v in values.items() if k.split(".")[0] in _sections()}
+    values.update(overrides or {})
+    return from_flat(values)
+
+
+def _sections() -> set[str]:
+    return {f.name for f in dataclasses.fields(SlamConfig)}
+
+
+def _flatten_dict(d: dict, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten_dict(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _coerce(name: str, value: Any, default: Any) -> Any:
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ValueError(f"parameter '{name}' must be true/false, got {value!r}")
+        return value
+    if isinstance(default, (int, float)) and not isinstance(value, bool) and isinstance(value, (int, float)):
+        if isinstance(default, int) and not float(value).is_integer():
+            raise ValueError(f"parameter '{name}' must be an integer, got {value!r}")
+        return type(default)(value)
+    if isinstance(default, str) and isinstance(value, str):
+        return value
+    raise ValueError(f"parameter '{name}' must be of type {type(default).__name__}, got {value!r}")
