@@ -1,0 +1,111 @@
+"""(Gaussian, pixel) pair lists for the torch back-end: footprint boxes, row bands, per-band sorted pairs.
+
+Nothing here is differentiable: it decides *which* pairs are composited and in which order; the values and their
+gradients are computed by :mod:`gausem_core.render.composite`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from gausem_core.render.projection import ALPHA_MIN, ScreenGaussians
+
+
+@dataclass
+class Boxes:
+    """Inclusive integer pixel boxes (clipped to the image) of the footprints of screen Gaussians."""
+
+    x0: torch.Tensor
+    x1: torch.Tensor
+    y0: torch.Tensor
+    y1: torch.Tensor
+
+    def nonempty(self) -> torch.Tensor:
+        return (self.x0 <= self.x1) & (self.y0 <= self.y1)
+
+
+@dataclass
+class Band:
+    """Image rows ``[row0, row1)`` and the Gaussians (indices into the screen Gaussians, front to back) touching them."""
+
+    row0: int
+    row1: int
+    gaussians: torch.Tensor
+
+
+@torch.no_grad()
+def footprint_boxes(screen: ScreenGaussians, width: int, height: int) -> Boxes:
+    """Pixels whose centre ``(j + 0.5, i + 0.5)`` lies within the footprint ellipse's bounding box."""
+    rx, ry = screen.footprint_radii()
+    u, v = screen.u.detach(), screen.v.detach()
+
+    def span(centre, radius, size):
+        lo = torch.ceil(centre - radius - 0.5).clamp(0, size).long()
+        hi = torch.floor(centre + radius - 0.5).clamp(-1, size - 1).long()
+        return lo, hi
+
+    x0, x1 = span(u, rx, width)
+    y0, y1 = span(v, ry, height)
+    return Boxes(x0, x1, y0, y1)
+
+
+@torch.no_grad()
+def plan_bands(screen: ScreenGaussians, boxes: Boxes, height: int, max_pairs_per_band: int) -> list[Band]:
+    """Split the rows into bands of about ``max_pairs_per_band`` box pixels and bucket the Gaussians per band once.
+
+    A single row with more pairs than the budget gets a band of its own. Gaussians are listed front to back (stable
+    in their index for equal depths), which makes a stable sort by pixel a per-pixel front-to-back order.
+    """
+    order = torch.argsort(screen.depth.detach(), stable=True)
+    order = order[boxes.nonempty()[order]]
+    x0, x1, y0, y1 = (t[order] for t in (boxes.x0, boxes.x1, boxes.y0, boxes.y1))
+    width = x1 - x0 + 1
+    diff = torch.zeros(height + 1, dtype=torch.long, device=order.device)
+    diff.index_add_(0, y0, width).index_add_(0, y1 + 1, -width)
+    per_row = diff.cumsum(0)[:height]
+    band_of_row = torch.div(per_row.cumsum(0) - per_row, max_pairs_per_band, rounding_mode="floor")
+    band_of_row = torch.unique_consecutive(band_of_row, return_inverse=True)[1]
+    rows_per_band = torch.bincount(band_of_row).tolist()
+
+    b0, b1 = band_of_row[y0], band_of_row[y1]
+    n_bands = b1 - b0 + 1
+    member = torch.repeat_interleave(order, n_bands)
+    first = torch.repeat_interleave(b0 - (n_bands.cumsum(0) - n_bands), n_bands)
+    band = first + torch.arange(member.shape[0], device=order.device)
+    band, perm = torch.sort(band, stable=True)
+    members = torch.split(member[perm], torch.bincount(band, minlength=len(rows_per_band)).tolist())
+
+    bands, row = [], 0
+    for rows, gaussians in zip(rows_per_band, members):
+        bands.append(Band(row, row + rows, gaussians))
+        row += rows
+    return bands
+
+
+@torch.no_grad()
+def band_pairs(screen: ScreenGaussians, boxes: Boxes, band: Band, width: int):
+    """Pairs of ``band`` with alpha >= 1/255, sorted by pixel and front to back within a pixel.
+
+    Returns ``(gaussian, pixel, alpha)``: screen-Gaussian index (int64), pixel index within the band
+    (``(row - row0) * width + col``, int64) and the unclamped alpha ``opacity * exp(-d^2 / 2 sigma^2)``.
+    """
+    g = band.gaussians
+    x0, y0 = boxes.x0[g], boxes.y0[g].clamp_min(band.row0)
+    box_w = boxes.x1[g] - x0 + 1
+    count = box_w * (boxes.y1[g].clamp_max(band.row1 - 1) - y0 + 1)
+    local = torch.repeat_interleave(torch.arange(g.shape[0], device=g.device), count)
+    offset = torch.arange(local.shape[0], device=g.device) - (count.cumsum(0) - count)[local]
+    box_w = box_w[local]
+    row_in_box = torch.div(offset, box_w, rounding_mode="floor")
+    col = x0[local] + offset - row_in_box * box_w
+    row = y0[local] + row_in_box
+    g = g[local]
+    dx = col + 0.5 - screen.u.detach()[g]
+    dy = row + 0.5 - screen.v.detach()[g]
+    q = dx * dx * screen.inv_var_x.detach()[g] + dy * dy * screen.inv_var_y.detach()[g]
+    alpha = screen.opacity.detach()[g] * torch.exp(-0.5 * q)
+    keep = alpha >= ALPHA_MIN
+    pixel = ((row[keep] - band.row0) * width + col[keep]).int()
+    pixel, perm = torch.sort(pixel, stable=True)
+    return g[keep][perm], pixel.long(), alpha[keep][perm]
