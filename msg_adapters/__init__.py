@@ -1,0 +1,13 @@
+"""Pure conversions between GauSem core types and standard ROS 2 messages. No nodes, no spinning."""
+from .camera_info import camera_info_to_camera, camera_to_camera_info
+from .gaussian_map import cloud_to_pointcloud2, pointcloud2_to_cloud
+from .images import (ImageEncodingError, depth_to_image, image_to_depth, image_to_labels, image_to_numpy,
+                     image_to_rgb, labels_to_image, numpy_to_image, rgb_to_image)
+from .poses import (matrix_to_odometry, matrix_to_pose, matrix_to_pose_stamped, matrix_to_transform,
+                    odometry_to_matrix, path_to_poses, pose_stamped_to_matrix, pose_to_matrix, poses_to_path,
+                    transform_to_matrix)
+from .records import (KeyframeRecord, LoopCandidateRecord, LoopConstraintRecord, PoseGraphNode, PoseGraphNodeKind,
+                      PoseGraphUpdate, SubmapEvent, SubmapEventKind, pointcloud2_to_pose_graph_update,
+                      pointcloud2_to_records, pose_graph_update_to_pointcloud2, records_to_pointcloud2)
+from .stamps import (header_seconds, make_header, ns_to_seconds, ns_to_time, seconds_to_ns, seconds_to_time,
+                     time_to_ns, time_to_seconds)

@@ -1,0 +1,341 @@
+"""msg_adapters: stamps, images, CameraInfo, poses, the Gaussian map PointCloud2 and the typed records."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("sensor_msgs.msg")
+
+from builtin_interfaces.msg import Time  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, PointField  # noqa: E402
+
+import msg_adapters as ma  # noqa: E402
+from gausem_core.gaussians import GaussianCloud  # noqa: E402
+from gausem_core.geometry import PinholeCamera, se3_exp  # noqa: E402
+from msg_adapters.gaussian_map import pack_rgb, unpack_rgb  # noqa: E402
+from msg_adapters.pointcloud2 import pointcloud2_to_structured, structured_to_pointcloud2  # noqa: E402
+
+HEADER = ma.make_header(1305031102.175304, "camera_optical")
+
+
+def random_pose(rng) -> np.ndarray:
+    return se3_exp(torch.from_numpy(rng.normal(size=6) * [1, 1, 1, 1.5, 1.5, 1.5])).numpy()
+
+
+# --- stamps ---------------------------------------------------------------------------------------------------------
+def test_stamp_hand_values():
+    assert ma.seconds_to_time(1.5) == Time(sec=1, nanosec=500_000_000)
+    assert ma.seconds_to_ns(0.1) == 100_000_000
+    assert ma.time_to_seconds(Time(sec=2, nanosec=250_000_000)) == 2.25
+
+
+def test_float_stamps_survive_time_exactly():
+    rng = np.random.default_rng(1)
+    for t in list(1.3e9 + rng.random(200) * 1e6) + [0.0, 1305031102.175304, 1e-9]:
+        assert ma.time_to_seconds(ma.seconds_to_time(t)) == t
+    assert ma.header_seconds(HEADER) == 1305031102.175304
+
+
+@pytest.mark.parametrize("bad", [-1.0, math.nan, math.inf, 2.0**31])
+def test_invalid_stamps_are_rejected(bad):
+    with pytest.raises(ValueError):
+        ma.seconds_to_time(bad)
+
+
+# --- images ---------------------------------------------------------------------------------------------------------
+def _pixels(encoding, rng):
+    dtype, channels = ma.images.ENCODINGS[encoding]
+    shape = (5, 7) if channels == 1 else (5, 7, channels)
+    if dtype == np.float32:
+        return rng.random(shape).astype(np.float32)
+    return rng.integers(0, np.iinfo(dtype).max, shape, endpoint=True).astype(dtype)
+
+
+@pytest.mark.parametrize("encoding", sorted(ma.images.ENCODINGS))
+def test_every_encoding_round_trips(encoding):
+    pixels = _pixels(encoding, np.random.default_rng(0))
+    msg = ma.numpy_to_image(pixels, encoding, HEADER)
+    assert (msg.height, msg.width, msg.is_bigendian) == (5, 7, 0)
+    assert msg.step == 7 * pixels.itemsize * (pixels.shape[2] if pixels.ndim == 3 else 1)
+    np.testing.assert_array_equal(ma.image_to_numpy(msg), pixels)
+
+
+def _padded(pixels, encoding, pad=5, bigendian=False):
+    """An Image with ``pad`` junk bytes after every row."""
+    h = pixels.shape[0]
+    rows = pixels.astype(pixels.dtype.newbyteorder(">" if bigendian else "<")).reshape(h, -1).view(np.uint8)
+    data = np.concatenate([rows, np.full((h, pad), 0xEE, np.uint8)], 1)
+    return Image(height=h, width=pixels.shape[1], encoding=encoding, is_bigendian=int(bigendian),
+                 step=data.shape[1], data=data.tobytes())
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "mono16", "32FC1", "16UC1"])
+def test_row_padding_is_skipped(encoding):
+    pixels = _pixels(encoding, np.random.default_rng(2))
+    np.testing.assert_array_equal(ma.image_to_numpy(_padded(pixels, encoding)), pixels)
+
+
+@pytest.mark.parametrize("pad", [0, 3])
+def test_big_endian_mono16(pad):
+    pixels = np.array([[1, 256, 0x1234]], dtype=np.uint16)
+    msg = _padded(pixels, "mono16", pad=pad, bigendian=True)
+    assert bytes(msg.data[:2]) == b"\x00\x01"
+    out = ma.image_to_numpy(msg)
+    np.testing.assert_array_equal(out, pixels)
+    assert out.dtype == np.uint16 and out.dtype.isnative
+
+
+def test_bgr_and_alpha_become_rgb():
+    rgb = np.array([[[10, 20, 30], [40, 50, 60]]], dtype=np.uint8)
+    bgr = ma.numpy_to_image(rgb[..., ::-1], "bgr8", HEADER)
+    np.testing.assert_array_equal(ma.image_to_rgb(bgr), rgb)
+    np.testing.assert_array_equal(ma.image_to_rgb(ma.rgb_to_image(rgb, HEADER, "bgr8")), rgb)
+    assert bytes(ma.rgb_to_image(rgb, HEADER, "bgr8").data[:3]) == bytes([30, 20, 10])
+    alpha = np.full((1, 2, 1), 255, np.uint8)
+    np.testing.assert_array_equal(ma.image_to_rgb(ma.numpy_to_image(np.concatenate([rgb, alpha], 2), "rgba8", HEADER)), rgb)
+    bgra = np.concatenate([rgb[..., ::-1], alpha], 2)
+    np.testing.assert_array_equal(ma.image_to_rgb(ma.numpy_to_image(bgra, "bgra8", HEADER)), rgb)
+
+
+def test_depth_16uc1_millimetres_to_metres():
+    msg = ma.numpy_to_image(np.array([[0, 1234, 65535]], np.uint16), "16UC1", HEADER)
+    depth = ma.image_to_depth(msg)
+    assert depth.dtype == np.float32
+    np.testing.assert_allclose(depth, [[0.0, 1.234, 65.535]], rtol=1e-6)
+
+
+def test_depth_32fc1_invalid_values_become_zero():
+    raw = np.array([[1.5, np.nan, np.inf, -2.0, 0.0, -np.inf]], np.float32)
+    np.testing.assert_array_equal(ma.image_to_depth(ma.numpy_to_image(raw, "32FC1", HEADER)),
+                                  [[1.5, 0, 0, 0, 0, 0]])
+
+
+def test_depth_builders():
+    depth = np.array([[1.2344, np.nan, -1.0, 3.0]], np.float32)
+    np.testing.assert_array_equal(ma.image_to_numpy(ma.depth_to_image(depth, HEADER, "16UC1")), [[1234, 0, 0, 3000]])
+    np.testing.assert_array_equal(ma.image_to_depth(ma.depth_to_image(depth, HEADER)), [[depth[0, 0], 0, 0, 3.0]])
+    with pytest.raises(ValueError, match="65.535"):
+        ma.depth_to_image(np.array([[70.0]]), HEADER, "16UC1")
+
+
+def test_labels():
+    labels = np.array([[0, 3, 255]])
+    for enc in ("mono8", "mono16"):
+        out = ma.image_to_labels(ma.labels_to_image(labels, HEADER, enc))
+        np.testing.assert_array_equal(out, labels)
+        assert out.dtype == np.int64
+    with pytest.raises(ValueError, match="outside mono8"):
+        ma.labels_to_image(np.array([[256]]), HEADER, "mono8")
+    with pytest.raises(ValueError, match="integers"):
+        ma.labels_to_image(np.array([[1.0]]), HEADER)
+
+
+@pytest.mark.parametrize("encoding", ["yuv422", "32FC3", "bayer_rggb8", "8UC3"])
+def test_unsupported_encodings_are_named(encoding):
+    msg = Image(height=1, width=1, encoding=encoding, step=4, data=b"\0" * 4)
+    with pytest.raises(ma.ImageEncodingError) as err:
+        ma.image_to_numpy(msg)
+    assert encoding in str(err.value) and "rgb8" in str(err.value) and "32FC1" in str(err.value)
+    assert isinstance(err.value, ValueError)
+
+
+def test_wrong_kind_of_image_is_rejected():
+    mono = ma.numpy_to_image(np.zeros((2, 2), np.uint8), "mono8", HEADER)
+    with pytest.raises(ma.ImageEncodingError, match="colour image encoding 'mono8'"):
+        ma.image_to_rgb(mono)
+    with pytest.raises(ma.ImageEncodingError, match="depth image"):
+        ma.image_to_depth(mono)
+    with pytest.raises(ValueError, match="rgb8 needs"):
+        ma.numpy_to_image(np.zeros((2, 2), np.uint8), "rgb8", HEADER)
+
+
+def test_size_mismatches_are_reported():
+    msg = ma.numpy_to_image(np.zeros((4, 3, 3), np.uint8), "rgb8", HEADER)
+    msg.data = msg.data[:-1]
+    with pytest.raises(ValueError, match="expected height\\*step = 4\\*9 = 36"):
+        ma.image_to_numpy(msg)
+    with pytest.raises(ValueError, match="step 8 is shorter"):
+        ma.image_to_numpy(Image(height=1, width=3, encoding="rgb8", step=8, data=b"\0" * 8))
+
+
+# --- CameraInfo -----------------------------------------------------------------------------------------------------
+def test_camera_info_round_trip_and_pixel_centre_shift():
+    info = CameraInfo(width=640, height=480, k=[525.0, 0, 319.5, 0, 526.0, 239.5, 0, 0, 1])
+    cam = ma.camera_info_to_camera(info)
+    assert cam == PinholeCamera(525.0, 526.0, 320.0, 240.0, 640, 480)
+    back = ma.camera_to_camera_info(cam, HEADER)
+    np.testing.assert_array_equal(back.k, info.k)
+    np.testing.assert_array_equal(np.asarray(back.p).reshape(3, 4)[:, :3], np.asarray(info.k).reshape(3, 3))
+    assert ma.camera_info_to_camera(back) == cam and back.header.frame_id == HEADER.frame_id
+
+
+@pytest.mark.parametrize("k, size, match", [
+    ([0.0] * 9, (640, 480), "invalid K"),
+    ([525.0, 0, 319.5, 0, math.nan, 239.5, 0, 0, 1], (640, 480), "invalid K"),
+    ([525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (0, 480), "image size 0x480"),
+])
+def test_camera_info_errors(k, size, match):
+    with pytest.raises(ValueError, match=match):
+        ma.camera_info_to_camera(CameraInfo(width=size[0], height=size[1], k=k))
+
+
+# --- poses ----------------------------------------------------------------------------------------------------------
+def test_quaternion_hand_value_and_pose_round_trips():
+    quarter_turn_z = np.array([[0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]], float)
+    q = ma.matrix_to_pose(quarter_turn_z).orientation
+    np.testing.assert_allclose([q.x, q.y, q.z, q.w], [0, 0, math.sqrt(0.5), math.sqrt(0.5)], atol=1e-12)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        pose = random_pose(rng)
+        np.testing.assert_allclose(ma.pose_to_matrix(ma.matrix_to_pose(pose)), pose, atol=1e-12)
+        np.testing.assert_allclose(ma.pose_stamped_to_matrix(ma.matrix_to_pose_stamped(pose, HEADER)), pose, atol=1e-12)
+        tf = ma.matrix_to_transform(pose, ma.make_header(2.0, "map"), "camera")
+        assert (tf.header.frame_id, tf.child_frame_id) == ("map", "camera")
+        np.testing.assert_allclose(ma.transform_to_matrix(tf), pose, atol=1e-12)
+        odom = ma.matrix_to_odometry(pose, ma.make_header(2.0, "map"), "camera")
+        assert (odom.header.frame_id, odom.child_frame_id) == ("map", "camera")
+        np.testing.assert_allclose(ma.odometry_to_matrix(odom), pose, atol=1e-12)
+
+
+def test_path_round_trip():
+    rng = np.random.default_rng(4)
+    poses = [(1305031102.175304 + i / 30, random_pose(rng)) for i in range(5)]
+    path = ma.poses_to_path(poses, "map")
+    assert path.header.frame_id == "map" and ma.header_seconds(path.header) == poses[-1][0]
+    back = ma.path_to_poses(path)
+    assert [t for t, _ in back] == [t for t, _ in poses]
+    for (_, a), (_, b) in zip(back, poses):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    assert ma.poses_to_path([], "map", stamp=3.0).poses == []
+
+
+@pytest.mark.parametrize("bad", [np.eye(3), np.diag([2.0, 1, 1, 1]), np.diag([1.0, 1, -1, 1]), np.full((4, 4), np.nan)])
+def test_non_rigid_matrices_are_rejected(bad):
+    with pytest.raises(ValueError, match="pose"):
+        ma.matrix_to_pose(bad)
+
+
+# --- Gaussian map ---------------------------------------------------------------------------------------------------
+PALETTE = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
+
+
+def _cloud(n=50):
+    labels = torch.randint(0, len(PALETTE), (n,))
+    return GaussianCloud.from_points(torch.randn(n, 3), torch.rand(n, 3), PALETTE[labels] * 0.9,
+                                     torch.rand(n) * 0.1 + 0.01, torch.rand(n) * 0.9 + 0.05), labels
+
+
+def test_map_pointcloud2_layout():
+    msg = ma.cloud_to_pointcloud2(_cloud(3)[0], ma.make_header(5.0, "map"), PALETTE)
+    layout = [(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
+    f32, i32 = PointField.FLOAT32, PointField.INT32
+    assert layout == [("x", 0, f32, 1), ("y", 4, f32, 1), ("z", 8, f32, 1), ("rgb", 12, f32, 1),
+                      ("label", 16, i32, 1), ("opacity", 20, f32, 1), ("radius", 24, f32, 1)]
+    assert (msg.point_step, msg.row_step, msg.width, msg.height) == (28, 84, 3, 1)
+    assert not msg.is_bigendian and msg.is_dense and len(msg.data) == 84
+
+
+def test_packed_rgb_like_pcl():
+    packed = pack_rgb(np.array([[1.0, 0.5, 0.0]]))
+    assert packed.view(np.uint32)[0] == 0xFF8000
+    np.testing.assert_allclose(unpack_rgb(packed), [[1.0, 128 / 255, 0.0]])
+
+
+def test_map_round_trip():
+    cloud, labels = _cloud()
+    back, back_labels = ma.pointcloud2_to_cloud(ma.cloud_to_pointcloud2(cloud, HEADER, PALETTE), PALETTE)
+    np.testing.assert_array_equal(back_labels, labels.numpy())
+    torch.testing.assert_close(back.means, cloud.means, rtol=0, atol=0)
+    torch.testing.assert_close(back.colors, cloud.colors, rtol=0, atol=0.5 / 255 + 1e-6)
+    torch.testing.assert_close(back.radii, cloud.radii, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(back.opacities, cloud.opacities, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(back.semantics, PALETTE[labels])
+    unlabelled, _ = ma.pointcloud2_to_cloud(ma.cloud_to_pointcloud2(cloud, HEADER, PALETTE))
+    assert unlabelled.semantics.abs().sum() == 0
+
+
+def test_map_rejects_foreign_clouds():
+    msg = structured_to_pointcloud2(np.zeros(2, [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]), HEADER)
+    with pytest.raises(ValueError, match="missing fields"):
+        ma.pointcloud2_to_cloud(msg)
+
+
+def test_pointcloud2_big_endian_and_padded_points_read():
+    little = np.array([(1.5, 7), (-2.0, 300)], dtype=[("a", "<f4"), ("b", "<i2")])
+    msg = structured_to_pointcloud2(little, HEADER)
+    big = little.astype([("a", ">f4"), ("b", ">i2")])
+    padded = np.zeros(2, dtype={"names": ["a", "b"], "formats": [">f4", ">i2"], "offsets": [0, 4], "itemsize": 8})
+    padded["a"], padded["b"] = big["a"], big["b"]
+    msg.is_bigendian, msg.point_step, msg.row_step, msg.data = True, 8, 16, padded.tobytes()
+    out = pointcloud2_to_structured(msg)
+    np.testing.assert_array_equal(out["a"], [1.5, -2.0])
+    np.testing.assert_array_equal(out["b"], [7, 300])
+
+
+# --- typed records --------------------------------------------------------------------------------------------------
+def _records(rng):
+    info = np.diag(rng.random(6) + 1)
+    return [
+        ma.KeyframeRecord(7, 1305031102.175304, 2, random_pose(rng), random_pose(rng),
+                          rng.random(384).astype(np.float32)),
+        ma.SubmapEvent(2, 7, random_pose(rng), ma.SubmapEventKind.CLOSED),
+        ma.LoopCandidateRecord(40, 7, 5, 2, float(rng.random()), 3.25, False),
+        ma.LoopConstraintRecord(40, 7, 5, 2, random_pose(rng), 0.87, info, True),
+        ma.PoseGraphNode(ma.PoseGraphNodeKind.ANCHOR, 5, random_pose(rng)),
+    ]
+
+
+@pytest.mark.parametrize("index", range(5))
+def test_every_record_round_trips(index):
+    record = _records(np.random.default_rng(index))[index]
+    other = _records(np.random.default_rng(index + 10))[index]
+    msg = ma.records_to_pointcloud2([record, other], ma.make_header(9.5, "map"))
+    assert (msg.width, msg.header.frame_id, ma.header_seconds(msg.header)) == (2, "map", 9.5)
+    back = ma.pointcloud2_to_records(msg, type(record))
+    assert back == [record, other] and back[0] != other
+    assert ma.pointcloud2_to_records(ma.records_to_pointcloud2([], HEADER, type(record)), type(record)) == []
+
+
+def test_record_fields_name_the_pointfields():
+    kf = _records(np.random.default_rng(0))[0]
+    msg = ma.records_to_pointcloud2([kf], HEADER)
+    f64, f32, i32 = PointField.FLOAT64, PointField.FLOAT32, PointField.INT32
+    assert [(f.name, f.offset, f.datatype, f.count) for f in msg.fields] == [
+        ("keyframe_id", 0, i32, 1), ("stamp", 4, f64, 1), ("submap_id", 12, i32, 1), ("pose", 16, f64, 16),
+        ("anchor_pose", 144, f64, 16), ("descriptor", 272, f32, 384)]
+    assert msg.point_step == 272 + 4 * 384
+    row = pointcloud2_to_structured(msg)[0]
+    np.testing.assert_array_equal(row["pose"].reshape(4, 4), kf.pose)
+    event = ma.records_to_pointcloud2([_records(np.random.default_rng(0))[1]], HEADER)
+    assert [(f.name, f.datatype) for f in event.fields][-1] == ("kind", PointField.UINT8)
+    assert pointcloud2_to_structured(event)["kind"][0] == 1
+
+
+def test_pose_graph_update_round_trip():
+    rng = np.random.default_rng(5)
+    update = ma.PoseGraphUpdate([ma.PoseGraphNode(ma.PoseGraphNodeKind.KEYFRAME, i, random_pose(rng)) for i in range(4)]
+                                + [ma.PoseGraphNode(ma.PoseGraphNodeKind.ANCHOR, 0, np.eye(4))])
+    back = ma.pointcloud2_to_pose_graph_update(ma.pose_graph_update_to_pointcloud2(update, HEADER))
+    assert back == update and back.nodes[-1].kind is ma.PoseGraphNodeKind.ANCHOR
+
+
+def test_record_validation_and_decoding_errors():
+    rng = np.random.default_rng(6)
+    kf, event = _records(rng)[:2]
+    with pytest.raises(ValueError, match="not a SubmapEvent"):
+        ma.pointcloud2_to_records(ma.records_to_pointcloud2([kf], HEADER), ma.SubmapEvent)
+    with pytest.raises(ValueError, match="KeyframeRecord.pose"):
+        ma.KeyframeRecord(1, 0.0, 0, np.eye(3), np.eye(4), np.zeros(4))
+    with pytest.raises(ValueError, match="int32"):
+        ma.SubmapEvent(2**31, 0, np.eye(4), ma.SubmapEventKind.CREATED)
+    with pytest.raises(ValueError):
+        ma.SubmapEvent(1, 0, np.eye(4), 7)
+    short = ma.KeyframeRecord(8, 1.0, 2, np.eye(4), np.eye(4), np.zeros(3, np.float32))
+    with pytest.raises(ValueError, match="lengths \\[3, 384\\] differ"):
+        ma.records_to_pointcloud2([kf, short], HEADER)
+    with pytest.raises(ValueError, match="mixed record types"):
+        ma.records_to_pointcloud2([kf, event], HEADER)
+    with pytest.raises(ValueError, match="empty batch"):
+        ma.records_to_pointcloud2([], HEADER)
+    assert not kf.pose.flags.writeable
