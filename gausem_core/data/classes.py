@@ -1,0 +1,121 @@
+"""Semantic class tables: contiguous class ids ``0..C-1``, names and display / semantic colours.
+
+The palette colour of a class is also its *semantic colour* in the Gaussian map (paper §III-A): a Gaussian's class is
+the index of the nearest palette colour, so the colours of one table must be distinct.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True)
+class ClassTable:
+    """Classes ``0..len(names)-1`` with names and RGB colours (``colors`` (C, 3) uint8)."""
+
+    names: tuple[str, ...]
+    colors: np.ndarray
+
+    def __post_init__(self):
+        colors = np.asarray(self.colors)
+        if colors.shape != (len(self.names), 3):
+            raise ValueError(f"ClassTable: colors shape {colors.shape} does not match {len(self.names)} names")
+        if colors.min(initial=0) < 0 or colors.max(initial=0) > 255:
+            raise ValueError("ClassTable: colours must lie in 0..255")
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"ClassTable: duplicate class names in {self.names}")
+        if len({tuple(c) for c in colors.tolist()}) != len(self.names):
+            raise ValueError("ClassTable: class colours must be distinct (they identify classes in the map)")
+        colors = colors.astype(np.uint8)
+        colors.setflags(write=False)
+        object.__setattr__(self, "names", tuple(self.names))
+        object.__setattr__(self, "colors", colors)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def ids(self) -> np.ndarray:
+        return np.arange(len(self.names), dtype=np.int64)
+
+    @property
+    def palette(self) -> torch.Tensor:
+        """(C, 3) float32 colours in [0, 1]."""
+        return torch.from_numpy(self.colors.astype(np.float32) / 255.0)
+
+    def id_of(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise ValueError(f"unknown class {name!r}; known: {', '.join(self.names)}") from None
+
+    def colorize(self, labels: np.ndarray) -> np.ndarray:
+        """Class ids (H, W) -> RGB image (H, W, 3) uint8."""
+        labels = np.asarray(labels)
+        if labels.size and (labels.min() < 0 or labels.max() >= len(self)):
+            raise ValueError(f"labels hold ids in [{labels.min()}, {labels.max()}], outside this table's 0..{len(self) - 1}")
+        return self.colors[labels]
+
+    # --- text form: one "id name r g b" line per class -------------------------------------------------------------
+    def save(self, path: str | Path) -> None:
+        lines = ["# id name r g b"] + [f"{i} {n} {r} {g} {b}" for i, (n, (r, g, b)) in enumerate(zip(self.names, self.colors))]
+        Path(path).write_text("\n".join(lines) + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> "ClassTable":
+        names, colors = [], []
+        for number, line in enumerate(Path(path).read_text().splitlines(), 1):
+            if not line.strip() or line.lstrip().startswith("#"):
+                continue
+            parts = line.split()
+            if len(parts) != 5 or not parts[0].isdigit() or int(parts[0]) != len(names):
+                raise ValueError(f"{path}:{number}: expected 'id name r g b' with ids 0, 1, 2, ... in order, got {line!r}")
+            names.append(parts[1])
+            colors.append([int(v) for v in parts[2:]])
+        if not names:
+            raise ValueError(f"{path}: no classes")
+        return cls(tuple(names), np.array(colors))
+
+
+def _table(entries: list[tuple[str, tuple[int, int, int]]]) -> ClassTable:
+    return ClassTable(tuple(n for n, _ in entries), np.array([c for _, c in entries]))
+
+
+SYNTHETIC_CLASSES = _table([
+    ("floor", (152, 223, 138)), ("wall", (174, 199, 232)), ("ceiling", (120, 120, 120)), ("table", (255, 152, 150)),
+    ("chair", (188, 189, 34)), ("sofa", (140, 86, 75)), ("cabinet", (31, 119, 180)), ("plant", (44, 160, 44)),
+    ("picture", (196, 156, 148)), ("lamp", (255, 187, 120)), ("door", (214, 39, 40)), ("box", (148, 103, 189)),
+])
+
+# NYU40 ids with the colours of ScanNet's util.create_color_palette (0 = unlabelled).
+NYU40_CLASSES = _table([
+    ("unlabelled", (0, 0, 0)), ("wall", (174, 199, 232)), ("floor", (152, 223, 138)), ("cabinet", (31, 119, 180)),
+    ("bed", (255, 187, 120)), ("chair", (188, 189, 34)), ("sofa", (140, 86, 75)), ("table", (255, 152, 150)),
+    ("door", (214, 39, 40)), ("window", (197, 176, 213)), ("bookshelf", (148, 103, 189)), ("picture", (196, 156, 148)),
+    ("counter", (23, 190, 207)), ("blinds", (178, 76, 76)), ("desk", (247, 182, 210)), ("shelves", (66, 188, 102)),
+    ("curtain", (219, 219, 141)), ("dresser", (140, 57, 197)), ("pillow", (202, 185, 52)), ("mirror", (51, 176, 203)),
+    ("floor_mat", (200, 54, 131)), ("clothes", (92, 193, 61)), ("ceiling", (78, 71, 183)), ("books", (172, 114, 82)),
+    ("refrigerator", (255, 127, 14)), ("television", (91, 163, 138)), ("paper", (153, 98, 156)),
+    ("towel", (140, 153, 101)), ("shower_curtain", (158, 218, 229)), ("box", (100, 125, 154)),
+    ("whiteboard", (178, 127, 135)), ("person", (120, 185, 128)), ("night_stand", (146, 111, 194)),
+    ("toilet", (44, 160, 44)), ("sink", (112, 128, 144)), ("lamp", (96, 207, 209)), ("bathtub", (227, 119, 194)),
+    ("bag", (213, 92, 176)), ("otherstructure", (94, 106, 211)), ("otherfurniture", (82, 84, 163)),
+    ("otherprop", (100, 85, 144)),
+])
+
+# The 20 classes of the ScanNet benchmark, as NYU40 ids; class i + 1 of SCANNET20_CLASSES is NYU40 id SCANNET20_NYU40_IDS[i].
+SCANNET20_NYU40_IDS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 14, 16, 24, 28, 33, 34, 36, 39)
+SCANNET20_CLASSES = ClassTable(
+    ("unlabelled",) + tuple(NYU40_CLASSES.names[i] for i in SCANNET20_NYU40_IDS),
+    NYU40_CLASSES.colors[[0, *SCANNET20_NYU40_IDS]],
+)
+
+
+def nyu40_to_scannet20() -> np.ndarray:
+    """Lookup array (41,) mapping NYU40 ids to SCANNET20_CLASSES ids (classes outside the 20 map to 0)."""
+    lut = np.zeros(len(NYU40_CLASSES), dtype=np.int64)
+    lut[list(SCANNET20_NYU40_IDS)] = np.arange(1, len(SCANNET20_NYU40_IDS) + 1)
+    return lut
