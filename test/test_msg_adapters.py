@@ -93,7 +93,8 @@ def test_bgr_and_alpha_become_rgb():
     np.testing.assert_array_equal(ma.image_to_rgb(ma.rgb_to_image(rgb, HEADER, "bgr8")), rgb)
     assert bytes(ma.rgb_to_image(rgb, HEADER, "bgr8").data[:3]) == bytes([30, 20, 10])
     alpha = np.full((1, 2, 1), 255, np.uint8)
-    np.testing.assert_array_equal(ma.image_to_rgb(ma.numpy_to_image(np.concatenate([rgb, alpha], 2), "rgba8", HEADER)), rgb)
+    rgba = np.concatenate([rgb, alpha], 2)
+    np.testing.assert_array_equal(ma.image_to_rgb(ma.numpy_to_image(rgba, "rgba8", HEADER)), rgb)
     bgra = np.concatenate([rgb[..., ::-1], alpha], 2)
     np.testing.assert_array_equal(ma.image_to_rgb(ma.numpy_to_image(bgra, "bgra8", HEADER)), rgb)
 

@@ -1,0 +1,285 @@
+"""gausem_ros helpers: approximate-time sync, TF broadcaster selection, QoS profiles and bag IO."""
+import sys
+import types
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("rosbags")
+
+from rclpy.qos import DurabilityPolicy, ReliabilityPolicy  # noqa: E402
+from rosbags.highlevel import AnyReader  # noqa: E402
+from rosbags.rosbag2 import Writer as Ros2Writer  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from sensor_msgs.msg import Image  # noqa: E402
+
+import msg_adapters as ma  # noqa: E402
+from gausem_core.geometry import PinholeCamera  # noqa: E402
+from gausem_ros import bags, qos, sync, tf  # noqa: E402
+
+
+# --- approximate-time sync ------------------------------------------------------------------------------------------
+class Collector:
+    def __init__(self):
+        self.matches = []
+
+    def __call__(self, *msgs):
+        self.matches.append(msgs)
+
+
+def test_jittered_streams_match_frame_by_frame():
+    rng = np.random.default_rng(0)
+    out = Collector()
+    s = sync.ApproximateTimeSync(3, out, queue_size=5, slop=0.015)
+    for frame in range(30):
+        t = 1.0 + frame / 30
+        arrivals = [(i, t + rng.uniform(-0.005, 0.005), (i, frame)) for i in range(3)]
+        for i in rng.permutation(3):
+            s.add(*arrivals[i])
+    assert [tuple(m[1] for m in match) for match in out.matches] == [(f, f, f) for f in range(30)]
+    assert all([m[0] for m in match] == [0, 1, 2] for match in out.matches)
+    assert s.matched == 30 and sum(s.dropped.values()) == 0
+
+
+def test_unmatched_and_late_messages_are_dropped_as_stale():
+    out = Collector()
+    s = sync.ApproximateTimeSync(2, out, queue_size=10, slop=0.01)
+    s.add(0, 1.000, "rgb1")     # its depth never arrives in time
+    s.add(0, 1.033, "rgb2")
+    s.add(1, 1.034, "depth2")   # matches rgb2; rgb1 is now stale
+    assert out.matches == [("rgb2", "depth2")] and s.dropped["stale"] == 1
+    s.add(1, 1.001, "depth1")   # out of order, older than the last match on its input
+    assert s.dropped["stale"] == 2 and len(out.matches) == 1
+
+
+def test_out_of_order_arrivals_within_the_queue_still_match_the_closest():
+    out = Collector()
+    s = sync.ApproximateTimeSync(2, out, queue_size=10, slop=0.02)
+    s.add(0, 2.00, "a2")
+    s.add(0, 1.99, "a1")        # arrives late but is still queued
+    s.add(1, 1.992, "b1")       # closest is a1 (spread 0.002), not a2 (0.008)
+    assert out.matches == [("a1", "b1")]
+    s.add(1, 2.001, "b2")
+    assert out.matches[-1] == ("a2", "b2")
+
+
+def test_duplicates_keep_the_first_and_overflow_evicts_the_oldest():
+    out = Collector()
+    s = sync.ApproximateTimeSync(2, out, queue_size=2, slop=0.01)
+    s.add(0, 1.0, "first")
+    s.add(0, 1.0, "second")
+    assert s.dropped["duplicate"] == 1
+    s.add(1, 1.0, "depth")
+    assert out.matches == [("first", "depth")]
+    for t in (2.0, 3.0, 4.0):
+        s.add(0, t, f"rgb{t}")
+    assert s.dropped["overflow"] == 1
+    s.add(1, 2.0, "depth2")      # rgb2.0 was evicted
+    s.add(1, 3.0, "depth3")
+    assert out.matches[1:] == [("rgb3.0", "depth3")]
+
+
+def test_sync_rejects_bad_arguments():
+    with pytest.raises(ValueError):
+        sync.ApproximateTimeSync(0, print)
+    with pytest.raises(ValueError, match="out of range"):
+        sync.ApproximateTimeSync(2, print).add(2, 1.0, None)
+
+
+class FakeNode:
+    """Records subscriptions and publishers like rclpy.node.Node (no ROS context needed)."""
+
+    def __init__(self):
+        self.subscriptions, self.publishers, self.warnings = [], [], []
+
+    def create_subscription(self, msg_type, topic, callback, qos_profile):
+        self.subscriptions.append((msg_type, topic, callback, qos_profile))
+        return len(self.subscriptions)
+
+    def create_publisher(self, msg_type, topic, qos_profile):
+        pub = types.SimpleNamespace(topic=topic, qos=qos_profile, sent=[])
+        pub.publish = pub.sent.append
+        self.publishers.append(pub)
+        return pub
+
+    def get_logger(self):
+        return types.SimpleNamespace(warning=self.warnings.append)
+
+
+def test_make_synchronizer_without_message_filters_feeds_header_stamps():
+    node, out = FakeNode(), Collector()
+    handle = sync.make_synchronizer(node, [(Image, "rgb/image"), (Image, "depth/image")], out, qos.IMAGE_QOS,
+                                    queue_size=3, slop=0.01, prefer_message_filters=False)
+    assert [(t, topic, q) for t, topic, _, q in node.subscriptions] == [(Image, "rgb/image", qos.IMAGE_QOS),
+                                                                       (Image, "depth/image", qos.IMAGE_QOS)]
+    rgb = ma.rgb_to_image(np.zeros((2, 2, 3), np.uint8), ma.make_header(5.000, "cam"))
+    depth = ma.depth_to_image(np.ones((2, 2)), ma.make_header(5.004, "cam"))
+    node.subscriptions[1][2](depth)
+    node.subscriptions[0][2](rgb)
+    assert out.matches == [(rgb, depth)] and handle.synchronizer.matched == 1
+
+
+def test_make_synchronizer_prefers_message_filters(monkeypatch):
+    made = {}
+    fake = types.ModuleType("message_filters")
+    fake.Subscriber = lambda node, msg_type, topic, qos_profile: (msg_type, topic, qos_profile)
+
+    class FakeSynchronizer:
+        def __init__(self, subs, queue_size, slop):
+            made.update(subs=subs, queue_size=queue_size, slop=slop)
+
+        def registerCallback(self, callback):  # noqa: N802 (message_filters' name)
+            made["callback"] = callback
+
+    fake.ApproximateTimeSynchronizer = FakeSynchronizer
+    monkeypatch.setitem(sys.modules, "message_filters", fake)
+    node, out = FakeNode(), Collector()
+    handle = sync.make_synchronizer(node, [(Image, "rgb/image")], out, qos.IMAGE_QOS, queue_size=4, slop=0.03)
+    assert isinstance(handle.synchronizer, FakeSynchronizer) and not node.subscriptions
+    assert made == {"subs": [(Image, "rgb/image", qos.IMAGE_QOS)], "queue_size": 4, "slop": 0.03, "callback": out}
+
+
+# --- TF ---------------------------------------------------------------------------------------------------------------
+def test_tf_degrades_to_a_warning_once_without_tf2(monkeypatch):
+    monkeypatch.setitem(sys.modules, "tf2_ros", None)
+    monkeypatch.setitem(sys.modules, "tf2_msgs", None)
+    node = FakeNode()
+    broadcaster = tf.make_transform_broadcaster(node)
+    transform = ma.matrix_to_transform(np.eye(4), ma.make_header(1.0, "map"), "camera")
+    broadcaster.sendTransform(transform)
+    broadcaster.sendTransform([transform])
+    assert len(node.warnings) == 1 and "TF is unavailable" in node.warnings[0] and not node.publishers
+
+
+def test_tf_falls_back_to_a_tfmessage_publisher(monkeypatch):
+    fake_msgs = types.ModuleType("tf2_msgs.msg")
+    fake_msgs.TFMessage = lambda transforms: types.SimpleNamespace(transforms=transforms)
+    monkeypatch.setitem(sys.modules, "tf2_ros", None)
+    monkeypatch.setitem(sys.modules, "tf2_msgs", types.ModuleType("tf2_msgs"))
+    monkeypatch.setitem(sys.modules, "tf2_msgs.msg", fake_msgs)
+    node = FakeNode()
+    dynamic, static = tf.make_transform_broadcaster(node), tf.make_transform_broadcaster(node, static=True)
+    a = ma.matrix_to_transform(np.eye(4), ma.make_header(1.0, "map"), "camera")
+    b = ma.matrix_to_transform(np.eye(4), ma.make_header(1.0, "camera"), "lens")
+    dynamic.sendTransform(a)
+    static.sendTransform(a)
+    static.sendTransform([b])
+    pub_tf, pub_static = node.publishers
+    assert (pub_tf.topic, pub_tf.qos.depth) == ("/tf", 100)
+    assert pub_static.topic == "/tf_static" and pub_static.qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    assert [m.transforms for m in pub_tf.sent] == [[a]]
+    assert [m.transforms for m in pub_static.sent] == [[a], [a, b]]
+
+
+# --- QoS --------------------------------------------------------------------------------------------------------------
+def test_qos_profiles():
+    assert qos.IMAGE_QOS.reliability == ReliabilityPolicy.RELIABLE and qos.IMAGE_QOS.depth == 10
+    assert qos.SENSOR_QOS.reliability == ReliabilityPolicy.BEST_EFFORT
+    assert qos.LATCHED_QOS.durability == DurabilityPolicy.TRANSIENT_LOCAL and qos.LATCHED_QOS.depth == 1
+    assert qos.input_qos("sensor_data") is qos.SENSOR_QOS and qos.input_qos("reliable") is qos.IMAGE_QOS
+    with pytest.raises(ValueError, match="reliable, sensor_data"):
+        qos.input_qos("fast")
+
+
+# --- bags -------------------------------------------------------------------------------------------------------------
+def _tum_messages(n=6):
+    rng = np.random.default_rng(7)
+    camera = PinholeCamera(525.0, 525.0, 320.0, 240.0, 16, 12)
+    out = []
+    for i in range(n):
+        t = 1305031102.175304 + i / 30
+        stamp = ma.seconds_to_ns(t)
+        rgb = ma.rgb_to_image(rng.integers(0, 256, (12, 16, 3), dtype=np.uint8), ma.make_header(t, "rgb"))
+        depth = ma.depth_to_image(rng.random((12, 16), dtype=np.float32) + 0.5, ma.make_header(t + 0.002, "depth"))
+        info = ma.camera_to_camera_info(camera, ma.make_header(t, "rgb"))
+        pose = np.eye(4)
+        pose[:3, 3] = [i, 2.0 * i, -1.0]
+        tf_msg = bags.TFMessageStandIn([ma.matrix_to_transform(pose, ma.make_header(t, "/world"), "/kinect")])
+        out += [(bags.TUM_TOPICS["rgb"], stamp, rgb), (bags.TUM_TOPICS["depth"], stamp + 2_000_000, depth),
+                (bags.TUM_TOPICS["camera_info"], stamp, info), (bags.TUM_TOPICS["tf"], stamp + 1, tf_msg)]
+    return out
+
+
+def _equal(a, b) -> bool:
+    if isinstance(a, bags.TFMessageStandIn):
+        return isinstance(b, bags.TFMessageStandIn) and a.transforms == b.transforms
+    return a == b
+
+
+def _write(fmt, path, messages):
+    if fmt == "ros1":
+        bags.write_ros1_bag(path, messages)
+    else:
+        bags.write_bag(path, messages, storage=fmt)
+
+
+@pytest.mark.parametrize("fmt, name", [("sqlite3", "bag2"), ("mcap", "bag2"), ("ros1", "tum.bag")])
+def test_bag_write_read_round_trip(tmp_path, fmt, name):
+    messages = _tum_messages()
+    path = tmp_path / name
+    _write(fmt, path, messages)
+    back = list(bags.read_bag(path))
+    expected = sorted(messages, key=lambda m: m[1])
+    assert [(m.topic, m.stamp_ns) for m in back] == [(t, s) for t, s, _ in expected]
+    assert all(_equal(m.msg, e[2]) for m, e in zip(back, expected))
+    assert np.array_equal(ma.image_to_rgb(back[0].msg), ma.image_to_rgb(expected[0][2]))
+    only_depth = list(bags.read_bag(path, topics=[bags.TUM_TOPICS["depth"]]))
+    assert [m.topic for m in only_depth] == [bags.TUM_TOPICS["depth"]] * 6
+
+
+def test_ros1_bag_uses_the_tum_legacy_tf_type(tmp_path):
+    path = tmp_path / "tum.bag"
+    bags.write_ros1_bag(path, _tum_messages(1))
+    with AnyReader([path]) as reader:
+        types_by_topic = {c.topic: c.msgtype for c in reader.connections}
+    assert types_by_topic[bags.TUM_TOPICS["tf"]] == "tf/msg/tfMessage"
+    assert types_by_topic[bags.TUM_TOPICS["camera_info"]] == "sensor_msgs/msg/CameraInfo"
+
+
+@pytest.mark.parametrize("fmt, name", [("sqlite3", "bag2"), ("mcap", "bag2"), ("ros1", "tum.bag")])
+def test_truncated_bags_raise_a_clear_error(tmp_path, fmt, name):
+    path = tmp_path / name
+    _write(fmt, path, _tum_messages())
+    data_file = path if path.is_file() else next(p for p in path.iterdir() if p.suffix in (".db3", ".mcap"))
+    with data_file.open("r+b") as f:
+        f.truncate(data_file.stat().st_size * 2 // 3)
+    with pytest.raises(bags.BagError, match=f"bag {path} is corrupt or truncated"):
+        list(bags.read_bag(path))
+
+
+def test_bag_reading_errors(tmp_path):
+    with pytest.raises(bags.BagError, match="does not exist"):
+        list(bags.read_bag(tmp_path / "missing.bag"))
+    path = tmp_path / "bag2"
+    bags.write_bag(path, _tum_messages(1))
+    with pytest.raises(bags.BagError, match=r"no topics \['/nope'\]"):
+        list(bags.read_bag(path, topics=["/nope"]))
+
+
+def test_topics_without_an_rclpy_class_are_skipped_with_a_warning(tmp_path):
+    store = get_typestore(Stores.ROS2_JAZZY)
+    error_type = "tf2_msgs/msg/TF2Error"  # in rosbags' Jazzy store; tf2_msgs is not importable here
+    if bags._message_class(error_type) is not None:
+        pytest.skip("tf2_msgs is importable")
+    path = tmp_path / "bag2"
+    with Ros2Writer(path, version=8) as writer:
+        conn = writer.add_connection("/tf_error", error_type, typestore=store)
+        raw = store.serialize_cdr(store.types[error_type](error=1, error_string="x"), error_type)
+        writer.write(conn, 5, raw)
+        conn = writer.add_connection("/rgb", "sensor_msgs/msg/Image", typestore=store)
+        writer.write(conn, 6, bags._to_cdr(ma.rgb_to_image(np.zeros((1, 1, 3), np.uint8), ma.make_header(0.0, "c"))))
+    with pytest.warns(UserWarning, match="/tf_error"):
+        assert [m.topic for m in bags.read_bag(path)] == ["/rgb"]
+    with pytest.raises(bags.BagError, match="no rclpy message class"):
+        list(bags.read_bag(path, topics=["/tf_error"]))
+
+
+def test_bag_writing_errors(tmp_path):
+    img = ma.rgb_to_image(np.zeros((1, 1, 3), np.uint8), ma.make_header(0.0, "c"))
+    with pytest.raises(bags.BagError, match="integer nanoseconds"):
+        bags.write_bag(tmp_path / "a", [("/rgb", 1.5, img)])
+    with pytest.raises(bags.BagError, match="carries sensor_msgs/msg/Image"):
+        bags.write_bag(tmp_path / "b", [("/rgb", 1, img), ("/rgb", 2, ma.make_header(0.0, "c"))])
+    with pytest.raises(bags.BagError, match="unknown ROS 2 bag storage"):
+        bags.write_bag(tmp_path / "c", [], storage="zip")
