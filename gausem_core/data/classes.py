@@ -56,12 +56,14 @@ class ClassTable:
         """Class ids (H, W) -> RGB image (H, W, 3) uint8."""
         labels = np.asarray(labels)
         if labels.size and (labels.min() < 0 or labels.max() >= len(self)):
-            raise ValueError(f"labels hold ids in [{labels.min()}, {labels.max()}], outside this table's 0..{len(self) - 1}")
+            raise ValueError(f"labels hold ids in [{labels.min()}, {labels.max()}], "
+                             f"outside this table's 0..{len(self) - 1}")
         return self.colors[labels]
 
     # --- text form: one "id name r g b" line per class -------------------------------------------------------------
     def save(self, path: str | Path) -> None:
-        lines = ["# id name r g b"] + [f"{i} {n} {r} {g} {b}" for i, (n, (r, g, b)) in enumerate(zip(self.names, self.colors))]
+        rows = enumerate(zip(self.names, self.colors))
+        lines = ["# id name r g b"] + [f"{i} {name} {r} {g} {b}" for i, (name, (r, g, b)) in rows]
         Path(path).write_text("\n".join(lines) + "\n")
 
     @classmethod
@@ -72,7 +74,8 @@ class ClassTable:
                 continue
             parts = line.split()
             if len(parts) != 5 or not parts[0].isdigit() or int(parts[0]) != len(names):
-                raise ValueError(f"{path}:{number}: expected 'id name r g b' with ids 0, 1, 2, ... in order, got {line!r}")
+                raise ValueError(f"{path}:{number}: expected 'id name r g b' with ids 0, 1, 2, ... in order, "
+                                 f"got {line!r}")
             names.append(parts[1])
             colors.append([int(v) for v in parts[2:]])
         if not names:
@@ -106,7 +109,7 @@ NYU40_CLASSES = _table([
     ("otherprop", (100, 85, 144)),
 ])
 
-# The 20 classes of the ScanNet benchmark, as NYU40 ids; class i + 1 of SCANNET20_CLASSES is NYU40 id SCANNET20_NYU40_IDS[i].
+# The 20 classes of the ScanNet benchmark as NYU40 ids: SCANNET20_CLASSES id i + 1 is NYU40 id SCANNET20_NYU40_IDS[i].
 SCANNET20_NYU40_IDS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 14, 16, 24, 28, 33, 34, 36, 39)
 SCANNET20_CLASSES = ClassTable(
     ("unlabelled",) + tuple(NYU40_CLASSES.names[i] for i in SCANNET20_NYU40_IDS),

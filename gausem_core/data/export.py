@@ -27,7 +27,8 @@ def write_tum_folder(dataset, path: str | Path) -> Path:
     labelled = dataset.class_table is not None
     for sub in ("rgb", "depth", "labels") if labelled else ("rgb", "depth"):
         (root / sub).mkdir(parents=True, exist_ok=True)
-    rgb_lines, depth_lines, gt_lines = ["# timestamp filename"], ["# timestamp filename"], ["# timestamp tx ty tz qx qy qz qw"]
+    rgb_lines, depth_lines = ["# timestamp filename"], ["# timestamp filename"]
+    gt_lines = ["# timestamp tx ty tz qx qy qz qw"]
     camera = None
     for frame in dataset:
         camera = camera or frame.camera

@@ -57,7 +57,7 @@ class ScanNetDataset(Dataset):
             raise ValueError(f"classes must be 'nyu40' or 'scannet20', got {classes!r}")
         self.name, self.depth_scale, self.fps = self.root.name, float(depth_scale), float(fps)
         color_dir = self.root / "color"
-        self.frame_ids = sorted((int(p.stem) for p in color_dir.glob("*.jpg") if p.stem.isdigit())) if color_dir.is_dir() else []
+        self.frame_ids = sorted(int(p.stem) for p in color_dir.glob("*.jpg") if p.stem.isdigit())
         if not self.frame_ids:
             raise ValueError(f"{self.root}: no colour frames color/<n>.jpg")
         for i in self.frame_ids:
@@ -68,7 +68,8 @@ class ScanNetDataset(Dataset):
         self.camera = camera_from_opencv(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
         require_file(self.root / "intrinsic" / "intrinsic_color.txt")
         self.label_lut = self._label_lut(label_map, classes)
-        self.class_table = None if self.label_lut is None else (NYU40_CLASSES if classes == "nyu40" else SCANNET20_CLASSES)
+        if self.label_lut is not None:
+            self.class_table = NYU40_CLASSES if classes == "nyu40" else SCANNET20_CLASSES
 
     def _label_lut(self, label_map, classes: str) -> np.ndarray | None:
         if not (self.root / "label-filt").is_dir():
@@ -95,7 +96,8 @@ class ScanNetDataset(Dataset):
             return None
         raw = read_uint16(self.root / "label-filt" / f"{i}.png").astype(np.int64)
         if raw.max(initial=0) >= len(self.label_lut):
-            raise ValueError(f"label-filt/{i}.png holds id {raw.max()}, beyond the label map's {len(self.label_lut) - 1}")
+            raise ValueError(f"label-filt/{i}.png holds id {raw.max()}, "
+                             f"beyond the label map's {len(self.label_lut) - 1}")
         labels = self.label_lut[raw]
         return resize_nearest(labels, self.camera.width, self.camera.height)
 

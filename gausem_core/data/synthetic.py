@@ -270,15 +270,14 @@ class Scene:
     # --- appearance -------------------------------------------------------------------------------------------------
     def _value_noise(self, p):
         """Smooth lattice value noise in [0, 1] at points (N, 3) given in lattice units."""
-        cell = np.floor(p).astype(np.int64)
+        cell = np.floor(p).astype(np.int32)
         f = p - cell
         u = f * f * (3 - 2 * f)
         n, mask = NOISE_PERIOD, NOISE_PERIOD - 1
-        cell = cell.astype(np.int32)
         index = [[((cell[:, i] + o) & mask) * n ** (2 - i) for o in (0, 1)] for i in range(3)]
         weight = [[1 - u[:, i], u[:, i]] for i in range(3)]
-        return sum(weight[0][a] * weight[1][b] * weight[2][c] * self.noise_lattice[index[0][a] + index[1][b] + index[2][c]]
-                   for a, b, c in np.ndindex(2, 2, 2))
+        return sum(weight[0][a] * weight[1][b] * weight[2][c]
+                   * self.noise_lattice[index[0][a] + index[1][b] + index[2][c]] for a, b, c in np.ndindex(2, 2, 2))
 
     def shade(self, points, normals, material):
         """RGB in [0, 1] (N, 3) of surface points: textured base colour under ambient + Lambertian light."""
@@ -295,9 +294,7 @@ class Scene:
 
     def render(self, cam_to_world: np.ndarray, camera: PinholeCamera):
         """Exact ray casting through pixel centres -> rgb (H, W, 3) uint8, depth (H, W) metres, labels (H, W)."""
-        v, u = np.meshgrid(np.arange(camera.height, dtype=np.float32) + 0.5,
-                           np.arange(camera.width, dtype=np.float32) + 0.5, indexing="ij")
-        rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)], -1).reshape(-1, 3)
+        rays = camera.pixel_rays().numpy().reshape(-1, 3)
         t, normals, points, material = self.cast(cam_to_world[:3, 3], rays @ cam_to_world[:3, :3].T.astype(np.float32))
         rgb = np.clip(self.shade(points, normals, material) * 255 + 0.5, 0, 255).astype(np.uint8)
         shape = (camera.height, camera.width)
