@@ -91,21 +91,22 @@ def band_pairs(screen: ScreenGaussians, boxes: Boxes, band: Band, width: int):
     (``(row - row0) * width + col``, int64) and the unclamped alpha ``opacity * exp(-d^2 / 2 sigma^2)``.
     """
     g = band.gaussians
-    x0, y0 = boxes.x0[g], boxes.y0[g].clamp_min(band.row0)
-    box_w = boxes.x1[g] - x0 + 1
-    count = box_w * (boxes.y1[g].clamp_max(band.row1 - 1) - y0 + 1)
+    x0 = boxes.x0.index_select(0, g)
+    y0 = boxes.y0.index_select(0, g).clamp_min(band.row0)
+    box_w = boxes.x1.index_select(0, g) - x0 + 1
+    count = box_w * (boxes.y1.index_select(0, g).clamp_max(band.row1 - 1) - y0 + 1)
     local = torch.repeat_interleave(torch.arange(g.shape[0], device=g.device), count)
-    offset = torch.arange(local.shape[0], device=g.device) - (count.cumsum(0) - count)[local]
-    box_w = box_w[local]
+    ints = torch.stack([g, x0 - band.row0 * width + y0 * width, box_w, count.cumsum(0) - count], 1).index_select(0, local)
+    g, corner, box_w = ints[:, 0], ints[:, 1], ints[:, 2]
+    offset = torch.arange(local.shape[0], device=g.device) - ints[:, 3]
     row_in_box = torch.div(offset, box_w, rounding_mode="floor")
-    col = x0[local] + offset - row_in_box * box_w
-    row = y0[local] + row_in_box
-    g = g[local]
-    dx = col + 0.5 - screen.u.detach()[g]
-    dy = row + 0.5 - screen.v.detach()[g]
-    q = dx * dx * screen.inv_var_x.detach()[g] + dy * dy * screen.inv_var_y.detach()[g]
-    alpha = screen.opacity.detach()[g] * torch.exp(-0.5 * q)
-    keep = alpha >= ALPHA_MIN
-    pixel = ((row[keep] - band.row0) * width + col[keep]).int()
-    pixel, perm = torch.sort(pixel, stable=True)
-    return g[keep][perm], pixel.long(), alpha[keep][perm]
+    pixel = corner + offset + row_in_box * (width - box_w)  # band-local pixel index
+    params = torch.stack([screen.u, screen.v, screen.inv_var_x, screen.inv_var_y, screen.opacity]).detach()
+    u, v, inv_var_x, inv_var_y, opacity = params.index_select(1, g).unbind(0)
+    dx = (pixel % width) + 0.5 - u
+    dy = torch.div(pixel, width, rounding_mode="floor") + (band.row0 + 0.5) - v
+    alpha = opacity * torch.exp(-0.5 * (dx * dx * inv_var_x + dy * dy * inv_var_y))
+    kept = (alpha >= ALPHA_MIN).nonzero().squeeze(1)
+    pixel, order = torch.sort(pixel.index_select(0, kept).int(), stable=True)
+    kept = kept.index_select(0, order)
+    return g.index_select(0, kept), pixel.long(), alpha.index_select(0, kept)

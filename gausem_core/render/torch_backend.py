@@ -22,4 +22,4 @@ def rasterize_torch(screen: ScreenGaussians, width: int, height: int,
         gaussian, pixel, alpha = band_pairs(screen, boxes, band, width)
         n_pixels = (band.row1 - band.row0) * width
         rows.append(CompositeBand.apply(*tensors, gaussian, pixel, alpha, band.row0, width, n_pixels))
-    return torch.cat(rows).reshape(height, width, -1)
+    return torch.cat(rows, 1).T.reshape(height, width, -1)
