@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import torch
 
+from gausem_core.render.pairs import take
 from gausem_core.render.projection import ALPHA_MAX
 
 
@@ -20,12 +21,13 @@ def _segments(pixel: torch.Tensor, n_pixels: int) -> tuple[torch.Tensor, torch.T
     """For pairs sorted by pixel: the index of each pair's first and last pair in its pixel."""
     ends = torch.bincount(pixel, minlength=n_pixels).cumsum(0)
     starts = torch.cat([ends.new_zeros(1), ends[:-1]])
-    return starts.index_select(0, pixel), ends.index_select(0, pixel) - 1
+    first, last = take(pixel, starts, ends)
+    return first, last - 1
 
 
-def _scatter_rows(rows: torch.Tensor, index: torch.Tensor, size: int) -> torch.Tensor:
-    """(K, P) values summed into (K, size) by column ``index`` (one 1-D index_add per row: much faster on CPU)."""
-    out = rows.new_zeros(rows.shape[0], size)
+def _scatter_rows(rows: list[torch.Tensor], index: torch.Tensor, size: int) -> torch.Tensor:
+    """K rows of P values summed into (K, size) by ``index`` (one 1-D index_add each: much faster on CPU than 2-D)."""
+    out = rows[0].new_zeros(len(rows), size)
     for target, source in zip(out, rows):
         target.index_add_(0, index, source)
     return out
@@ -52,7 +54,7 @@ class CompositeBand(torch.autograd.Function):
         exclusive = log_keep.cumsum(0) - log_keep
         transmittance = (exclusive - exclusive.index_select(0, first)).to(alpha.dtype).exp()
         weight = clamped * transmittance
-        out = _scatter_rows(_with_ones(features).index_select(1, gaussian) * weight, pixel, n_pixels)
+        out = _scatter_rows([row * weight for row in take(gaussian, *_with_ones(features))], pixel, n_pixels)
         ctx.save_for_backward(u, v, inv_var_x, inv_var_y, opacity, features, gaussian, pixel, alpha, transmittance)
         ctx.geometry = (row0, width, n_pixels)
         return out
@@ -64,22 +66,18 @@ class CompositeBand(torch.autograd.Function):
         _, last = _segments(pixel, n_pixels)
         clamped = alpha.clamp_max(ALPHA_MAX)
         weight = clamped * transmittance
-        grad_pair = grad_out.index_select(1, pixel)  # (C + 1, P)
-        h = (_with_ones(features).index_select(1, gaussian) * grad_pair).sum(0)
+        grad_pair = take(pixel, *grad_out)  # C + 1 rows of P
+        h = sum(f * g for f, g in zip(take(gaussian, *_with_ones(features)), grad_pair))
         inclusive = (weight * h).double().cumsum(0)
         behind = (inclusive.index_select(0, last) - inclusive).to(alpha.dtype)
         grad_alpha = transmittance * h - behind / (1.0 - clamped)
         grad_alpha = torch.where(alpha > ALPHA_MAX, 0.0, grad_alpha)  # clamped: no gradient
         # alpha = o exp(-q / 2), q = dx^2 a + dy^2 b, dx = col + 0.5 - u, dy = row + 0.5 - v
-        params = torch.stack([u, v, inv_var_x, inv_var_y, opacity]).index_select(1, gaussian)
-        dx = (pixel % width) + 0.5 - params[0]
-        dy = torch.div(pixel, width, rounding_mode="floor") + (row0 + 0.5) - params[1]
+        u, v, inv_var_x, inv_var_y, opacity = take(gaussian, u, v, inv_var_x, inv_var_y, opacity)
+        dx = (pixel % width) + 0.5 - u
+        dy = torch.div(pixel, width, rounding_mode="floor") + (row0 + 0.5) - v
         g_q = grad_alpha * alpha  # dL/d(-q/2)
-        rows = torch.cat([
-            torch.stack([g_q * params[2] * dx, g_q * params[3] * dy, -0.5 * g_q * dx * dx, -0.5 * g_q * dy * dy,
-                         g_q / params[4]]),
-            grad_pair[:-1] * weight,
-        ])
-        grads = _scatter_rows(rows, gaussian, features.shape[0])
+        rows = [g_q * inv_var_x * dx, g_q * inv_var_y * dy, -0.5 * g_q * dx * dx, -0.5 * g_q * dy * dy, g_q / opacity]
+        grads = _scatter_rows(rows + [g * weight for g in grad_pair[:-1]], gaussian, features.shape[0])
         g_u, g_v, g_a, g_b, g_o = grads[:5]
         return g_u, g_v, g_a, g_b, g_o, grads[5:].T, None, None, None, None, None, None

@@ -34,6 +34,12 @@ class Band:
     gaussians: torch.Tensor
 
 
+def take(index: torch.Tensor, *tensors: torch.Tensor) -> list[torch.Tensor]:
+    """``t[index]`` of 1-D tensors, by one 1-D ``index_select`` each (several times faster on CPU than a gather on a
+    stacked (K, M) tensor along dim 1, or advanced indexing)."""
+    return [t.index_select(0, index) for t in tensors]
+
+
 @torch.no_grad()
 def footprint_boxes(screen: ScreenGaussians, width: int, height: int) -> Boxes:
     """Pixels whose centre ``(j + 0.5, i + 0.5)`` lies within the footprint ellipse's bounding box."""
@@ -90,23 +96,27 @@ def band_pairs(screen: ScreenGaussians, boxes: Boxes, band: Band, width: int):
     Returns ``(gaussian, pixel, alpha)``: screen-Gaussian index (int64), pixel index within the band
     (``(row - row0) * width + col``, int64) and the unclamped alpha ``opacity * exp(-d^2 / 2 sigma^2)``.
     """
-    g = band.gaussians
-    x0 = boxes.x0.index_select(0, g)
-    y0 = boxes.y0.index_select(0, g).clamp_min(band.row0)
-    box_w = boxes.x1.index_select(0, g) - x0 + 1
-    count = box_w * (boxes.y1.index_select(0, g).clamp_max(band.row1 - 1) - y0 + 1)
-    local = torch.repeat_interleave(torch.arange(g.shape[0], device=g.device), count)
-    ints = torch.stack([g, x0 - band.row0 * width + y0 * width, box_w, count.cumsum(0) - count], 1).index_select(0, local)
-    g, corner, box_w = ints[:, 0], ints[:, 1], ints[:, 2]
-    offset = torch.arange(local.shape[0], device=g.device) - ints[:, 3]
+    members = band.gaussians
+    x0 = boxes.x0.index_select(0, members)
+    y0 = boxes.y0.index_select(0, members).clamp_min(band.row0)
+    box_w = boxes.x1.index_select(0, members) - x0 + 1
+    count = box_w * (boxes.y1.index_select(0, members).clamp_max(band.row1 - 1) - y0 + 1)
+    local = torch.repeat_interleave(torch.arange(members.shape[0], device=members.device), count)
+    corner = x0 + (y0 - band.row0) * width  # band-local pixel index of the box's first pixel
+    g, corner, box_w, start = take(local, members, corner, box_w, count.cumsum(0) - count)
+    offset = torch.arange(local.shape[0], device=g.device) - start
     row_in_box = torch.div(offset, box_w, rounding_mode="floor")
-    pixel = corner + offset + row_in_box * (width - box_w)  # band-local pixel index
-    params = torch.stack([screen.u, screen.v, screen.inv_var_x, screen.inv_var_y, screen.opacity]).detach()
-    u, v, inv_var_x, inv_var_y, opacity = params.index_select(1, g).unbind(0)
-    dx = (pixel % width) + 0.5 - u
-    dy = torch.div(pixel, width, rounding_mode="floor") + (band.row0 + 0.5) - v
+    col_in_box = offset - row_in_box * box_w
+    u, v, inv_var_x, inv_var_y, opacity = take(members, *(t.detach() for t in (
+        screen.u, screen.v, screen.inv_var_x, screen.inv_var_y, screen.opacity)))
+    # per Gaussian: offset of the box's first pixel centre from the centre; then per pair
+    x_off, y_off, inv_var_x, inv_var_y, opacity = take(local, x0 + 0.5 - u, y0 + 0.5 - v, inv_var_x, inv_var_y,
+                                                       opacity)
+    dx = x_off + col_in_box
+    dy = y_off + row_in_box
     alpha = opacity * torch.exp(-0.5 * (dx * dx * inv_var_x + dy * dy * inv_var_y))
+    pixel = corner + offset + row_in_box * (width - box_w)
     kept = (alpha >= ALPHA_MIN).nonzero().squeeze(1)
     pixel, order = torch.sort(pixel.index_select(0, kept).int(), stable=True)
-    kept = kept.index_select(0, order)
-    return g.index_select(0, kept), pixel.long(), alpha.index_select(0, kept)
+    g, alpha = take(kept.index_select(0, order), g, alpha)
+    return g, pixel.long(), alpha

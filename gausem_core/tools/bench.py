@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
 import re
 import statistics
@@ -82,7 +83,8 @@ def environment(device: torch.device) -> dict:
         match = re.search(r"model name\s*:\s*(.+)", Path("/proc/cpuinfo").read_text())
         name = match.group(1).strip() if match else platform.processor()
     return {"git_commit": commit, "device": device.type, "device_name": name, "torch": torch.__version__,
-            "threads": torch.get_num_threads(), "python": platform.python_version()}
+            "threads": torch.get_num_threads(), "python": platform.python_version(),
+            "load_average_at_start": [round(x, 2) for x in os.getloadavg()]}
 
 
 # --- render target ----------------------------------------------------------------------------------------------------
