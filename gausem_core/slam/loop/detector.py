@@ -1,0 +1,90 @@
+"""Semantic-aware loop detection (paper Algorithm 1): descriptor radius search, re-ranked by landmark scores."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from gausem_core.config import LoopConfig
+from gausem_core.slam.loop.database import DescriptorDatabase
+from gausem_core.slam.loop.landmarks import landmark_distance
+
+
+@dataclass(frozen=True)
+class LoopCandidate:
+    """A detected loop: the query keyframe revisits the place of the match keyframe."""
+
+    query_keyframe: int
+    match_keyframe: int
+    query_submap: int
+    match_submap: int
+    descriptor_distance: float
+    landmark_distance: float
+
+    @property
+    def intra(self) -> bool:
+        """True when both keyframes belong to the same submap (an intra-submap loop)."""
+        return self.query_submap == self.match_submap
+
+
+class LoopDetector:
+    """Algorithm 1. Every ``check_every``-th keyframe is compared with all stored keyframes except the newest
+    ``exclude_recent``; those with a descriptor distance below ``max_descriptor_distance`` (and, when
+    ``min_submap_gap`` > 0, from a submap at least that many ids older) are candidates, and the one whose landmark
+    score vector is closest to the query's is the loop.
+
+    Landmark score vectors (:func:`~gausem_core.slam.loop.landmarks.landmark_scores`) are computed by the caller, who
+    owns the Gaussians; a stored keyframe is compared with the vector it was added with.
+    """
+
+    def __init__(self, *, keyframe_every: int = 5, check_every: int = 6, max_descriptor_distance: float = 0.2,
+                 exclude_recent: int = 6, min_submap_gap: int = 0, descriptor_dim: int = 384, backend: str = "auto"):
+        for name, value, low in (("keyframe_every", keyframe_every, 1), ("check_every", check_every, 1),
+                                 ("exclude_recent", exclude_recent, 0), ("min_submap_gap", min_submap_gap, 0)):
+            if value < low:
+                raise ValueError(f"LoopDetector: {name} must be >= {low}, got {value}")
+        if max_descriptor_distance <= 0:
+            raise ValueError(f"LoopDetector: max_descriptor_distance must be positive, got {max_descriptor_distance}")
+        self.keyframe_every = keyframe_every
+        self.check_every = check_every
+        self.max_descriptor_distance = max_descriptor_distance
+        self.exclude_recent = exclude_recent
+        self.min_submap_gap = min_submap_gap
+        self.database = DescriptorDatabase(descriptor_dim, backend)
+        self._keyframes: dict[int, tuple[int, torch.Tensor]] = {}  # keyframe id -> (submap id, landmark scores)
+
+    @classmethod
+    def from_config(cls, cfg: LoopConfig, **kwargs) -> "LoopDetector":
+        return cls(keyframe_every=cfg.keyframe_every, check_every=cfg.check_every,
+                   max_descriptor_distance=cfg.max_descriptor_distance, exclude_recent=cfg.exclude_recent, **kwargs)
+
+    def is_keyframe(self, frame_index: int) -> bool:
+        """Algorithm 1, line 1: a keyframe every ``keyframe_every`` frames (frame 0 is one)."""
+        return frame_index % self.keyframe_every == 0
+
+    def add_keyframe(self, keyframe_id: int, submap_id: int, descriptor: torch.Tensor,
+                     landmark_scores: torch.Tensor) -> LoopCandidate | None:
+        """Check the keyframe for a loop (on every ``check_every``-th call), then store it. Returns the loop or None."""
+        if self._keyframes:
+            first_scores = next(iter(self._keyframes.values()))[1]
+            if landmark_scores.shape != first_scores.shape:
+                raise ValueError(f"LoopDetector.add_keyframe: landmark scores of keyframe {keyframe_id} have shape "
+                                 f"{tuple(landmark_scores.shape)}, earlier ones {tuple(first_scores.shape)}")
+        is_check = (len(self.database) + 1) % self.check_every == 0
+        loop = self._detect(keyframe_id, submap_id, descriptor, landmark_scores) if is_check else None
+        self.database.add(keyframe_id, descriptor)
+        self._keyframes[keyframe_id] = (submap_id, landmark_scores.detach().cpu())
+        return loop
+
+    def _detect(self, keyframe_id, submap_id, descriptor, landmark_scores) -> LoopCandidate | None:
+        ids, distances = self.database.search(descriptor, radius=self.max_descriptor_distance,
+                                              exclude_recent=self.exclude_recent)
+        best = None
+        for match, desc_dist in zip(ids.tolist(), distances.tolist()):
+            match_submap, match_scores = self._keyframes[match]
+            if submap_id - match_submap < self.min_submap_gap:
+                continue
+            land_dist = landmark_distance(landmark_scores.detach().cpu(), match_scores)
+            if best is None or land_dist < best.landmark_distance:
+                best = LoopCandidate(keyframe_id, match, submap_id, match_submap, desc_dist, land_dist)
+        return best

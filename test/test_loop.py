@@ -1,0 +1,172 @@
+"""Loop detection: descriptor database (FAISS vs torch), Gaussian-IDF landmark scores, Algorithm 1."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gausem_core.config import LoopConfig
+from gausem_core.slam.loop import (DescriptorDatabase, LoopDetector, gaussian_idf, landmark_distance,
+                                   landmark_scores)
+from gausem_core.slam.loop.database import _import_faiss
+
+BACKENDS = ["torch"] + (["faiss"] if _import_faiss() is not None else [])
+
+
+def _filled(backend, vectors, ids):
+    db = DescriptorDatabase(vectors.shape[1], backend)
+    for i, v in zip(ids, vectors):
+        db.add(i, v)
+    return db
+
+
+# --- database -----------------------------------------------------------------------------------------------------
+def test_database_faiss_and_torch_agree_with_exclusion_window():
+    pytest.importorskip("faiss")
+    rng = np.random.default_rng(1)
+    vectors = rng.normal(size=(300, 24)).astype(np.float32)
+    ids = np.cumsum(rng.integers(1, 4, size=300))  # increasing, not consecutive
+    dbs = [_filled(b, vectors, ids) for b in ("faiss", "torch")]
+    assert [db.backend for db in dbs] == ["faiss", "torch"]
+    unit = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+    for q in rng.normal(size=(10, 24)):
+        for kwargs in ({"k": 7}, {"radius": 1.25}, {"k": 3, "radius": 1.3}, {"k": 400, "exclude_recent": 40},
+                       {"radius": 1.3, "exclude_recent": 250}):
+            (fi, fd), (ti, td) = (db.search(q, **kwargs) for db in dbs)
+            np.testing.assert_array_equal(fi, ti)
+            np.testing.assert_allclose(fd, td, atol=1e-5)
+            # independent check: true L2 distances of unit vectors, newest entries excluded, sorted, within radius
+            rows = np.searchsorted(ids, ti)
+            np.testing.assert_allclose(td, np.linalg.norm(unit[rows] - q / np.linalg.norm(q), axis=1), atol=1e-5)
+            assert np.all(rows < 300 - kwargs.get("exclude_recent", 0))
+            assert np.all(np.diff(td) >= 0)
+            if "radius" in kwargs:
+                assert np.all(td < kwargs["radius"]) and len(td) > 0
+        assert len(dbs[0].search(q, k=5, exclude_recent=300)[0]) == 0
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_database_hand_example(backend):
+    db = _filled(backend, np.array([[2.0, 0.0], [0.0, 3.0], [1.0, 1.0]]), [10, 11, 12])
+    ids, dist = db.search(np.array([5.0, 0.0]), radius=0.8)
+    np.testing.assert_array_equal(ids, [10, 12])
+    np.testing.assert_allclose(dist, [0.0, math.sqrt(2 - math.sqrt(2))], atol=1e-6)  # |(1,0) - (1,1)/sqrt2|
+    ids, dist = db.search(np.array([0.0, 1.0]), k=1, exclude_recent=1)
+    np.testing.assert_array_equal(ids, [11])
+
+
+def test_database_save_load_round_trip(tmp_path):
+    rng = np.random.default_rng(2)
+    db = _filled("torch", rng.normal(size=(40, 8)), range(0, 80, 2))
+    path = tmp_path / "descriptors"  # no suffix: must be written under exactly this name
+    db.save(path)
+    loaded = DescriptorDatabase.load(path, backend=BACKENDS[-1])
+    np.testing.assert_array_equal(loaded.ids, db.ids)
+    np.testing.assert_array_equal(loaded.vectors, db.vectors)
+    q = rng.normal(size=8)
+    for a, b in zip(loaded.search(q, k=5), db.search(q, k=5)):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_database_rejects_bad_input(tmp_path):
+    db = DescriptorDatabase(3, "torch")
+    db.add(5, [1.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="ids must increase"):
+        db.add(5, [0.0, 1.0, 0.0])
+    with pytest.raises(ValueError, match="non-zero"):
+        db.add(6, [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="expected 3"):
+        db.search([1.0, 0.0], k=1)
+    with pytest.raises(ValueError, match="give k, radius"):
+        db.search([1.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="backend"):
+        DescriptorDatabase(3, "annoy")
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, something=np.zeros(3))
+    with pytest.raises(ValueError, match="not a DescriptorDatabase"):
+        DescriptorDatabase.load(bad)
+
+
+# --- landmarks ----------------------------------------------------------------------------------------------------
+def test_gaussian_idf_and_landmark_scores_hand_example():
+    classes = torch.tensor([0, 0, 0, 1, 1, 2])  # N = 6; N_c = 3, 2, 1, 0
+    idf = gaussian_idf(classes, 4)
+    np.testing.assert_allclose(idf.numpy(), [math.log(6 / 4), math.log(6 / 3), math.log(6 / 2), math.log(6)])
+    observed = torch.tensor([True, False, False, True, True, False])  # M = 3; M_c = 1, 2, 0, 0
+    w = landmark_scores(classes, observed, idf)
+    np.testing.assert_allclose(w.numpy(), [3 * math.log(1.5), 1.5 * math.log(2), 0.0, 0.0])
+    assert landmark_scores(classes, torch.zeros(6, dtype=torch.bool), idf).abs().sum() == 0
+    assert landmark_distance(torch.tensor([3.0, 0.0]), torch.tensor([0.0, 4.0])) == pytest.approx(5.0)
+
+
+def test_landmarks_reject_bad_input():
+    with pytest.raises(ValueError, match=r"\[0, 3\)"):
+        gaussian_idf(torch.tensor([0, 3]), 3)
+    with pytest.raises(ValueError, match="no Gaussians"):
+        gaussian_idf(torch.zeros(0, dtype=torch.long), 3)
+    with pytest.raises(ValueError, match="integer"):
+        gaussian_idf(torch.tensor([0.0, 1.0]), 3)
+    with pytest.raises(ValueError, match="bool mask"):
+        landmark_scores(torch.tensor([0, 1]), torch.tensor([1, 0]), torch.ones(3))
+    with pytest.raises(ValueError, match="equal length"):
+        landmark_distance(torch.ones(3), torch.ones(4))
+
+
+# --- detector -----------------------------------------------------------------------------------------------------
+def _unit(v):
+    return v / v.norm()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_detector_finds_revisit_and_reranks_by_landmarks(backend):
+    """18 keyframes; the 18th (a check point) revisits the place of keyframe 3. Keyframe 5 looks even more alike
+    (repetitive texture) but holds other classes, and keyframe 16 is an identical but too recent view."""
+    g = torch.Generator().manual_seed(3)
+    places = torch.stack([_unit(torch.randn(16, generator=g)) for _ in range(17)])
+    scores = torch.rand(17, 5, generator=g) * 4
+    query = _unit(places[3] + 0.05 * _unit(torch.randn(16, generator=g)))
+    descriptors = list(places)
+    descriptors[5] = _unit(query + 0.02 * _unit(torch.randn(16, generator=g)))  # closer to the query than kf 3
+    descriptors[16] = query.clone()
+    detector = LoopDetector(keyframe_every=5, check_every=6, max_descriptor_distance=0.2, exclude_recent=6,
+                            descriptor_dim=16, backend=backend)
+    for kf in range(17):
+        assert detector.add_keyframe(kf, kf // 9, descriptors[kf], scores[kf]) is None
+    loop = detector.add_keyframe(17, 1, query, scores[3] + 0.01)
+    assert loop is not None
+    assert (loop.query_keyframe, loop.match_keyframe, loop.query_submap, loop.match_submap) == (17, 3, 1, 0)
+    assert not loop.intra
+    assert loop.descriptor_distance == pytest.approx(float((query - places[3]).norm()), abs=1e-5)
+    assert loop.landmark_distance == pytest.approx(0.01 * math.sqrt(5), abs=1e-6)
+    assert float((query - descriptors[5]).norm()) < loop.descriptor_distance < 0.2  # kf 5 was a candidate
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_detector_checks_only_every_sixth_keyframe(backend):
+    """Every keyframe revisits keyframe 0's place; only the 6th, 12th, ... keyframes are compared."""
+    g = torch.Generator().manual_seed(4)
+    place = _unit(torch.randn(8, generator=g))
+    detector = LoopDetector(check_every=6, exclude_recent=2, descriptor_dim=8, backend=backend)
+    found = []
+    for kf in range(18):
+        loop = detector.add_keyframe(kf, 0, _unit(place + 0.01 * torch.randn(8, generator=g)), torch.ones(3))
+        if loop is not None:
+            found.append(kf)
+            assert loop.intra
+    assert found == [5, 11, 17]
+    assert detector.is_keyframe(10) and not detector.is_keyframe(11)
+
+
+def test_detector_min_submap_gap_and_errors():
+    place = torch.ones(4)
+    detector = LoopDetector(check_every=2, exclude_recent=0, min_submap_gap=1, descriptor_dim=4, backend="torch")
+    assert detector.add_keyframe(0, 7, place, torch.zeros(2)) is None
+    assert detector.add_keyframe(1, 7, place, torch.zeros(2)) is None  # same submap: gap 0 < 1
+    with pytest.raises(ValueError, match="landmark scores"):
+        detector.add_keyframe(2, 8, place, torch.zeros(3))
+    with pytest.raises(ValueError, match="check_every"):
+        LoopDetector(check_every=0)
+    cfg = LoopConfig(keyframe_every=3, check_every=4, max_descriptor_distance=0.1, exclude_recent=2)
+    from_cfg = LoopDetector.from_config(cfg, backend="torch")
+    assert (from_cfg.keyframe_every, from_cfg.check_every, from_cfg.max_descriptor_distance,
+            from_cfg.exclude_recent) == (3, 4, 0.1, 2)

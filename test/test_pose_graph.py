@@ -1,0 +1,123 @@
+"""GTSAM pose graphs (loop closure with robust loop edges) and the rigid submap correction after an anchor moves."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gausem_core.gaussians import GaussianCloud
+from gausem_core.geometry import invert_pose, make_pose, se3_exp, so3_exp, transform_points
+from gausem_core.slam.correction import anchor_correction, correct_poses, correct_submap
+
+pytest.importorskip("gtsam")
+from gausem_core.slam.pose_graph import PoseGraph  # noqa: E402
+
+
+def _pose(rho, omega):
+    return se3_exp(torch.tensor([*rho, *omega], dtype=torch.float64)).numpy()
+
+
+def _circle(n=40, radius=3.0):
+    """Ground-truth cam_to_world poses on a horizontal circle, camera looking along the direction of travel."""
+    poses = []
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        rot = so3_exp(torch.tensor([0.0, -a, 0.0], dtype=torch.float64))
+        poses.append(make_pose(rot, torch.tensor([radius * math.sin(a), 0.0, radius * math.cos(a)],
+                                                 dtype=torch.float64)).numpy())
+    return poses
+
+
+def _drifted(truth, rng):
+    """Integrate the true relative motions corrupted by a constant yaw bias and noise (odometry drift)."""
+    bias = _pose([0.01, 0.0, 0.0], [0.0, 0.012, 0.004])
+    est = [truth[0]]
+    for a, b in zip(truth[:-1], truth[1:]):
+        noise = _pose(rng.normal(0, 0.003, 3), rng.normal(0, 0.002, 3))
+        est.append(est[-1] @ np.linalg.inv(a) @ b @ bias @ noise)
+    return est
+
+
+def _ate(est: dict, truth):
+    return float(np.sqrt(np.mean([np.sum((est[i][:3, 3] - t[:3, 3]) ** 2) for i, t in enumerate(truth)])))
+
+
+def _graph(truth, initial, robust, outlier):
+    graph = PoseGraph(robust_kernel=robust)
+    for i, pose in enumerate(initial):
+        graph.add_node(i, pose)
+    for i in range(1, len(initial)):
+        graph.add_odometry(i - 1, i)
+    n = len(truth)
+    for a, b in ((0, n - 1), (0, n - 2), (1, n - 1), (n // 2, n // 2 + 3)):  # true loop closures
+        graph.add_loop(a, b, np.linalg.inv(truth[a]) @ truth[b])
+    if outlier:
+        graph.add_loop(5, n // 2, _pose([2.0, 0.5, -1.0], [0.0, 1.5, 0.0]))  # a gross false loop
+    return graph.optimize()
+
+
+def test_pose_graph_closes_a_drifting_loop_and_huber_rejects_an_outlier():
+    rng = np.random.default_rng(0)
+    truth = _circle()
+    initial = _drifted(truth, rng)
+    ate_before = _ate(dict(enumerate(initial)), truth)
+    assert ate_before > 0.3
+    clean = _graph(truth, initial, "huber", outlier=False)
+    assert clean.error_after < clean.error_before
+    ate_clean = _ate(clean.poses, truth)
+    assert ate_clean < 0.5 * ate_before
+    np.testing.assert_allclose(clean.poses[0], truth[0], atol=1e-6)  # the prior holds the first node
+    huber = _graph(truth, initial, "huber", outlier=True)
+    plain = _graph(truth, initial, "none", outlier=True)
+    assert _ate(huber.poses, truth) < min(0.5 * ate_before, 1.5 * ate_clean)
+    assert _ate(plain.poses, truth) > 2 * _ate(huber.poses, truth)  # without the kernel the outlier does harm
+
+
+@pytest.mark.parametrize("robust", ["none", "huber", "cauchy"])
+def test_between_convention_is_a_inverse_b(robust):
+    """A loop edge (a, b) measures a^-1 b with world-from-node poses: with a fixed, b goes to a @ measurement."""
+    a = _pose([1.0, 2.0, 0.5], [0.1, 0.4, -0.2])
+    measured = _pose([0.5, 0.0, 1.0], [0.0, 0.3, 0.0])
+    graph = PoseGraph(robust_kernel=robust)
+    graph.add_node(3, a)
+    graph.add_node(9, np.eye(4))
+    graph.add_loop(3, 9, measured)
+    result = graph.optimize()
+    np.testing.assert_allclose(result.poses[9], a @ measured, atol=1e-6)
+    assert result.error_after < 1e-8 < result.error_before
+    assert graph.keys == [3, 9]
+
+
+def test_pose_graph_rejects_bad_input():
+    with pytest.raises(ValueError, match="robust_kernel"):
+        PoseGraph(robust_kernel="tukey")
+    with pytest.raises(ValueError, match="odometry_sigmas"):
+        PoseGraph(odometry_sigmas=(0.0, 0.1))
+    graph = PoseGraph()
+    graph.add_node(0, np.eye(4))
+    with pytest.raises(ValueError, match="already exists"):
+        graph.add_node(0, np.eye(4))
+    with pytest.raises(ValueError, match="unknown node 1"):
+        graph.add_odometry(0, 1)
+    with pytest.raises(ValueError, match="rigid"):
+        graph.add_node(1, 2 * np.eye(4))
+
+
+# --- rigid submap correction --------------------------------------------------------------------------------------
+def test_correction_keeps_camera_coordinates_of_gaussians():
+    g = torch.Generator().manual_seed(0)
+    old_anchor = se3_exp(torch.randn(6, generator=g, dtype=torch.float64))
+    new_anchor = se3_exp(0.3 * torch.randn(6, generator=g, dtype=torch.float64)) @ old_anchor
+    keyframes = [old_anchor @ se3_exp(0.5 * torch.randn(6, generator=g, dtype=torch.float64)) for _ in range(3)]
+    points = torch.randn(50, 3, generator=g, dtype=torch.float64)
+    rgb = torch.rand(50, 3, dtype=torch.float64)
+    cloud = GaussianCloud.from_points(points, rgb, rgb.flip(1), torch.full((50,), 0.01, dtype=torch.float64))
+    moved, poses = correct_submap(cloud, [k.numpy() for k in keyframes], old_anchor, new_anchor)
+    assert poses.shape == (3, 4, 4)
+    for before, after in zip(keyframes, poses):
+        torch.testing.assert_close(transform_points(invert_pose(after), moved.means),
+                                   transform_points(invert_pose(before), points))
+    torch.testing.assert_close(correct_poses(old_anchor, anchor_correction(old_anchor, new_anchor))[0], new_anchor)
+    torch.testing.assert_close(moved.colors, cloud.colors)
+    with pytest.raises(ValueError, match="4x4"):
+        correct_poses(torch.eye(3), torch.eye(4))
