@@ -8,6 +8,7 @@ floor, sphere) whose Gaussians are back-projected from the room's depth with a s
 from __future__ import annotations
 
 import json
+import multiprocessing
 import math
 import os
 import platform
@@ -15,6 +16,7 @@ import re
 import statistics
 import subprocess
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import torch
@@ -113,9 +115,11 @@ def room_cloud(n: int, seed: int = 0) -> GaussianCloud:
     return GaussianCloud.from_points(means, colors, semantics, depth / ROOM_CAMERA.fx, opacity=0.88)
 
 
-def _render_case(args, backend: str, n: int, width: int, height: int, device: torch.device) -> dict:
+def _render_case(case: dict) -> dict:
     from gausem_core.render import render
 
+    backend, n, width, height = case["backend"], case["gaussians"], case["width"], case["height"]
+    device, repeats = torch.device(case["device"]), case["repeats"]
     camera = ROOM_CAMERA.scaled(width, height)
     cloud = room_cloud(n).to(device).requires_grad_()
     xi = torch.zeros(6, device=device, requires_grad=True)
@@ -130,10 +134,9 @@ def _render_case(args, backend: str, n: int, width: int, height: int, device: to
         loss.backward()
 
     start = time.perf_counter()
-    forward_backward()
-    repeats = max(1, min(args.repeats, int(args.case_seconds / (time.perf_counter() - start))))
-    with PeakMemory(device) as memory:
+    with PeakMemory(device) as memory:  # the first call of a fresh process: nothing cached by the allocator yet
         forward_backward()
+    repeats = max(1, min(repeats, int(case["case_seconds"] / (time.perf_counter() - start))))
     return {"backend": backend, "gaussians": n, "width": width, "height": height, "repeats": repeats,
             "forward_ms": round(median_ms(forward, repeats, device), 2),
             "forward_backward_ms": round(median_ms(forward_backward, repeats, device), 2),
@@ -155,8 +158,7 @@ def add_render_arguments(parser) -> None:
 
 
 def run_render(args) -> list[dict]:
-    device = torch.device(args.device)
-    backends = args.backend or _render_backends(device)
+    backends = args.backend or _render_backends(torch.device(args.device))
     rows = []
     for size in args.sizes:
         match = re.fullmatch(r"(\d+)x(\d+)", size)
@@ -164,7 +166,12 @@ def run_render(args) -> list[dict]:
             raise ValueError(f"--sizes: expected WIDTHxHEIGHT, got {size!r}")
         for n in args.counts:
             for backend in backends:
-                row = _render_case(args, backend, n, int(match.group(1)), int(match.group(2)), device)
+                case = {"backend": backend, "gaussians": n, "width": int(match.group(1)),
+                        "height": int(match.group(2)), "device": args.device, "repeats": args.repeats,
+                        "case_seconds": args.case_seconds}
+                # one fresh process per case, so that the peak memory of one case is not hidden by another's
+                with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+                    row = pool.submit(_render_case, case).result()
                 print(json.dumps(row), flush=True)
                 rows.append(row)
     return rows
