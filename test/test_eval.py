@@ -274,3 +274,17 @@ def test_loop_precision_recall_f1():
     assert math.isnan(none.precision) and none.recall == 0.0 and math.isnan(none.f1)
     with pytest.raises(ValueError, match="outside"):
         loop_scores([(0, 40)], track, min_frame_gap=25, tau_loop=1.5)
+
+
+def test_real_tum_ground_truth(shared_data, tmp_path):
+    gt = read_tum_trajectory(shared_data / "tum_fr1_rpy" / "groundtruth.txt")
+    rgb_stamps = [float(line.split()[0]) for line in (shared_data / "tum_fr1_rpy" / "rgb.txt").read_text().splitlines()
+                  if not line.startswith("#")]
+    camera = Trajectory(rgb_stamps, np.tile(np.eye(4), (len(rgb_stamps), 1, 1)))
+    matched_camera, matched_gt = associate_trajectories(camera, gt)
+    assert len(matched_camera) == len(rgb_stamps) == 200  # the folder holds frames of the associated sequence
+    assert np.abs(matched_camera.stamps - matched_gt.stamps).max() < 0.02
+    write_tum_trajectory(tmp_path / "gt.txt", matched_gt)
+    estimate = read_tum_trajectory(tmp_path / "gt.txt").transformed(rigid([0.0, 0.0, 2.0], [1.0, -3.0, 0.2]))
+    assert absolute_trajectory_error(estimate, matched_gt).rmse < 1e-5
+    assert relative_pose_error(estimate, matched_gt)["rotation"]["max"] < 1e-3

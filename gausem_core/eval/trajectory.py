@@ -25,7 +25,7 @@ class Trajectory:
 
     def __post_init__(self):
         stamps = np.asarray(self.stamps, dtype=np.float64).reshape(-1)
-        poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4) if np.size(self.poses) else np.zeros((0, 4, 4))
+        poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
         if poses.shape[0] != stamps.shape[0]:
             raise ValueError(f"Trajectory: {stamps.shape[0]} stamps but {poses.shape[0]} poses")
         if not (np.isfinite(stamps).all() and np.isfinite(poses).all()):
