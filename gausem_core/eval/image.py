@@ -6,6 +6,7 @@ LPIPS program from a local file (``lpips_weights``) and is reported as ``"not av
 """
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 from pathlib import Path
 
@@ -76,7 +77,7 @@ def psnr(img1: torch.Tensor, img2: torch.Tensor, mask: torch.Tensor | None = Non
             raise ValueError("psnr: the mask selects no pixels")
         sq = sq[mask.bool()]
     mse = float(sq.mean())
-    return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()
+    return math.inf if mse == 0 else -10.0 * math.log10(mse)
 
 
 def depth_l1(rendered: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> float:
