@@ -14,10 +14,11 @@ dense features are the (un-normalised, post-LayerNorm) patch tokens, differentia
   object shape or context, and palette colours that quantise to the same bin are merged (e.g. the 41 NYU40 colours
   fall into 20 bins; the 12 synthetic-scene colours stay distinct). Distances are on a different scale than DINOv2's,
   so a loop threshold tuned for one does not transfer to the other.
-- dense: random Fourier features of the pixel colours, ``sqrt(2/384) cos(W c + b)`` with a fixed seeded W ~ N(0,
-  1/0.2^2), b ~ U(0, 2 pi), averaged over each 14 x 14 patch of the resized image (the same grid as DINOv2). The
-  squared distance between two patches' features approximates the MMD (Gaussian kernel, bandwidth 0.2 in RGB) between
-  their colour distributions: it compares semantic colours patch by patch, without any learned context.
+- dense: on the same patch grid as DINOv2 (input short side rounded to 14-px patches), the image is area-averaged
+  to 4 x 4 colour samples per patch; each sample c is mapped to random Fourier features
+  ``sqrt(2/384) cos(W c + b)`` with a fixed seeded W ~ N(0, 1/0.2^2), b ~ U(0, 2 pi), and the 16 samples of a patch
+  are averaged. The squared distance between two patches' features approximates the MMD (Gaussian kernel, bandwidth
+  0.2 in RGB) between their colour distributions: semantic colours compared patch by patch, without learned context.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from gausem_core.semantics.backbone import image_batch, load_dinov2, resize_for_patches
+from gausem_core.semantics.backbone import image_batch, load_dinov2, model_input_size
 
 DESCRIPTOR_DIM = 384
 PATCH_SIZE = 14
@@ -82,6 +83,7 @@ class ColourLayoutDescriptor(DescriptorExtractor):
     GRID = (2, 3)
     LEVELS = 4
     BANDWIDTH = 0.2
+    SAMPLES_PER_PATCH = 4  # colour samples per patch side for the dense features
 
     def __init__(self, short_side: int = 224):
         self.short_side = int(short_side)
@@ -93,26 +95,27 @@ class ColourLayoutDescriptor(DescriptorExtractor):
         images = image_batch(semantic_rgb)
         if len(images) != 1:
             raise ValueError(f"describe takes one image, got a batch of {len(images)}")
-        image = images[0].detach().cpu().double().clamp(0, 1)
-        levels = (image * (self.LEVELS - 1)).round().long()
-        bins = (levels[..., 0] * self.LEVELS + levels[..., 1]) * self.LEVELS + levels[..., 2]
+        levels = np.rint(np.clip(images[0].detach().cpu().numpy(), 0, 1) * (self.LEVELS - 1)).astype(np.int64)
+        bins = levels @ np.array([self.LEVELS ** 2, self.LEVELS, 1])
         height, width = bins.shape
-        rows = torch.arange(height) * self.GRID[0] // height
-        cols = torch.arange(width) * self.GRID[1] // width
-        cells = rows[:, None] * self.GRID[1] + cols[None, :]
+        cells = (np.arange(height) * self.GRID[0] // height)[:, None] * self.GRID[1] + \
+            (np.arange(width) * self.GRID[1] // width)[None, :]
         n_bins = self.LEVELS ** 3
-        counts = torch.bincount((cells * n_bins + bins).flatten(), minlength=self.GRID[0] * self.GRID[1] * n_bins)
-        counts = counts.reshape(-1, n_bins).double()
-        fractions = counts / counts.sum(1, keepdim=True).clamp_min(1)
-        return F.normalize(fractions.sqrt().flatten(), dim=0).float().numpy()
+        counts = np.bincount((cells * n_bins + bins).ravel(), minlength=self.GRID[0] * self.GRID[1] * n_bins)
+        fractions = counts.reshape(-1, n_bins) / np.maximum(counts.reshape(-1, n_bins).sum(1, keepdims=True), 1)
+        descriptor = np.sqrt(fractions).ravel()
+        return (descriptor / np.linalg.norm(descriptor)).astype(np.float32)
 
     def dense_features(self, semantic_rgb) -> torch.Tensor:
         images = image_batch(semantic_rgb)
-        pixels = resize_for_patches(images, self.short_side, PATCH_SIZE)  # (B, 3, h, w)
+        grid_h, grid_w = (n // PATCH_SIZE for n in model_input_size(images.shape[1], images.shape[2],
+                                                                    self.short_side, PATCH_SIZE))
+        samples = self.SAMPLES_PER_PATCH
+        pixels = F.adaptive_avg_pool2d(images.permute(0, 3, 1, 2), (grid_h * samples, grid_w * samples))
         frequencies = self._frequencies.to(pixels.device, pixels.dtype)
         phases = self._phases.to(pixels.device, pixels.dtype)
         features = math.sqrt(2 / DESCRIPTOR_DIM) * torch.cos(pixels.permute(0, 2, 3, 1) @ frequencies + phases)
-        patches = F.avg_pool2d(features.permute(0, 3, 1, 2), PATCH_SIZE).permute(0, 2, 3, 1)
+        patches = F.avg_pool2d(features.permute(0, 3, 1, 2), samples).permute(0, 2, 3, 1)
         return patches if semantic_rgb.ndim == 4 else patches[0]
 
 

@@ -29,6 +29,7 @@ class HeadInfo:
 
 
 def save_head(path: str | Path, head: nn.Linear, info: HeadInfo) -> None:
+    """Write ``head`` and ``info`` as a head file (format in the module docstring)."""
     if (head.out_features, head.in_features) != (info.num_classes, info.feature_dim):
         raise ValueError(f"head is {head.in_features}->{head.out_features}, info says "
                          f"{info.feature_dim}->{info.num_classes}")

@@ -1,4 +1,4 @@
-"""Segmenters: an RGB image (plus, where the data has them, its class ids) -> a class-id map (paper §III-A, S in Eq. 2).
+"""Segmenters: an RGB image (plus, where the data has them, its class ids) -> class-id map (paper §III-A, S in Eq. 2).
 
 Kinds (:func:`make_segmenter`):
 
