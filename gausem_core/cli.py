@@ -9,6 +9,9 @@ import sys
 COMMANDS = {
     "info": ("gausem_core.tools.info", "show versions and which optional back-ends are usable"),
     "demo": ("gausem_core.tools.demo", "run the end-to-end demo on the embedded synthetic sequence"),
+    "run": ("gausem_core.tools.run", "run the offline SLAM pipeline on a dataset and write its outputs"),
+    "bench": ("gausem_core.tools.bench", "benchmarks (renderer, ...) written as JSON and Markdown"),
+    "train-head": ("gausem_core.tools.train_head", "train the linear segmentation head on DINOv2 patch tokens"),
 }
 
 

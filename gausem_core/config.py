@@ -19,9 +19,10 @@ import yaml
 class TrackingConfig:
     """Frame-to-model pose optimisation (paper Eq. 2)."""
 
-    iterations: int = 40
-    lr_translation: float = 2e-3
-    lr_rotation: float = 2e-3
+    iterations: int = 60
+    lr_translation: float = 1e-2
+    lr_rotation: float = 1e-2
+    final_lr_fraction: float = 0.02  # learning rates decay exponentially to this fraction over the iterations
     w_color: float = 1.0
     w_depth: float = 0.5
     w_semantic: float = 0.5
@@ -29,7 +30,7 @@ class TrackingConfig:
     constant_velocity: bool = True
     # stop when the loss improved by less than this fraction over `patience` iterations
     convergence_tolerance: float = 1e-4
-    patience: int = 5
+    patience: int = 10
 
 
 @dataclass

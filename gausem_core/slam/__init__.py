@@ -1,0 +1,1 @@
+"""SLAM: tracking, mapping, submaps, loop closure, pose graphs, refinement."""

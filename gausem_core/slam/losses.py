@@ -1,0 +1,34 @@
+"""The photometric, semantic and geometric losses of tracking (Eq. 2) and mapping (Eq. 3-4)."""
+from __future__ import annotations
+
+import torch
+
+from gausem_core.eval.image import ssim
+from gausem_core.render import RenderOutput
+from gausem_core.slam.observation import Observation
+
+
+def tracking_loss(out: RenderOutput, obs: Observation, w_color: float, w_depth: float, w_semantic: float,
+                  silhouette_threshold: float) -> torch.Tensor:
+    """Eq. 2: L1 colour + semantic + depth on pixels the map explains well (silhouette > threshold, valid depth)."""
+    mask = (out.alpha.detach() > silhouette_threshold) & obs.valid_depth
+    if not mask.any():
+        return (out.color.sum() + out.depth.sum()) * 0.0
+    color = (out.color - obs.rgb).abs().sum(-1)
+    semantic = (out.semantic - obs.semantic).abs().sum(-1)
+    depth = (out.depth - obs.depth).abs()
+    return (w_color * color + w_semantic * semantic + w_depth * depth)[mask].sum() / mask.sum()
+
+
+def ssim_l1_loss(rendered: torch.Tensor, target: torch.Tensor, lam: float) -> torch.Tensor:
+    """Eq. 4: lam * L1 + (1 - lam) * (1 - SSIM) for (H, W, 3) images."""
+    return lam * (rendered - target).abs().mean() + (1 - lam) * (1 - ssim(rendered, target))
+
+
+def mapping_loss(out: RenderOutput, obs: Observation, w_color: float, w_depth: float, w_semantic: float,
+                 ssim_lambda: float) -> torch.Tensor:
+    """Eq. 3: depth L1 on valid pixels + weighted SSIM losses for colour and semantics."""
+    valid = obs.valid_depth
+    depth = (out.depth - obs.depth).abs()[valid].mean() if valid.any() else out.depth.sum() * 0.0
+    return (w_depth * depth + w_color * ssim_l1_loss(out.color, obs.rgb, ssim_lambda)
+            + w_semantic * ssim_l1_loss(out.semantic, obs.semantic, ssim_lambda))
