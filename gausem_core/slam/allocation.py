@@ -43,7 +43,8 @@ def depth_range(depth: torch.Tensor, percentiles: tuple[float, float] = DEPTH_PE
     lo, hi = percentiles
     if not 0 <= lo < hi <= 100:
         raise ValueError(f"depth_range: percentiles must satisfy 0 <= lo < hi <= 100, got {percentiles}")
-    near, far = torch.quantile(valid.double(), torch.tensor([lo / 100, hi / 100], dtype=torch.float64)).tolist()
+    levels = torch.tensor([lo / 100, hi / 100], dtype=torch.float64, device=valid.device)
+    near, far = torch.quantile(valid.double(), levels).tolist()
     if far <= near:  # a flat depth image (e.g. a wall seen head-on): give the frustum a sliver of thickness
         far = near * 1.01
     return near, far
@@ -78,7 +79,7 @@ def frustum_samples(camera: PinholeCamera, cam_to_world: torch.Tensor, near: flo
     Uniform in volume: image-plane coordinates uniform, depth with density proportional to z^2 (inverse CDF).
     """
     _check_range(near, far)
-    unit = torch.quasirandom.SobolEngine(3, scramble=True, seed=0).draw(n, dtype=torch.float64)
+    unit = torch.quasirandom.SobolEngine(3, scramble=True, seed=0).draw(n, dtype=torch.float64).to(cam_to_world.device)
     x0, x1, y0, y1 = _image_bounds(camera)
     z = (near**3 + unit[:, 2] * (far**3 - near**3)) ** (1 / 3)
     points = torch.stack([(x0 + unit[:, 0] * (x1 - x0)) * z, (y0 + unit[:, 1] * (y1 - y0)) * z, z], -1)
