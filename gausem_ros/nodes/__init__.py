@@ -1,0 +1,11 @@
+"""GauSem's ROS 2 nodes (DESIGN.md §3). Each module holds one node class and its ``main(args=None)`` entry point.
+
+- ``segmentation``: rgb/image -> semantic/labels (mono16) + semantic/color (rgb8), with a segmenter that works on the
+  image alone (``semantics.segmenter: dinov2``). With ``labels`` the class ids come with the data: the player (or
+  another robot stack) publishes semantic/labels and this node is not run.
+- ``tracking_mapping``: owns the SLAM system and the map; odometry, path, TF, map, keyframe and submap records,
+  services gausem/save_map and gausem/reset.
+- ``loop_detection``: keyframe records + semantic labels -> loop candidates (paper Algorithm 1).
+- ``pose_graph``: keyframe and submap records + loop constraints -> corrected keyframe and anchor poses (GTSAM).
+"""
+NODE_MODULES = ("segmentation", "tracking_mapping", "loop_detection", "pose_graph")

@@ -1,0 +1,279 @@
+"""The tracking-and-mapping node: owns :class:`GauSemSLAM` (and so the Gaussian map).
+
+Subscribes (relative names, remappable): ``rgb/image`` (rgb8/bgr8/rgba8/bgra8), ``depth/image`` (16UC1 mm or 32FC1 m),
+``rgb/camera_info``, ``semantic/labels`` (mono8/mono16 class ids; not with ``use_labels: false``), approximately
+synchronised; ``gausem/loop_candidates`` and ``gausem/pose_graph`` (records, ``msg_adapters.records``).
+Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_frame``, stamped like the rgb image),
+``gausem/path`` (latched, re-published after every frame and every correction), TF ``map_frame`` -> camera frame,
+``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/keyframes``
+(KeyframeRecord, pose in its submap frame, empty descriptor: loop_detection describes the keyframe's semantic labels),
+``gausem/submaps`` (SubmapEvent) and ``gausem/diagnostics`` (dropped inputs by reason).
+Services (std_srvs/Trigger): ``gausem/save_map`` writes ``map.ply`` and ``trajectory.txt`` (TUM) to ``output_dir``;
+``gausem/reset`` starts a new map.
+
+Frames are processed one at a time, the newest synchronised one first (``NewestFrameQueue``); superseded frames and
+bad input (wrong encodings, size mismatches, too little valid depth, no camera_info yet, stamps not after the last
+processed one, labels outside the class table) are dropped with a warning and counted, never raised.
+Pose-graph updates are applied when they arrive: an ANCHOR node moves the submap with that id (its Gaussians and
+keyframes follow, being stored in the submap frame), a KEYFRAME node sets the pose of the keyframe with that frame id.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from nav_msgs.msg import Odometry, Path as PathMsg
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+
+import msg_adapters as ma
+from gausem_core.eval.trajectory import Trajectory, write_tum_trajectory
+from gausem_core.io.ply import write_gaussian_ply
+from gausem_core.pipeline import UNLABELLED_PALETTE, resolve_device
+from gausem_core.slam.observation import Observation
+from gausem_core.slam.system import GauSemSLAM
+
+from ..qos import EVENT_QOS, LATCHED_QOS, input_qos
+from ..sync import make_synchronizer
+from ..tf import make_transform_broadcaster
+from .common import (DropReport, FrameRejected, NewestFrameQueue, class_table, declare_parameters,
+                     declare_slam_config, run_node)
+
+NODE_DEFAULTS = {
+    "classes": "synthetic",      # class table of the labels: synthetic, nyu40, scannet20 or a class-table file
+    "use_labels": True,          # False: no semantic/labels input (e.g. TUM), every pixel is one class
+    "map_frame": "map",
+    "camera_frame": "",          # "" = the rgb image's header frame_id
+    "input_qos": "reliable",     # or "sensor_data" for a live camera driver
+    "sync_queue_size": 10,
+    "sync_slop": 0.02,           # seconds
+    "map_publish_period": 2.0,   # seconds
+    "min_valid_depth": 0.05,     # fraction of pixels with a valid depth below which a frame is dropped
+    "output_dir": "gausem_output",
+}
+
+
+def _numpy_pose(pose: torch.Tensor) -> np.ndarray:
+    return pose.detach().cpu().double().numpy()
+
+
+class TrackingMappingNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("tracking_mapping", **kwargs)
+        self.cfg = declare_slam_config(self)
+        self.params = p = declare_parameters(self, NODE_DEFAULTS)
+        self.palette = class_table(p.classes).palette if p.use_labels else UNLABELLED_PALETTE
+        self.device = resolve_device(self.cfg.device)
+        self.drops = DropReport(self)
+        self.loop_candidates: list[ma.LoopCandidateRecord] = []
+        self.pose_graph_updates: list[ma.PoseGraphUpdate] = []
+        self._camera = None
+        self._reset_state()
+
+        inputs = [(Image, "rgb/image"), (Image, "depth/image")] + ([(Image, "semantic/labels")] if p.use_labels
+                                                                    else [])
+        qos = input_qos(p.input_qos)
+        self._inputs = make_synchronizer(self, inputs, self._on_frame, qos, queue_size=p.sync_queue_size,
+                                         slop=p.sync_slop)
+        self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
+            "superseded", "a newer synchronised frame arrived before this one was processed"))
+        self.create_subscription(CameraInfo, "rgb/camera_info", self._on_camera_info, qos)
+        self.create_subscription(PointCloud2, "gausem/loop_candidates", self._on_loop_candidates, EVENT_QOS)
+        self.create_subscription(PointCloud2, "gausem/pose_graph", self._on_pose_graph, EVENT_QOS)
+        self._odometry_pub = self.create_publisher(Odometry, "gausem/odometry", EVENT_QOS)
+        self._path_pub = self.create_publisher(PathMsg, "gausem/path", LATCHED_QOS)
+        self._map_pub = self.create_publisher(PointCloud2, "gausem/map", LATCHED_QOS)
+        self._keyframe_pub = self.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
+        self._submap_pub = self.create_publisher(PointCloud2, "gausem/submaps", EVENT_QOS)
+        self._tf = make_transform_broadcaster(self)
+        self.create_timer(p.map_publish_period, self._publish_map)
+        self.create_service(Trigger, "gausem/save_map", self._on_save_map)
+        self.create_service(Trigger, "gausem/reset", self._on_reset)
+
+    def _reset_state(self) -> None:
+        torch.manual_seed(self.cfg.seed)
+        self.slam = GauSemSLAM(self.cfg, self.device)
+        self.frames_processed = 0
+        self._last_stamp = -math.inf
+        self._camera_frame = self.params.camera_frame or "camera"
+        self._map_dirty = False
+
+    # --- inputs -------------------------------------------------------------------------------------------------
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            self._camera = ma.camera_info_to_camera(msg)
+        except ValueError as err:
+            self.drops.drop("bad_camera_info", str(err))
+
+    def _on_frame(self, *msgs: Image) -> None:
+        self._queue.put(msgs)
+
+    def _observation(self, rgb_msg: Image, depth_msg: Image, labels_msg: Image | None = None) -> Observation:
+        """Validated observation of one synchronised frame, or FrameRejected saying why not."""
+        stamp = ma.header_seconds(rgb_msg.header)
+        if stamp <= self._last_stamp:
+            raise FrameRejected("stale_stamp", f"frame stamped {stamp:.6f} s is not after the last processed "
+                                               f"frame ({self._last_stamp:.6f} s)")
+        if self._camera is None:
+            raise FrameRejected("no_camera_info", "no valid rgb/camera_info received yet; waiting for it")
+        try:
+            rgb = ma.image_to_rgb(rgb_msg)
+            depth = ma.image_to_depth(depth_msg)
+            labels = (ma.image_to_labels(labels_msg) if labels_msg is not None
+                      else np.zeros(depth.shape, np.int64))
+        except ma.ImageEncodingError as err:
+            raise FrameRejected("bad_encoding", str(err)) from err
+        except ValueError as err:  # data length / step inconsistent with the declared size
+            raise FrameRejected("bad_image", str(err)) from err
+        camera = self._camera
+        sizes = {"rgb": rgb.shape[:2], "depth": depth.shape, "labels": labels.shape,
+                 "camera_info": (camera.height, camera.width)}
+        if len(set(sizes.values())) > 1:
+            raise FrameRejected("size_mismatch", "image sizes differ (height, width): "
+                                + ", ".join(f"{k} {v}" for k, v in sizes.items()))
+        valid = float((depth > 0).mean()) if depth.size else 0.0
+        if valid < self.params.min_valid_depth:
+            raise FrameRejected("invalid_depth", f"only {100 * valid:.1f} % of the depth pixels are valid (finite, "
+                                                 f"> 0); at least {100 * self.params.min_valid_depth:.1f} % needed")
+        try:
+            return Observation.from_arrays(rgb, depth, labels, camera, self.palette, stamp, self.device)
+        except ValueError as err:
+            raise FrameRejected("bad_labels", str(err)) from err
+
+    # --- processing ---------------------------------------------------------------------------------------------
+    def _process(self, msgs: tuple[Image, ...]) -> None:
+        try:
+            obs = self._observation(*msgs)
+        except FrameRejected as err:
+            self.drops.drop(err.reason, str(err))
+            return
+        submaps_before = len(self.slam.submaps)
+        result = self.slam.process(obs)
+        self._last_stamp = obs.timestamp
+        self.frames_processed += 1
+        self._camera_frame = self.params.camera_frame or msgs[0].header.frame_id or "camera"
+        header = ma.make_header(obs.timestamp, self.params.map_frame)
+        pose = _numpy_pose(result.cam_to_world)
+        self._odometry_pub.publish(ma.matrix_to_odometry(pose, header, self._camera_frame))
+        self._tf.sendTransform(ma.matrix_to_transform(pose, header, self._camera_frame))
+        self._publish_path()
+        self._publish_submap_events(submaps_before, header)
+        if result.is_keyframe:
+            self._publish_keyframe(result.frame_id, obs.timestamp, header)
+        self._map_dirty = True
+        self.drops.publish({"frames_processed": self.frames_processed,
+                            **{f"sync.{k}": v for k, v in self._sync_drops().items()}})
+
+    def _sync_drops(self) -> dict:
+        return dict(getattr(self._inputs.synchronizer, "dropped", {}))
+
+    def _publish_path(self) -> None:
+        poses = [(t, _numpy_pose(p)) for t, p in self.slam.trajectory()]
+        self._path_pub.publish(ma.poses_to_path(poses, self.params.map_frame))
+
+    def _publish_submap_events(self, submaps_before: int, header) -> None:
+        events = []
+        if submaps_before and len(self.slam.submaps) > submaps_before:
+            closed = self.slam.submaps[submaps_before - 1]
+            events.append(ma.SubmapEvent(closed.submap_id, closed.keyframes[0].frame_id, _numpy_pose(closed.anchor),
+                                         ma.SubmapEventKind.CLOSED))
+        events += [ma.SubmapEvent(s.submap_id, s.keyframes[0].frame_id, _numpy_pose(s.anchor),
+                                  ma.SubmapEventKind.CREATED) for s in self.slam.submaps[submaps_before:]]
+        if events:
+            self._submap_pub.publish(ma.records_to_pointcloud2(events, header))
+
+    def _publish_keyframe(self, frame_id: int, stamp: float, header) -> None:
+        submap = next(s for s in reversed(self.slam.submaps) if any(k.frame_id == frame_id for k in s.keyframes))
+        keyframe = next(k for k in submap.keyframes if k.frame_id == frame_id)
+        record = ma.KeyframeRecord(frame_id, stamp, submap.submap_id, _numpy_pose(keyframe.cam_to_world),
+                                   _numpy_pose(submap.anchor), np.zeros(0, np.float32))
+        self._keyframe_pub.publish(ma.records_to_pointcloud2([record], header))
+
+    def _publish_map(self) -> None:
+        if not self._map_dirty:
+            return
+        self._map_dirty = False
+        stamp = max(self._last_stamp, 0.0)
+        self._map_pub.publish(ma.cloud_to_pointcloud2(self.slam.global_cloud(),
+                                                      ma.make_header(stamp, self.params.map_frame), self.palette))
+
+    # --- loop closure events ------------------------------------------------------------------------------------
+    def _on_loop_candidates(self, msg: PointCloud2) -> None:
+        try:
+            candidates = ma.pointcloud2_to_records(msg, ma.LoopCandidateRecord)
+        except ValueError as err:
+            self.drops.drop("bad_loop_candidates", str(err))
+            return
+        self.loop_candidates += candidates
+        for c in candidates:
+            self.get_logger().info(f"loop candidate: keyframe {c.query_keyframe_id} (submap {c.query_submap_id}) "
+                                   f"revisits keyframe {c.match_keyframe_id} (submap {c.match_submap_id}), "
+                                   f"descriptor distance {c.descriptor_distance:.3f}")
+
+    def _on_pose_graph(self, msg: PointCloud2) -> None:
+        try:
+            update = ma.pointcloud2_to_pose_graph_update(msg)
+        except ValueError as err:
+            self.drops.drop("bad_pose_graph", str(err))
+            return
+        self.pose_graph_updates.append(update)
+        applied = sum(self._apply(node) for node in update.nodes)
+        self.get_logger().info(f"pose graph update: applied {applied} of {len(update.nodes)} corrected poses")
+        if applied:
+            self._publish_path()
+            self._map_dirty = True
+
+    def _apply(self, node: ma.PoseGraphNode) -> bool:
+        """Apply one corrected pose; False when no submap / keyframe has its id."""
+        if node.kind == ma.PoseGraphNodeKind.ANCHOR:
+            targets = [s for s in self.slam.submaps if s.submap_id == node.node_id]
+            for submap in targets:
+                submap.anchor = torch.as_tensor(node.pose, dtype=submap.anchor.dtype, device=submap.anchor.device)
+        else:
+            targets = [k for s in self.slam.submaps for k in s.keyframes if k.frame_id == node.node_id]
+            for keyframe in targets:
+                keyframe.cam_to_world = torch.as_tensor(node.pose, dtype=keyframe.cam_to_world.dtype,
+                                                        device=keyframe.cam_to_world.device)
+        return bool(targets)
+
+    # --- services -----------------------------------------------------------------------------------------------
+    def save_map(self, folder: str | Path) -> tuple[Path, Path]:
+        """Write the map (3DGS-style PLY with class ids) and the trajectory (TUM) to ``folder``."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        cloud = self.slam.global_cloud()
+        ply, trajectory = folder / "map.ply", folder / "trajectory.txt"
+        write_gaussian_ply(ply, cloud, cloud.class_ids(self.palette.to(cloud.means.device)))
+        poses = self.slam.trajectory()
+        write_tum_trajectory(trajectory, Trajectory([t for t, _ in poses],
+                                                    np.array([_numpy_pose(p) for _, p in poses]).reshape(-1, 4, 4)))
+        return ply, trajectory
+
+    def _on_save_map(self, request, response):
+        del request
+        try:
+            ply, trajectory = self.save_map(self.params.output_dir)
+        except OSError as err:
+            response.success, response.message = False, f"could not write to {self.params.output_dir}: {err}"
+        else:
+            response.success, response.message = True, f"wrote {ply} and {trajectory}"
+        return response
+
+    def _on_reset(self, request, response):
+        del request
+        self._reset_state()
+        self._queue.clear()
+        self._publish_path()
+        response.success, response.message = True, "map and trajectory cleared"
+        return response
+
+
+def main(args=None) -> int:
+    return run_node(TrackingMappingNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,248 @@
+"""Replays a dataset or a bag onto GauSem's input topics (entry point ``gausem-player``).
+
+Sources: a dataset spec of :func:`gausem_core.data.open_dataset` (``synthetic[:SEQ]``, ``tum:PATH``, ``scannet:PATH``,
+``replica:PATH``), a ROS 1 ``.bag`` file or a ROS 2 bag folder (sqlite3 or mcap). Bags may use the TUM RGB-D topic
+names (``/camera/rgb/image_color``, ``/camera/depth/image``, ``/camera/rgb/camera_info``) or GauSem's
+(``/rgb/image``, ``/depth/image``, ``/rgb/camera_info``, ``/semantic/labels``, as ``gausem-bag`` writes them); other
+topics (``/tf`` with motion-capture ground truth, ...) are not replayed.
+Published (relative names, remappable): ``rgb/image``, ``depth/image``, ``rgb/camera_info``, ``semantic/labels``
+(only when the data has labels) with reliable QoS, and ``/clock`` (the replayed stamps, for ``use_sim_time``).
+Ground truth is never published; ``--gt-out FILE`` writes the dataset's ground-truth poses of the replayed frames as a
+TUM trajectory for evaluation.
+
+Timing: frames follow their recorded stamps scaled by ``--rate`` (0 = as fast as possible). ``--lockstep`` publishes
+frame k+1 only after ``gausem/odometry`` for frame k arrived (or ``--timeout`` seconds passed, which is logged).
+A frame is the messages from one rgb image up to the next; the player first waits (``--wait-subscribers`` s at most)
+until every topic it publishes has a subscriber, so that no frame is lost to discovery.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from nav_msgs.msg import Odometry
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.utilities import remove_ros_args
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import CameraInfo, Image
+
+import msg_adapters as ma
+from gausem_core.data import Dataset, open_dataset
+from gausem_core.data.spec import SPEC_HELP
+from gausem_core.eval.trajectory import Trajectory, write_tum_trajectory
+
+from .bags import TUM_TOPICS, read_bag
+from .qos import EVENT_QOS, IMAGE_QOS
+
+# input key -> (message type, published topic)
+OUTPUTS = {"rgb": (Image, "rgb/image"), "depth": (Image, "depth/image"),
+           "camera_info": (CameraInfo, "rgb/camera_info"), "labels": (Image, "semantic/labels")}
+GAUSEM_BAG_TOPICS = {key: "/" + topic for key, (_, topic) in OUTPUTS.items()}
+BAG_TOPIC_KEYS = {**{TUM_TOPICS[key]: key for key in ("rgb", "depth", "camera_info")},
+                  **{topic: key for key, topic in GAUSEM_BAG_TOPICS.items()}}
+_STAMP_TOLERANCE_NS = 1000  # float-seconds round trips of stamps are exact to well below 1 us
+
+
+@dataclass
+class PlayerFrame:
+    """The messages of one frame, keyed like ``OUTPUTS``, published together at ``stamp_ns``."""
+
+    stamp_ns: int
+    messages: list[tuple[str, object]] = field(default_factory=list)
+    gt_pose: np.ndarray | None = None
+
+
+def dataset_frames(dataset: Dataset, frame_id: str = "camera", depth_encoding: str = "32FC1"
+                   ) -> Iterator[PlayerFrame]:
+    """rgb8, depth (32FC1 m or 16UC1 mm), CameraInfo and, when present, mono16 labels of every frame."""
+    for frame in dataset:
+        header = ma.make_header(frame.timestamp, frame_id)
+        messages = [("rgb", ma.rgb_to_image(frame.rgb, header)),
+                    ("depth", ma.depth_to_image(frame.depth, header, depth_encoding)),
+                    ("camera_info", ma.camera_to_camera_info(frame.camera, header))]
+        if frame.labels is not None:
+            messages.append(("labels", ma.labels_to_image(frame.labels, header)))
+        yield PlayerFrame(ma.seconds_to_ns(frame.timestamp), messages, frame.gt_pose)
+
+
+def bag_frames(path: str | Path) -> Iterator[PlayerFrame]:
+    """Frames of a bag: each rgb image opens a frame; messages before the first rgb image join the first frame."""
+    frame = None
+    leading: list[tuple[str, object]] = []
+    for item in read_bag(path):
+        key = BAG_TOPIC_KEYS.get(item.topic)
+        if key is None:
+            continue
+        if key == "rgb":
+            if frame is not None:
+                yield frame
+            frame = PlayerFrame(item.stamp_ns, leading)
+            leading = []
+        (leading if frame is None else frame.messages).append((key, item.msg))
+    if frame is not None:
+        yield frame
+
+
+def is_bag(source: str) -> bool:
+    path = Path(source)
+    return (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file())
+
+
+def open_source(source: str, *, size=None, stride: int = 1, max_frames: int | None = None, frame_id: str = "camera",
+                depth_encoding: str = "32FC1") -> Iterator[PlayerFrame]:
+    """Frames of a bag (path) or of a dataset spec (resized/strided/capped by the options; bags are replayed as
+    recorded and accept none of them)."""
+    if is_bag(source):
+        if size is not None or stride != 1 or max_frames is not None:
+            raise ValueError("--size, --stride and --max-frames apply to datasets, not to bags")
+        return bag_frames(source)
+    return dataset_frames(open_dataset(source, size=size, stride=stride, max_frames=max_frames), frame_id,
+                          depth_encoding)
+
+
+class Player(Node):
+    """Publishes ``frames`` on the input topics from a timer; ``done`` once all are out (and, in lock-step, the last
+    one was answered or timed out)."""
+
+    def __init__(self, frames: Iterable[PlayerFrame], *, rate: float = 1.0, lockstep: bool = False,
+                 timeout: float = 10.0, wait_subscribers: float = 5.0, period: float = 0.005, **kwargs):
+        super().__init__("player", **kwargs)
+        if rate < 0 or timeout <= 0 or wait_subscribers < 0:
+            raise ValueError(f"player: rate must be >= 0, timeout > 0 and wait_subscribers >= 0, got {rate}, "
+                             f"{timeout}, {wait_subscribers}")
+        self.rate, self.lockstep, self.timeout, self.wait_subscribers = rate, lockstep, timeout, wait_subscribers
+        self._frames = iter(frames)
+        self._next = next(self._frames, None)
+        self._pubs = {key: self.create_publisher(cls, topic, IMAGE_QOS) for key, (cls, topic) in OUTPUTS.items()}
+        self._clock_pub = self.create_publisher(Clock, "/clock", IMAGE_QOS)
+        self.create_subscription(Odometry, "gausem/odometry", self._on_odometry, EVENT_QOS)
+        self.published = 0
+        self.odometry_received = 0
+        self.timeouts = 0
+        self.ground_truth: list[tuple[float, np.ndarray]] = []
+        self._awaiting: int | None = None  # stamp (ns) whose odometry lock-step waits for
+        self._waiting_since = time.monotonic()
+        self._start: tuple[float, int] | None = None  # (wall time, stamp ns) of the first frame
+        self._timer = self.create_timer(period, self._tick)
+
+    @property
+    def done(self) -> bool:
+        return self._next is None and self._awaiting is None
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        self.odometry_received += 1
+        if self._awaiting is not None and ma.time_to_ns(msg.header.stamp) >= self._awaiting - _STAMP_TOLERANCE_NS:
+            self._awaiting = None
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        if self._awaiting is not None:
+            if now - self._waiting_since < self.timeout:
+                return
+            self.timeouts += 1
+            self.get_logger().warning(f"lock-step: no gausem/odometry for the frame stamped "
+                                      f"{ma.ns_to_seconds(self._awaiting):.6f} s within {self.timeout} s; going on")
+            self._awaiting = None
+        if self._next is None or not self._ready(now):
+            return
+        frame, self._next = self._next, next(self._frames, None)
+        if self._start is None:
+            self._start = (now, frame.stamp_ns)
+        for key, msg in frame.messages:
+            self._pubs[key].publish(msg)
+        self._clock_pub.publish(Clock(clock=ma.ns_to_time(frame.stamp_ns)))
+        self.published += 1
+        if frame.gt_pose is not None:
+            self.ground_truth.append((ma.ns_to_seconds(frame.stamp_ns), frame.gt_pose))
+        if self.lockstep:
+            self._awaiting, self._waiting_since = frame.stamp_ns, now
+
+    def _ready(self, now: float) -> bool:
+        if self._start is None:  # the first frame waits for subscribers on every topic it carries
+            keys = {key for key, _ in self._next.messages}
+            subscribed = all(self._pubs[key].get_subscription_count() > 0 for key in keys)
+            return subscribed or now - self._waiting_since >= self.wait_subscribers
+        if self.rate == 0:
+            return True
+        wall0, stamp0 = self._start
+        return (now - wall0) * self.rate >= ma.ns_to_seconds(self._next.stamp_ns - stamp0)
+
+    def write_ground_truth(self, path: str | Path) -> int:
+        """Write the replayed frames' ground-truth poses (TUM format); returns how many."""
+        write_tum_trajectory(path, Trajectory([t for t, _ in self.ground_truth],
+                                              np.array([p for _, p in self.ground_truth]).reshape(-1, 4, 4)))
+        return len(self.ground_truth)
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WIDTHxHEIGHT, got {text!r}") from None
+    return width, height
+
+
+def add_source_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("source", help=f"a ROS 1 .bag file, a ROS 2 bag folder or a dataset spec: {SPEC_HELP}")
+    parser.add_argument("--size", type=_size, help="resize dataset frames to WIDTHxHEIGHT")
+    parser.add_argument("--stride", type=int, default=1, help="keep every n-th dataset frame")
+    parser.add_argument("--max-frames", type=int, help="at most this many dataset frames")
+    parser.add_argument("--frame-id", default="camera", help="camera frame id of dataset frames")
+    parser.add_argument("--depth-encoding", choices=("32FC1", "16UC1"), default="32FC1")
+
+
+def add_player_arguments(parser: argparse.ArgumentParser) -> None:
+    add_source_arguments(parser)
+    parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor; 0 = as fast as possible")
+    parser.add_argument("--lockstep", action="store_true", help="wait for gausem/odometry of each frame")
+    parser.add_argument("--timeout", type=float, default=10.0, help="lock-step wait per frame (s)")
+    parser.add_argument("--wait-subscribers", type=float, default=5.0, help="wait for subscribers at most (s)")
+    parser.add_argument("--gt-out", help="write the replayed frames' ground truth here (TUM format)")
+
+
+def player_from_args(ns: argparse.Namespace, **node_kwargs) -> Player:
+    frames = open_source(ns.source, size=ns.size, stride=ns.stride, max_frames=ns.max_frames, frame_id=ns.frame_id,
+                         depth_encoding=ns.depth_encoding)
+    return Player(frames, rate=ns.rate, lockstep=ns.lockstep, timeout=ns.timeout,
+                  wait_subscribers=ns.wait_subscribers, **node_kwargs)
+
+
+def main(args=None) -> int:
+    argv = sys.argv if args is None else ["gausem-player", *args]
+    parser = argparse.ArgumentParser(prog="gausem-player", description=__doc__.split("\n")[0])
+    add_player_arguments(parser)
+    ns = parser.parse_args(remove_ros_args(argv)[1:])
+    rclpy.init(args=argv)
+    player = None
+    try:
+        player = player_from_args(ns)
+        while rclpy.ok() and not player.done:
+            rclpy.spin_once(player, timeout_sec=0.1)
+        linger_end = time.monotonic() + 1.0  # let reliable QoS deliver the last frame before the node goes
+        while rclpy.ok() and time.monotonic() < linger_end:
+            rclpy.spin_once(player, timeout_sec=0.1)
+        player.get_logger().info(f"published {player.published} frames, {player.odometry_received} odometry "
+                                 f"messages received, {player.timeouts} lock-step timeouts")
+        if ns.gt_out:
+            player.get_logger().info(f"wrote {player.write_ground_truth(ns.gt_out)} ground-truth poses to {ns.gt_out}")
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as err:
+        rclpy.logging.get_logger("gausem_player").error(str(err))
+        return 1
+    finally:
+        if player is not None:
+            player.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
