@@ -189,8 +189,9 @@ def _size(text: str) -> tuple[int, int]:
     return width, height
 
 
-def add_source_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("source", help=f"a ROS 1 .bag file, a ROS 2 bag folder or a dataset spec: {SPEC_HELP}")
+def add_source_arguments(parser: argparse.ArgumentParser, required: bool = True) -> None:
+    parser.add_argument("source", nargs=None if required else "?",
+                        help=f"a ROS 1 .bag file, a ROS 2 bag folder or a dataset spec: {SPEC_HELP}")
     parser.add_argument("--size", type=_size, help="resize dataset frames to WIDTHxHEIGHT")
     parser.add_argument("--stride", type=int, default=1, help="keep every n-th dataset frame")
     parser.add_argument("--max-frames", type=int, help="at most this many dataset frames")
@@ -198,8 +199,8 @@ def add_source_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth-encoding", choices=("32FC1", "16UC1"), default="32FC1")
 
 
-def add_player_arguments(parser: argparse.ArgumentParser) -> None:
-    add_source_arguments(parser)
+def add_player_arguments(parser: argparse.ArgumentParser, required: bool = True) -> None:
+    add_source_arguments(parser, required)
     parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor; 0 = as fast as possible")
     parser.add_argument("--lockstep", action="store_true", help="wait for gausem/odometry of each frame")
     parser.add_argument("--timeout", type=float, default=10.0, help="lock-step wait per frame (s)")

@@ -1,0 +1,122 @@
+"""The loop-detection node (paper Algorithm 1): ``gausem/keyframes`` + ``semantic/labels`` -> ``gausem/loop_candidates``.
+
+Each keyframe record is paired with the label image of its stamp (within ``stamp_tolerance`` s; whichever arrives
+first waits, at most ``cache_size`` of each). The keyframe's global descriptor is computed here from its semantic
+colour image (the class table's colours of the labels) with ``semantics.descriptor`` (DINOv2 CLS with
+``semantics.dinov2_weights``, else the colour-layout fallback), so labels are needed. Every keyframe the tracker
+publishes is a loop keyframe (the tracker already keeps one every ``mapping.every`` frames); ``loop.check_every``,
+``loop.max_descriptor_distance`` and ``loop.exclude_recent`` configure the detector.
+
+Landmark scores (Eq. 7) need the class of every Gaussian of a submap and which ones a frame observes; this node does
+not hold the map, so the keyframes' label pixels (every ``label_stride``-th row and column) stand in for the Gaussians:
+a submap's Gaussian-IDF is computed over the pixels of its keyframes so far and a keyframe observes its own pixels.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict, defaultdict
+
+import torch
+from rclpy.node import Node
+from sensor_msgs.msg import Image, PointCloud2
+
+import msg_adapters as ma
+from gausem_core.pipeline import resolve_device
+from gausem_core.semantics import make_descriptor
+from gausem_core.slam.loop import LoopDetector, gaussian_idf, landmark_scores
+
+from ..qos import EVENT_QOS, input_qos
+from .common import DropReport, class_table, declare_parameters, declare_slam_config, run_node
+
+NODE_DEFAULTS = {"classes": "synthetic", "input_qos": "reliable", "stamp_tolerance": 0.02, "cache_size": 60,
+                 "label_stride": 4}
+
+
+class LoopDetectionNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("loop_detection", **kwargs)
+        self.cfg = cfg = declare_slam_config(self)
+        self.params = p = declare_parameters(self, NODE_DEFAULTS)
+        if p.label_stride < 1 or p.cache_size < 1 or p.stamp_tolerance < 0:
+            raise ValueError(f"loop_detection: label_stride and cache_size must be >= 1 and stamp_tolerance >= 0, "
+                             f"got {p.label_stride}, {p.cache_size}, {p.stamp_tolerance}")
+        self.table = class_table(p.classes)
+        self.extractor = make_descriptor(cfg.semantics.descriptor, cfg.semantics.dinov2_weights or None,
+                                         device=resolve_device(cfg.device))
+        self.detector = LoopDetector.from_config(cfg.loop, descriptor_dim=self.extractor.dim)
+        self.drops = DropReport(self)
+        self.candidates: list[ma.LoopCandidateRecord] = []
+        self.keyframes_checked = 0
+        self._labels: OrderedDict[float, object] = OrderedDict()  # stamp -> label image message
+        self._keyframes: OrderedDict[float, ma.KeyframeRecord] = OrderedDict()  # waiting for their labels
+        self._submap_pixels: dict[int, list[torch.Tensor]] = defaultdict(list)
+        self._pub = self.create_publisher(PointCloud2, "gausem/loop_candidates", EVENT_QOS)
+        self.create_subscription(PointCloud2, "gausem/keyframes", self._on_keyframes, EVENT_QOS)
+        self.create_subscription(Image, "semantic/labels", self._on_labels, input_qos(p.input_qos))
+        if not cfg.loop.enabled:
+            self.get_logger().info("loop.enabled is false: keyframes are ignored")
+
+    def _on_labels(self, msg: Image) -> None:
+        self._remember(self._labels, ma.header_seconds(msg.header), msg, "labels")
+        self._pair()
+
+    def _on_keyframes(self, msg: PointCloud2) -> None:
+        if not self.cfg.loop.enabled:
+            return
+        try:
+            records = ma.pointcloud2_to_records(msg, ma.KeyframeRecord)
+        except ValueError as err:
+            self.drops.drop("bad_keyframes", str(err))
+            return
+        for record in records:
+            self._remember(self._keyframes, record.stamp, record, "keyframe")
+        self._pair()
+
+    def _remember(self, cache: OrderedDict, stamp: float, item, what: str) -> None:
+        cache[stamp] = item
+        if len(cache) > self.params.cache_size:
+            oldest, _ = cache.popitem(last=False)
+            if what == "keyframe":
+                self.drops.drop("no_labels", f"keyframe stamped {oldest:.6f} s: no semantic/labels within "
+                                             f"{self.params.stamp_tolerance} s arrived")
+
+    def _pair(self) -> None:
+        for stamp in list(self._keyframes):
+            match = min(self._labels, key=lambda s: abs(s - stamp), default=None)
+            if match is not None and abs(match - stamp) <= self.params.stamp_tolerance:
+                self._check(self._keyframes.pop(stamp), self._labels[match])
+
+    def _check(self, record: ma.KeyframeRecord, labels_msg: Image) -> None:
+        try:
+            labels = ma.image_to_labels(labels_msg)
+            semantic = self.table.colorize(labels)
+        except ValueError as err:
+            self.drops.drop("bad_labels", f"keyframe {record.keyframe_id}: {err}")
+            return
+        descriptor = torch.from_numpy(self.extractor.describe(semantic))
+        step = self.params.label_stride
+        pixels = torch.from_numpy(labels[::step, ::step].reshape(-1))
+        submap = self._submap_pixels[record.submap_id]
+        submap.append(pixels)
+        class_ids = torch.cat(submap)
+        observed = torch.zeros(len(class_ids), dtype=torch.bool)
+        observed[-len(pixels):] = True
+        scores = landmark_scores(class_ids, observed, gaussian_idf(class_ids, len(self.table)))
+        loop = self.detector.add_keyframe(record.keyframe_id, record.submap_id, descriptor, scores)
+        self.keyframes_checked += 1
+        if loop is None:
+            return
+        candidate = ma.LoopCandidateRecord(loop.query_keyframe, loop.match_keyframe, loop.query_submap,
+                                           loop.match_submap, loop.descriptor_distance, loop.landmark_distance,
+                                           loop.intra)
+        self.candidates.append(candidate)
+        self.get_logger().info(f"loop candidate: keyframe {loop.query_keyframe} -> {loop.match_keyframe} "
+                               f"(descriptor distance {loop.descriptor_distance:.3f})")
+        self._pub.publish(ma.records_to_pointcloud2([candidate], ma.make_header(record.stamp, "map")))
+
+
+def main(args=None) -> int:
+    return run_node(LoopDetectionNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

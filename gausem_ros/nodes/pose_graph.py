@@ -1,0 +1,120 @@
+"""The pose-graph node (GTSAM): ``gausem/keyframes``, ``gausem/submaps``, ``gausem/loop_constraints`` ->
+``gausem/pose_graph`` (a PoseGraphUpdate: corrected poses, one record per node).
+
+It keeps every keyframe's pose in its submap frame and every submap's anchor pose in the map. Each loop constraint
+re-optimises one level (paper §III-C): an intra-submap loop the keyframes of that submap (nodes in submap coordinates,
+odometry edges between consecutive keyframes, the first keyframe fixed), an inter-submap loop the anchors (odometry
+edges between consecutive submaps, the first anchor fixed). All loops received so far on that level take part; the
+optimised poses replace the stored ones and are published (KEYFRAME or ANCHOR nodes). Constraints naming unknown
+keyframes or submaps are dropped and counted. ``loop.robust_kernel`` selects the loop-edge kernel.
+"""
+from __future__ import annotations
+
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+
+import msg_adapters as ma
+from gausem_core.slam.pose_graph import PoseGraph
+
+from ..qos import EVENT_QOS
+from .common import DropReport, declare_parameters, declare_slam_config, run_node
+
+NODE_DEFAULTS = {"map_frame": "map", "odometry_sigmas": [0.005, 0.02], "loop_sigmas": [0.01, 0.05],
+                 "max_iterations": 100}
+
+
+class PoseGraphNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("pose_graph", **kwargs)
+        self.cfg = declare_slam_config(self)
+        self.params = declare_parameters(self, NODE_DEFAULTS)
+        PoseGraph(**self._graph_options())  # fails now, not at the first loop, on bad sigmas or kernel
+        self.drops = DropReport(self)
+        self.keyframes: dict[int, tuple[int, object]] = {}  # keyframe id -> (submap id, pose in the submap frame)
+        self.anchors: dict[int, object] = {}  # submap id -> anchor pose in the map
+        self.loops: list[ma.LoopConstraintRecord] = []
+        self.updates_published = 0
+        self._pub = self.create_publisher(PointCloud2, "gausem/pose_graph", EVENT_QOS)
+        self.create_subscription(PointCloud2, "gausem/keyframes", self._on_keyframes, EVENT_QOS)
+        self.create_subscription(PointCloud2, "gausem/submaps", self._on_submaps, EVENT_QOS)
+        self.create_subscription(PointCloud2, "gausem/loop_constraints", self._on_loops, EVENT_QOS)
+
+    def _graph_options(self) -> dict:
+        return {"odometry_sigmas": tuple(self.params.odometry_sigmas), "loop_sigmas": tuple(self.params.loop_sigmas),
+                "robust_kernel": self.cfg.loop.robust_kernel}
+
+    def _records(self, msg: PointCloud2, record_type):
+        try:
+            return ma.pointcloud2_to_records(msg, record_type)
+        except ValueError as err:
+            self.drops.drop(f"bad_{record_type.__name__}", str(err))
+            return []
+
+    def _on_keyframes(self, msg: PointCloud2) -> None:
+        for r in self._records(msg, ma.KeyframeRecord):
+            self.keyframes[r.keyframe_id] = (r.submap_id, r.pose)
+            self.anchors.setdefault(r.submap_id, r.anchor_pose)
+
+    def _on_submaps(self, msg: PointCloud2) -> None:
+        for r in self._records(msg, ma.SubmapEvent):
+            self.anchors.setdefault(r.submap_id, r.anchor_pose)
+
+    def _on_loops(self, msg: PointCloud2) -> None:
+        for loop in self._records(msg, ma.LoopConstraintRecord):
+            missing = self._missing(loop)
+            if missing:
+                self.drops.drop("unknown_nodes", f"loop constraint {loop.keyframe_a}-{loop.keyframe_b}: unknown "
+                                                 f"{missing}")
+                continue
+            self.loops.append(loop)
+            try:
+                nodes = self._optimise_keyframes(loop.submap_a) if loop.intra_submap else self._optimise_anchors()
+            except ValueError as err:  # e.g. a loop between a node and itself
+                self.loops.pop()
+                self.drops.drop("bad_constraint", f"loop constraint {loop.keyframe_a}-{loop.keyframe_b}: {err}")
+                continue
+            header = ma.make_header(max(ma.header_seconds(msg.header), 0.0), self.params.map_frame)
+            self._pub.publish(ma.pose_graph_update_to_pointcloud2(ma.PoseGraphUpdate(nodes), header))
+            self.updates_published += 1
+
+    def _missing(self, loop: ma.LoopConstraintRecord) -> list[str]:
+        if loop.intra_submap:
+            return [f"keyframe {k}" for k in (loop.keyframe_a, loop.keyframe_b)
+                    if self.keyframes.get(k, (None,))[0] != loop.submap_a]
+        return [f"submap {s}" for s in (loop.submap_a, loop.submap_b) if s not in self.anchors]
+
+    def _optimise(self, poses: dict[int, object], loops: list[tuple[int, int, object]]) -> dict[int, object]:
+        graph = PoseGraph(**self._graph_options())
+        keys = sorted(poses)
+        for key in keys:
+            graph.add_node(key, poses[key])
+        for a, b in zip(keys, keys[1:]):
+            graph.add_odometry(a, b)
+        for a, b, relative in loops:
+            graph.add_loop(a, b, relative)
+        result = graph.optimize(self.params.max_iterations)
+        self.get_logger().info(f"pose graph: {len(keys)} nodes, {len(loops)} loops, error "
+                               f"{result.error_before:.4g} -> {result.error_after:.4g}")
+        return result.poses
+
+    def _optimise_keyframes(self, submap_id: int) -> list[ma.PoseGraphNode]:
+        poses = {k: pose for k, (s, pose) in self.keyframes.items() if s == submap_id}
+        loops = [(lp.keyframe_a, lp.keyframe_b, lp.relative_pose) for lp in self.loops
+                 if lp.intra_submap and lp.submap_a == submap_id]
+        optimised = self._optimise(poses, loops)
+        self.keyframes.update({k: (submap_id, pose) for k, pose in optimised.items()})
+        return [ma.PoseGraphNode(ma.PoseGraphNodeKind.KEYFRAME, k, pose) for k, pose in optimised.items()]
+
+    def _optimise_anchors(self) -> list[ma.PoseGraphNode]:
+        loops = [(lp.submap_a, lp.submap_b, lp.relative_pose) for lp in self.loops if not lp.intra_submap]
+        optimised = self._optimise(self.anchors, loops)
+        self.anchors.update(optimised)
+        return [ma.PoseGraphNode(ma.PoseGraphNodeKind.ANCHOR, s, pose) for s, pose in optimised.items()]
+
+
+def main(args=None) -> int:
+    return run_node(PoseGraphNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,74 @@
+"""The segmentation node: ``rgb/image`` -> ``semantic/labels`` (class ids, mono16 by default, same header) and
+``semantic/color`` (rgb8, the class table's colours).
+
+It needs a segmenter that works on the image alone (``semantics.segmenter: dinov2`` with ``semantics.dinov2_weights``
+and ``semantics.head_weights``). With ``semantics.segmenter: labels`` the class ids come with the data -- the player
+publishes ``semantic/labels`` from a labelled dataset, or another robot stack does -- so this node is not run (it
+refuses to start and says so). Frames are segmented newest first; superseded or undecodable images are dropped and
+counted on gausem/diagnostics.
+"""
+from __future__ import annotations
+
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+
+import msg_adapters as ma
+from gausem_core.config import SlamConfig
+from gausem_core.pipeline import resolve_device
+from gausem_core.semantics import Segmenter, make_segmenter
+
+from ..qos import IMAGE_QOS, input_qos
+from .common import DropReport, NewestFrameQueue, class_table, declare_parameters, declare_slam_config, run_node
+
+NODE_DEFAULTS = {"classes": "synthetic", "input_qos": "reliable", "label_encoding": "mono16"}
+
+
+def build_segmenter(cfg: SlamConfig) -> Segmenter:
+    kind = cfg.semantics.segmenter
+    if kind == "labels":
+        raise ValueError("segmentation node: semantics.segmenter is 'labels', which passes through class ids that "
+                         "come with the data and cannot segment an image by itself; do not run this node -- the "
+                         "player (or your robot stack) publishes semantic/labels -- or set semantics.segmenter: dinov2")
+    return make_segmenter(kind, dinov2_weights=cfg.semantics.dinov2_weights or None,
+                          head_weights=cfg.semantics.head_weights or None, device=resolve_device(cfg.device))
+
+
+class SegmentationNode(Node):
+    """``segmenter``: an already built segmenter (tests, embedding); by default built from the parameters."""
+
+    def __init__(self, segmenter: Segmenter | None = None, **kwargs):
+        super().__init__("segmentation", **kwargs)
+        cfg = declare_slam_config(self)
+        self.params = p = declare_parameters(self, NODE_DEFAULTS)
+        self.table = class_table(p.classes)
+        self.segmenter = segmenter if segmenter is not None else build_segmenter(cfg)
+        if self.segmenter.num_classes != len(self.table):
+            raise ValueError(f"segmentation node: the segmenter predicts {self.segmenter.num_classes} classes, the "
+                             f"class table {p.classes!r} has {len(self.table)}")
+        ma.labels_to_image(self.table.ids, ma.make_header(0.0, ""), p.label_encoding)  # checks the encoding early
+        self.drops = DropReport(self)
+        self.frames_segmented = 0
+        self._labels_pub = self.create_publisher(Image, "semantic/labels", IMAGE_QOS)
+        self._color_pub = self.create_publisher(Image, "semantic/color", IMAGE_QOS)
+        self._queue = NewestFrameQueue(self, self._segment, lambda _: self.drops.drop(
+            "superseded", "a newer image arrived before this one was segmented"))
+        self.create_subscription(Image, "rgb/image", self._queue.put, input_qos(p.input_qos))
+
+    def _segment(self, msg: Image) -> None:
+        try:
+            rgb = ma.image_to_rgb(msg)
+        except ValueError as err:
+            self.drops.drop("bad_image", str(err))
+            return
+        labels = self.segmenter.segment(rgb.copy())
+        self._labels_pub.publish(ma.labels_to_image(labels, msg.header, self.params.label_encoding))
+        self._color_pub.publish(ma.rgb_to_image(self.table.colorize(labels), msg.header))
+        self.frames_segmented += 1
+
+
+def main(args=None) -> int:
+    return run_node(SegmentationNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
