@@ -45,7 +45,7 @@ class SegmentationNode(Node):
         if self.segmenter.num_classes != len(self.table):
             raise ValueError(f"segmentation node: the segmenter predicts {self.segmenter.num_classes} classes, the "
                              f"class table {p.classes!r} has {len(self.table)}")
-        ma.labels_to_image(self.table.ids, ma.make_header(0.0, ""), p.label_encoding)  # checks the encoding early
+        ma.labels_to_image(self.table.ids[None], ma.make_header(0.0, ""), p.label_encoding)  # checks the encoding early
         self.drops = DropReport(self)
         self.frames_segmented = 0
         self._labels_pub = self.create_publisher(Image, "semantic/labels", IMAGE_QOS)

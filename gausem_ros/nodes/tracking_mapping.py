@@ -231,11 +231,11 @@ class TrackingMappingNode(Node):
         if node.kind == ma.PoseGraphNodeKind.ANCHOR:
             targets = [s for s in self.slam.submaps if s.submap_id == node.node_id]
             for submap in targets:
-                submap.anchor = torch.as_tensor(node.pose, dtype=submap.anchor.dtype, device=submap.anchor.device)
+                submap.anchor = torch.tensor(node.pose, dtype=submap.anchor.dtype, device=submap.anchor.device)
         else:
             targets = [k for s in self.slam.submaps for k in s.keyframes if k.frame_id == node.node_id]
             for keyframe in targets:
-                keyframe.cam_to_world = torch.as_tensor(node.pose, dtype=keyframe.cam_to_world.dtype,
+                keyframe.cam_to_world = torch.tensor(node.pose, dtype=keyframe.cam_to_world.dtype,
                                                         device=keyframe.cam_to_world.device)
         return bool(targets)
 

@@ -1,0 +1,281 @@
+"""GauSem's ROS 2 nodes through real rclpy pub/sub in one process (each test on its own ROS domain)."""
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("rosbags")
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import Odometry, Path  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+import msg_adapters as ma  # noqa: E402
+from gausem_core.data import SYNTHETIC_CLASSES, open_dataset  # noqa: E402
+from gausem_core.geometry import PinholeCamera  # noqa: E402
+from gausem_core.semantics import Segmenter  # noqa: E402
+from gausem_ros.nodes.loop_detection import LoopDetectionNode  # noqa: E402
+from gausem_ros.nodes.pose_graph import PoseGraphNode  # noqa: E402
+from gausem_ros.nodes.segmentation import SegmentationNode  # noqa: E402
+from gausem_ros.nodes.tracking_mapping import TrackingMappingNode  # noqa: E402
+from gausem_ros.player import Player, open_source  # noqa: E402
+from gausem_ros.qos import EVENT_QOS, IMAGE_QOS, LATCHED_QOS  # noqa: E402
+from gausem_ros.run_all import build_nodes  # noqa: E402
+from ros_harness import FAST_SLAM, Recorder, overrides, ros_session, spin_for, spin_until  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _localhost(monkeypatch):
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+
+def _translation(x: float) -> np.ndarray:
+    m = np.eye(4)
+    m[0, 3] = x
+    return m
+
+
+def _diagnostics(recorder) -> dict:
+    """Latest key -> value of the tracking node's gausem/diagnostics."""
+    values = {}
+    for msg in recorder.messages["gausem/diagnostics"]:
+        values.update({kv.key: kv.value for kv in msg.status[0].values})
+    return values
+
+
+def test_adapters_round_trip_through_rclpy_pub_sub():
+    rng = np.random.default_rng(1)
+    rgb = rng.integers(0, 256, (6, 8, 3), dtype=np.uint8)
+    depth_m = np.round(rng.uniform(0.5, 4.0, (6, 8)), 3).astype(np.float32)
+    camera = PinholeCamera(50.0, 52.0, 4.0, 3.0, 8, 6)
+    pose = _translation(0.7) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    header = ma.make_header(12.25, "cam")
+    sent = {"rgb": ma.rgb_to_image(rgb, header, "bgr8"), "depth": ma.depth_to_image(depth_m, header, "16UC1"),
+            "info": ma.camera_to_camera_info(camera, header),
+            "odom": ma.matrix_to_odometry(pose, ma.make_header(12.25, "map"), "cam"),
+            "kf": ma.records_to_pointcloud2([ma.KeyframeRecord(3, 12.25, 1, pose, np.eye(4),
+                                                               np.arange(5, dtype=np.float32))], header)}
+    types = {"rgb": Image, "depth": Image, "info": CameraInfo, "odom": Odometry, "kf": PointCloud2}
+    with ros_session(101) as (ctx, executor):
+        recorder = Recorder(ctx, [(types[k], f"t/{k}", EVENT_QOS) for k in sent])
+        pub_node = recorder.node
+        pubs = {k: pub_node.create_publisher(types[k], f"t/{k}", EVENT_QOS) for k in sent}
+        executor.add_node(pub_node)
+        assert spin_until(executor, lambda: all(p.get_subscription_count() for p in pubs.values()), 5.0)
+        for key, msg in sent.items():
+            pubs[key].publish(msg)
+        assert spin_until(executor, lambda: all(recorder.messages[f"t/{k}"] for k in sent), 5.0)
+        got = {k: recorder.messages[f"t/{k}"][0] for k in sent}
+    np.testing.assert_array_equal(ma.image_to_rgb(got["rgb"]), rgb)
+    np.testing.assert_allclose(ma.image_to_depth(got["depth"]), depth_m, atol=5e-4)
+    assert ma.camera_info_to_camera(got["info"]) == camera
+    np.testing.assert_allclose(ma.odometry_to_matrix(got["odom"]), pose, atol=1e-12)
+    assert got["odom"].child_frame_id == "cam" and ma.header_seconds(got["odom"].header) == 12.25
+    assert ma.pointcloud2_to_records(got["kf"], ma.KeyframeRecord) == ma.pointcloud2_to_records(sent["kf"],
+                                                                                               ma.KeyframeRecord)
+
+
+def test_tracking_node_in_lockstep_with_the_player(tmp_path):
+    frames = 4
+    with ros_session(102) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(
+            {**FAST_SLAM, "map_publish_period": 0.2, "output_dir": str(tmp_path / "out")}))
+        player = Player(open_source("synthetic", size=(80, 60), max_frames=frames), rate=0.0, lockstep=True,
+                        timeout=30.0, context=ctx)
+        recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS), (Path, "gausem/path", LATCHED_QOS),
+                                  (PointCloud2, "gausem/map", LATCHED_QOS),
+                                  (Image, "semantic/labels", IMAGE_QOS), (PointCloud2, "gausem/keyframes", EVENT_QOS),
+                                  (PointCloud2, "gausem/submaps", EVENT_QOS)])
+        for node in (tracking, player, recorder.node):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: player.done, 50.0)
+        assert spin_until(executor, lambda: recorder.messages["gausem/map"]
+                          and len(recorder.messages["gausem/odometry"]) == frames
+                          and len(recorder.messages["gausem/path"][-1].poses) == frames, 5.0)
+        odometry = recorder.messages["gausem/odometry"]
+        assert len(odometry) == player.odometry_received == tracking.frames_processed == frames
+        assert player.timeouts == 0 and not tracking.drops.counts
+        dataset = open_dataset("synthetic", size=(80, 60), max_frames=frames)
+        assert [ma.header_seconds(o.header) for o in odometry] == pytest.approx([dataset[i].timestamp
+                                                                           for i in range(frames)], abs=1e-9)
+        assert {(o.header.frame_id, o.child_frame_id) for o in odometry} == {("map", "camera")}
+        np.testing.assert_allclose(ma.odometry_to_matrix(odometry[0]), np.eye(4), atol=1e-6)  # first frame = world
+        path = recorder.messages["gausem/path"][-1]
+        assert path.header.frame_id == "map" and len(path.poses) == frames
+        np.testing.assert_allclose(ma.path_to_poses(path)[-1][1], ma.odometry_to_matrix(odometry[-1]), atol=1e-6)
+        cloud, labels = ma.pointcloud2_to_cloud(recorder.messages["gausem/map"][-1])
+        assert recorder.messages["gausem/map"][-1].header.frame_id == "map"
+        assert len(cloud) == len(tracking.slam.global_cloud()) > 0
+        assert labels.min() >= 0 and labels.max() < len(SYNTHETIC_CLASSES)
+        label_msgs = recorder.messages["semantic/labels"]
+        assert len(label_msgs) == frames and {m.encoding for m in label_msgs} == {"mono16"}
+        keyframe = ma.pointcloud2_to_records(recorder.messages["gausem/keyframes"][0], ma.KeyframeRecord)[0]
+        assert (keyframe.keyframe_id, keyframe.submap_id) == (0, 0)
+        created = ma.pointcloud2_to_records(recorder.messages["gausem/submaps"][0], ma.SubmapEvent)[0]
+        assert created.kind == ma.SubmapEventKind.CREATED
+
+        # a corrected anchor moves the whole trajectory; the path is re-published
+        before = [p for _, p in ma.path_to_poses(path)]
+        update_pub = recorder.node.create_publisher(PointCloud2, "gausem/pose_graph", EVENT_QOS)
+        shift = _translation(0.5)
+        update = ma.PoseGraphUpdate([ma.PoseGraphNode(ma.PoseGraphNodeKind.ANCHOR, 0, shift)])
+        update_pub.publish(ma.pose_graph_update_to_pointcloud2(update, ma.make_header(1.0, "map")))
+        assert spin_until(executor, lambda: len(recorder.messages["gausem/path"]) > frames, 5.0)
+        after = [p for _, p in ma.path_to_poses(recorder.messages["gausem/path"][-1])]
+        np.testing.assert_allclose(after, [shift @ p for p in before], atol=1e-6)
+
+        client = recorder.node.create_client(Trigger, "gausem/save_map")
+        future = client.call_async(Trigger.Request())
+        assert spin_until(executor, future.done, 10.0) and future.result().success
+    trajectory = (tmp_path / "out" / "trajectory.txt").read_text().splitlines()
+    assert len(trajectory) == frames + 1 and (tmp_path / "out" / "map.ply").stat().st_size > 0
+
+
+def _frame_messages(stamp: float, size=(40, 30), rgb_encoding="rgb8", depth=None):
+    header = ma.make_header(stamp, "cam")
+    w, h = size
+    rgb = np.random.default_rng(int(stamp * 10)).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    image = ma.rgb_to_image(rgb, header)
+    if rgb_encoding != "rgb8":
+        image.encoding = rgb_encoding
+    depth = np.full((h, w), 2.0, np.float32) if depth is None else depth
+    labels = np.zeros((h, w), np.int64)
+    return image, ma.depth_to_image(depth, header), ma.labels_to_image(labels, header)
+
+
+def test_bad_input_is_dropped_and_reported_and_the_node_keeps_running():
+    camera = PinholeCamera(40.0, 40.0, 20.0, 15.0, 40, 30)
+    with ros_session(103) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
+        recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS),
+                                  (DiagnosticArray, "gausem/diagnostics", EVENT_QOS)])
+        node = recorder.node
+        pubs = [node.create_publisher(Image, topic, IMAGE_QOS) for topic in
+                ("rgb/image", "depth/image", "semantic/labels")]
+        info_pub = node.create_publisher(CameraInfo, "rgb/camera_info", IMAGE_QOS)
+        executor.add_node(tracking)
+        executor.add_node(node)
+        assert spin_until(executor, lambda: all(p.get_subscription_count() for p in pubs + [info_pub]), 5.0)
+
+        def send(messages, expect):
+            for pub, msg in zip(pubs, messages):
+                pub.publish(msg)
+            assert spin_until(executor, expect, 20.0), dict(tracking.drops.counts)
+
+        dropped = lambda reason: lambda: tracking.drops.counts[reason] >= 1  # noqa: E731
+        send(_frame_messages(1.0), dropped("no_camera_info"))
+        info_pub.publish(ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam")))
+        spin_for(executor, 0.3)
+        send(_frame_messages(1.1, rgb_encoding="mono16"), dropped("bad_encoding"))
+        send(_frame_messages(1.2, size=(20, 30)), dropped("size_mismatch"))
+        send(_frame_messages(1.3, depth=np.full((30, 40), np.nan, np.float32)), dropped("invalid_depth"))
+        send(_frame_messages(1.4), lambda: tracking.frames_processed == 1)
+        send(_frame_messages(1.4), lambda: tracking._inputs.synchronizer.dropped["stale"] >= 3)  # duplicate stamp
+        send(_frame_messages(1.5), lambda: tracking.frames_processed == 2)
+        assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == 2, 5.0)
+        assert spin_until(executor, lambda: _diagnostics(recorder).get("frames_processed") == "2", 5.0)
+        report = _diagnostics(recorder)
+    for reason in ("no_camera_info", "bad_encoding", "size_mismatch", "invalid_depth"):
+        assert report[f"dropped.{reason}"] == "1"
+    assert int(report["sync.stale"]) >= 3
+    assert [ma.header_seconds(o.header) for o in recorder.messages["gausem/odometry"]] == [1.4, 1.5]
+
+
+class _BrightnessSegmenter(Segmenter):
+    """Class 1 where the red channel exceeds 127, else 0 (over the synthetic table's 12 classes)."""
+
+    num_classes = len(SYNTHETIC_CLASSES)
+
+    def segment(self, rgb, labels=None):
+        return (rgb[..., 0] > 127).astype(np.int64)
+
+
+def test_segmentation_node_publishes_labels_and_colours_and_refuses_the_labels_kind():
+    rgb = np.zeros((4, 6, 3), np.uint8)
+    rgb[:, 3:, 0] = 200
+    with ros_session(104) as (ctx, executor):
+        with pytest.raises(ValueError, match="cannot segment an image by itself"):
+            SegmentationNode(context=ctx)
+        seg = SegmentationNode(_BrightnessSegmenter(), context=ctx)
+        recorder = Recorder(ctx, [(Image, "semantic/labels", IMAGE_QOS), (Image, "semantic/color", IMAGE_QOS)])
+        pub = recorder.node.create_publisher(Image, "rgb/image", IMAGE_QOS)
+        executor.add_node(seg)
+        executor.add_node(recorder.node)
+        assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 5.0)
+        pub.publish(ma.rgb_to_image(rgb, ma.make_header(3.0, "cam"), "bgr8"))
+        assert spin_until(executor, lambda: recorder.messages["semantic/color"], 5.0)
+        labels_msg, color_msg = recorder.messages["semantic/labels"][0], recorder.messages["semantic/color"][0]
+    expected = np.zeros((4, 6), np.int64)  # sent as bgr8, read back as RGB: red is 200 in the right half
+    expected[:, 3:] = 1
+    np.testing.assert_array_equal(ma.image_to_labels(labels_msg), expected)
+    assert labels_msg.encoding == "mono16" and ma.header_seconds(labels_msg.header) == 3.0
+    np.testing.assert_array_equal(ma.image_to_rgb(color_msg), SYNTHETIC_CLASSES.colorize(expected))
+
+
+def test_loop_detection_finds_a_revisited_labelling():
+    layouts = [np.repeat(np.arange(8) % 3, 8).reshape(8, 8), np.full((8, 8), 5), np.repeat(np.arange(8) % 3, 8)
+               .reshape(8, 8)]
+    with ros_session(105) as (ctx, executor):
+        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides(
+            {"loop.check_every": 1, "loop.exclude_recent": 1, "label_stride": 1}))
+        recorder = Recorder(ctx, [(PointCloud2, "gausem/loop_candidates", EVENT_QOS)])
+        kf_pub = recorder.node.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
+        labels_pub = recorder.node.create_publisher(Image, "semantic/labels", IMAGE_QOS)
+        executor.add_node(loop)
+        executor.add_node(recorder.node)
+        assert spin_until(executor, lambda: kf_pub.get_subscription_count() and labels_pub.get_subscription_count(),
+                          5.0)
+        for i, layout in enumerate(layouts):
+            stamp = 1.0 + i
+            kf_pub.publish(ma.records_to_pointcloud2([ma.KeyframeRecord(5 * i, stamp, 0, np.eye(4), np.eye(4),
+                                                                        np.zeros(0, np.float32))],
+                                                     ma.make_header(stamp, "map")))
+            labels_pub.publish(ma.labels_to_image(layout, ma.make_header(stamp, "cam")))
+            assert spin_until(executor, lambda: loop.keyframes_checked == i + 1, 5.0)
+        assert spin_until(executor, lambda: recorder.messages["gausem/loop_candidates"], 5.0)
+    candidates = [c for m in recorder.messages["gausem/loop_candidates"]
+                  for c in ma.pointcloud2_to_records(m, ma.LoopCandidateRecord)]
+    assert [(c.query_keyframe_id, c.match_keyframe_id, c.intra_submap) for c in candidates] == [(10, 0, True)]
+    assert candidates[0].descriptor_distance == pytest.approx(0.0, abs=1e-6)
+
+
+def test_pose_graph_node_closes_an_intra_submap_loop():
+    with ros_session(106) as (ctx, executor):
+        graph = PoseGraphNode(context=ctx)
+        recorder = Recorder(ctx, [(PointCloud2, "gausem/pose_graph", EVENT_QOS)])
+        kf_pub = recorder.node.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
+        loop_pub = recorder.node.create_publisher(PointCloud2, "gausem/loop_constraints", EVENT_QOS)
+        executor.add_node(graph)
+        executor.add_node(recorder.node)
+        assert spin_until(executor, lambda: kf_pub.get_subscription_count() and loop_pub.get_subscription_count(),
+                          5.0)
+        records = [ma.KeyframeRecord(5 * i, 0.1 * i, 0, _translation(0.1 * i), np.eye(4), np.zeros(0, np.float32))
+                   for i in range(4)]  # odometry says keyframe 15 is 0.3 m from keyframe 0 ...
+        kf_pub.publish(ma.records_to_pointcloud2(records, ma.make_header(0.3, "map")))
+        assert spin_until(executor, lambda: len(graph.keyframes) == 4, 5.0)
+        header = ma.make_header(0.3, "map")
+        unknown = ma.LoopConstraintRecord(0, 99, 0, 0, _translation(0.2), 1.0, np.eye(6), True)
+        loop = ma.LoopConstraintRecord(0, 15, 0, 0, _translation(0.2), 1.0, np.eye(6), True)  # ... the loop 0.2 m
+        loop_pub.publish(ma.records_to_pointcloud2([unknown, loop], header))
+        assert spin_until(executor, lambda: recorder.messages["gausem/pose_graph"], 10.0)
+        update = ma.pointcloud2_to_pose_graph_update(recorder.messages["gausem/pose_graph"][0])
+    assert graph.drops.counts["unknown_nodes"] == 1
+    poses = {n.node_id: n.pose for n in update.nodes}
+    assert sorted(poses) == [0, 5, 10, 15] and {n.kind for n in update.nodes} == {ma.PoseGraphNodeKind.KEYFRAME}
+    np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-9)  # the submap's first keyframe is fixed
+    x = [poses[k][0, 3] for k in (5, 10, 15)]
+    assert 0.2 < x[2] < 0.3 and x[0] < x[1] < x[2]  # pulled towards the loop, odometry order kept
+
+
+def test_run_all_builds_the_node_set_the_parameters_ask_for():
+    with ros_session(107) as (ctx, executor):
+        del executor
+        nodes = build_nodes(context=ctx, parameter_overrides=overrides({"device": "cpu"}))
+        names = [n.get_name() for n in nodes]
+        without_loops = build_nodes(context=ctx, parameter_overrides=overrides({"device": "cpu",
+                                                                                "loop.enabled": False}))
+        names_without = [n.get_name() for n in without_loops]
+        for node in nodes + without_loops:
+            node.destroy_node()
+    assert names == ["tracking_mapping", "loop_detection", "pose_graph"]
+    assert names_without == ["tracking_mapping"]
