@@ -1,0 +1,109 @@
+"""The player (ROS 1 bag with TUM topic names, ROS 2 bag from gausem-bag), and nodes as separate processes."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("rosbags")
+
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+
+import msg_adapters as ma  # noqa: E402
+from gausem_core.geometry import PinholeCamera  # noqa: E402
+from gausem_ros import bags, convert  # noqa: E402
+from gausem_ros.player import Player, open_source  # noqa: E402
+from gausem_ros.qos import IMAGE_QOS  # noqa: E402
+from ros_harness import Recorder, ros_session, spin_until  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def _localhost(monkeypatch):
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+
+def _tum_bag(path: Path, frames: int) -> list[float]:
+    """A TUM-style ROS 1 bag: rgb, depth (32FC1, 5 ms after the rgb image), camera_info and mocap /tf."""
+    camera = PinholeCamera(30.0, 30.0, 8.0, 6.0, 16, 12)
+    stamps = [1305031102.175304 + k / 30 for k in range(frames)]
+    messages = []
+    for k, t in enumerate(stamps):
+        header = ma.make_header(t, "/openni_rgb_optical_frame")
+        rgb = np.full((12, 16, 3), 10 * k, np.uint8)
+        depth_header = ma.make_header(t + 0.005, "/openni_depth_optical_frame")
+        gt = bags.TFMessageStandIn([ma.matrix_to_transform(np.eye(4), ma.make_header(t, "/world"), "/kinect")])
+        messages += [(bags.TUM_TOPICS["rgb"], ma.seconds_to_ns(t), ma.rgb_to_image(rgb, header)),
+                     (bags.TUM_TOPICS["camera_info"], ma.seconds_to_ns(t), ma.camera_to_camera_info(camera, header)),
+                     (bags.TUM_TOPICS["depth"], ma.seconds_to_ns(t + 0.005),
+                      ma.depth_to_image(np.full((12, 16), 1.0 + k, np.float32), depth_header)),
+                     (bags.TUM_TOPICS["tf"], ma.seconds_to_ns(t), gt)]
+    bags.write_ros1_bag(path, messages)
+    return stamps
+
+
+def test_player_replays_a_ros1_bag_with_tum_topic_names_and_never_ground_truth(tmp_path):
+    stamps = _tum_bag(tmp_path / "tum.bag", 3)
+    with ros_session(111) as (ctx, executor):
+        player = Player(open_source(str(tmp_path / "tum.bag")), rate=0.0, context=ctx)
+        recorder = Recorder(ctx, [(Image, "rgb/image", IMAGE_QOS), (Image, "depth/image", IMAGE_QOS),
+                                  (CameraInfo, "rgb/camera_info", IMAGE_QOS), (Clock, "/clock", IMAGE_QOS),
+                                  (Image, "semantic/labels", IMAGE_QOS)])
+        executor.add_node(player)
+        executor.add_node(recorder.node)
+        assert spin_until(executor, lambda: player.done and len(recorder.messages["depth/image"]) == 3
+                          and len(recorder.messages["/clock"]) == 3, 10.0)
+        topics = dict(recorder.node.get_topic_names_and_types())
+        got = recorder.messages
+    assert player.published == 3
+    assert [ma.header_seconds(m.header) for m in got["rgb/image"]] == pytest.approx(stamps, abs=1e-6)
+    assert [float(ma.image_to_rgb(m)[0, 0, 0]) for m in got["rgb/image"]] == [0, 10, 20]
+    assert [float(ma.image_to_depth(m)[0, 0]) for m in got["depth/image"]] == [1.0, 2.0, 3.0]
+    assert ma.camera_info_to_camera(got["rgb/camera_info"][0]).fx == 30.0
+    assert [ma.time_to_seconds(c.clock) for c in got["/clock"]] == pytest.approx(stamps, abs=1e-6)
+    assert "/tf" not in topics and not got["semantic/labels"]  # ground truth stays in the bag; it has no labels
+
+
+def test_player_paces_frames_at_the_recorded_rate(tmp_path):
+    _tum_bag(tmp_path / "tum.bag", 4)  # 3 intervals of 1/30 s -> 0.1 s at rate 1, 0.2 s at rate 0.5
+    with ros_session(112) as (ctx, executor):
+        player = Player(open_source(str(tmp_path / "tum.bag")), rate=0.5, context=ctx)
+        recorder = Recorder(ctx, [(Image, "rgb/image", IMAGE_QOS)])
+        arrivals = []
+        recorder.node.create_subscription(Image, "rgb/image", lambda m: arrivals.append(
+            recorder.node.get_clock().now().nanoseconds / 1e9), IMAGE_QOS)
+        executor.add_node(player)
+        executor.add_node(recorder.node)
+        assert spin_until(executor, lambda: len(arrivals) == 4, 10.0)
+    assert 0.18 <= arrivals[-1] - arrivals[0] <= 0.5
+
+
+def test_gausem_bag_writes_a_ros2_bag_the_player_replays(tmp_path):
+    out = tmp_path / "synthetic_bag"
+    assert convert.main(["synthetic", str(out), "--size", "40x30", "--max-frames", "2", "--format", "mcap"]) == 0
+    by_topic = {}
+    for item in bags.read_bag(out):
+        by_topic.setdefault(item.topic, []).append(item.msg)
+    assert {t: len(m) for t, m in by_topic.items()} == {"/rgb/image": 2, "/depth/image": 2, "/rgb/camera_info": 2,
+                                                        "/semantic/labels": 2}
+    frames = list(open_source(str(out)))
+    assert [sorted(k for k, _ in f.messages) for f in frames] == [["camera_info", "depth", "labels", "rgb"]] * 2
+    assert by_topic["/semantic/labels"][0].encoding == "mono16"
+
+
+def test_launcher_runs_tracking_and_player_as_separate_processes(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "ROS_DOMAIN_ID": "113", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    cmd = [sys.executable, "-m", "gausem_ros.launcher", "--params-file", str(REPO / "params" / "synthetic.yaml"),
+           "--nodes", "tracking_mapping", "--play",
+           f"synthetic --size 80x60 --max-frames 2 --rate 0 --lockstep --timeout 30 --gt-out {tmp_path / 'gt.txt'}",
+           "--", "-p", "tracking.iterations:=3", "-p", "mapping.iterations:=2", "-p", "mapping.init_iterations:=3",
+           "-p", "mapping.init_samples_fraction:=0.1", "-p", "mapping.every:=100", "-p", "device:=cpu"]
+    result = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "published 2 frames, 2 odometry messages received, 0 lock-step timeouts" in result.stderr
+    assert len((tmp_path / "gt.txt").read_text().splitlines()) == 3  # header + 2 ground-truth poses
