@@ -1,4 +1,5 @@
-"""The loop-detection node (paper Algorithm 1): ``gausem/keyframes`` + ``semantic/labels`` -> ``gausem/loop_candidates``.
+"""The loop-detection node (paper Algorithm 1): ``gausem/keyframes`` + ``semantic/labels`` ->
+``gausem/loop_candidates``.
 
 Each keyframe record is paired with the label image of its stamp (within ``stamp_tolerance`` s; whichever arrives
 first waits, at most ``cache_size`` of each). The keyframe's global descriptor is computed here from its semantic
