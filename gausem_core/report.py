@@ -1,0 +1,211 @@
+"""The outputs of an offline run (DESIGN §4): trajectories, keyframes, the map, metrics, a montage and a plot.
+
+Rendering is evaluated as the paper does, on the processed frames' own views: the final global map is rendered at
+each evaluated frame's *estimated* pose and compared with that frame's input. Ground truth is read here for
+evaluation only (this module belongs with ``eval/`` in that respect).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gausem_core.config import SlamConfig, flatten
+from gausem_core.eval.image import depth_l1, psnr, ssim
+from gausem_core.eval.semantic import confusion_matrix, mean_iou, pixel_accuracy
+from gausem_core.eval.trajectory import (Trajectory, absolute_trajectory_error, associate_trajectories,
+                                         write_tum_trajectory)
+from gausem_core.geometry import invert_pose
+from gausem_core.io import metrics as metrics_io
+from gausem_core.io.montage import MontageRow, write_montage
+from gausem_core.io.plots import write_trajectory_plot
+from gausem_core.io.ply import write_gaussian_ply
+from gausem_core.pipeline import Pipeline, RunResult, peak_rss_mb
+from gausem_core.render import render
+from gausem_core.slam.system import GauSemSLAM
+
+MONTAGE_FRAMES = 4
+
+
+def estimated_trajectory(result: RunResult) -> Trajectory:
+    """The estimated poses; a ValueError names the first frame whose estimate is not finite (tracking diverged)."""
+    finite = np.isfinite(result.poses).reshape(len(result.poses), -1).all(1)
+    if not finite.all():
+        first = int(np.argmin(finite))
+        raise ValueError(f"the estimated pose of frame {result.frame_ids[first]} (processed frame {first}) and "
+                         f"{int((~finite).sum()) - 1} later ones are not finite: tracking diverged")
+    return Trajectory(result.timestamps, result.poses)
+
+
+def ground_truth_trajectory(result: RunResult) -> Trajectory | None:
+    """The ground-truth poses of the processed frames that have one (None when none has)."""
+    pairs = [(t, pose) for t, pose in zip(result.timestamps, result.gt_poses) if pose is not None]
+    if not pairs:
+        return None
+    return Trajectory([t for t, _ in pairs], np.stack([pose for _, pose in pairs]))
+
+
+def keyframe_trajectory(slam: GauSemSLAM) -> Trajectory:
+    """World-frame keyframe poses (submap anchor applied) in frame order."""
+    keyframes = sorted(((kf.frame_id, kf.obs.timestamp, submap.anchor @ kf.cam_to_world)
+                        for submap in slam.submaps for kf in submap.keyframes), key=lambda item: item[0])
+    poses = [pose.detach().cpu().double().numpy() for _, _, pose in keyframes]
+    return Trajectory([t for _, t, _ in keyframes], np.array(poses).reshape(-1, 4, 4))
+
+
+def trajectory_metrics(estimate: Trajectory, reference: Trajectory) -> tuple[dict, Trajectory | None]:
+    """ATE after SE(3) Umeyama alignment on timestamp-associated poses (metres, plus ``ate_rmse_cm``).
+
+    Returns the metrics and the aligned estimate; when the alignment is undetermined (fewer than 3 poses or a
+    degenerate path) the metrics hold ``ate.error`` with the reason and no aligned estimate is returned.
+    """
+    try:
+        est, ref = associate_trajectories(estimate, reference)
+        ate = absolute_trajectory_error(est, ref)
+    except ValueError as exc:
+        return {"ate": {"error": str(exc)}, "ate_rmse_cm": math.nan}, None
+    stats = {key: ate.stats[key] for key in ("rmse", "mean", "median", "max")}
+    return {"ate": {**stats, "pairs": len(est)}, "ate_rmse_cm": 100.0 * ate.rmse}, est.transformed(ate.transform)
+
+
+def nearest_palette_class(colors: torch.Tensor, palette: torch.Tensor) -> torch.Tensor:
+    """(..., 3) colours -> (...) index of the nearest palette colour (C, 3)."""
+    flat = colors.reshape(-1, 3)
+    ids = torch.cdist(flat, palette.to(flat.device, flat.dtype)).argmin(-1)
+    return ids.reshape(colors.shape[:-1])
+
+
+def evenly_spaced(items: list, count: int) -> list:
+    """Up to ``count`` items spread evenly over ``items``, first and last included."""
+    if len(items) <= count:
+        return list(items)
+    return [items[round(i)] for i in np.linspace(0, len(items) - 1, count)]
+
+
+@dataclass
+class RenderingEvaluation:
+    """Per-frame image scores, the summed confusion matrix (None without labels) and the montage rows."""
+
+    scores: dict[str, list[float]] = field(default_factory=lambda: {"psnr": [], "ssim": [], "depth_l1_m": []})
+    confusion: np.ndarray | None = None
+    rows: list[MontageRow] = field(default_factory=list)
+
+    def metrics(self) -> dict:
+        """Means over the evaluated frames; mIoU and pixel accuracy over all their pixels (NaN without labels)."""
+        out = {"frames": len(self.scores["psnr"])}
+        out.update({name: float(np.mean(values)) if values else math.nan for name, values in self.scores.items()})
+        labelled = self.confusion is not None
+        out["miou"] = mean_iou(self.confusion) if labelled else math.nan
+        out["pixel_accuracy"] = pixel_accuracy(self.confusion) if labelled else math.nan
+        return out
+
+
+def evaluate_rendering(result: RunResult, pipeline: Pipeline, eval_every: int,
+                       montage_frames: int = MONTAGE_FRAMES) -> RenderingEvaluation:
+    """Render the global map at every ``eval_every``-th processed frame's estimated pose and score it.
+
+    PSNR and SSIM over the whole image; depth L1 of the rendered (alpha-accumulated) depth over pixels with a
+    measured depth; semantics by the nearest palette class of each rendered semantic colour, against the labels.
+    """
+    if eval_every < 1:
+        raise ValueError(f"eval_every must be >= 1, got {eval_every}")
+    positions = list(range(0, len(result.frame_ids), eval_every))
+    shown = set(evenly_spaced(positions, montage_frames))
+    cloud = result.slam.global_cloud().to(pipeline.device)
+    evaluation = RenderingEvaluation()
+    for k in positions:
+        frame = pipeline.dataset[k]
+        if frame.index != result.frame_ids[k]:
+            raise ValueError(f"processed frame {k} has id {result.frame_ids[k]} but the dataset's frame {k} is "
+                             f"{frame.index}: the run result does not belong to this dataset")
+        obs = pipeline.observation(frame)
+        world_to_cam = invert_pose(torch.as_tensor(result.poses[k], dtype=cloud.dtype, device=cloud.device))
+        with torch.no_grad():
+            out = render(cloud, world_to_cam, obs.camera, backend=pipeline.cfg.backend)
+            evaluation.scores["psnr"].append(psnr(out.color, obs.rgb))
+            evaluation.scores["ssim"].append(float(ssim(out.color, obs.rgb)))
+            if obs.valid_depth.any():
+                evaluation.scores["depth_l1_m"].append(depth_l1(out.depth, obs.depth))
+            if frame.labels is not None:
+                predicted = nearest_palette_class(out.semantic, pipeline.palette)
+                confusion = confusion_matrix(predicted, obs.labels, len(pipeline.palette))
+                evaluation.confusion = confusion if evaluation.confusion is None else evaluation.confusion + confusion
+        if k in shown:
+            evaluation.rows.append(MontageRow(frame.rgb, out.color, out.semantic, out.depth, obs.depth,
+                                              label=f"frame {frame.index}"))
+    return evaluation
+
+
+def performance_metrics(result: RunResult, device: torch.device) -> dict:
+    """Frames, timing, map size, peak host memory and (on CUDA) peak GPU memory."""
+    frames = len(result.frame_ids)
+    slam = result.slam
+    out = {"frames": frames, "seconds": result.seconds, "fps": result.fps,
+           "seconds_per_frame": result.seconds / frames if frames else math.nan,
+           "num_gaussians": sum(len(s.cloud) for s in slam.submaps), "num_submaps": len(slam.submaps),
+           "num_keyframes": sum(len(s.keyframes) for s in slam.submaps), "peak_rss_mb": peak_rss_mb()}
+    if device.type == "cuda":
+        out["gpu_peak_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+    return out
+
+
+def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, *, eval_every: int = 5,
+                  params_file: str | Path | None = None) -> dict:
+    """Write a run's outputs into ``out`` and return its metrics.
+
+    Files: ``trajectory.txt`` (TUM, estimate), ``keyframes.txt`` (TUM, keyframe poses), ``map.ply`` (3DGS-style,
+    class ids when the dataset has a class table), ``metrics.json``, ``montage.png`` and, with ground truth,
+    ``trajectory_gt.txt`` and ``trajectory.png`` (SE(3)-aligned estimate vs ground truth).
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    pipeline = Pipeline(dataset, cfg, progress=False)
+    estimate = estimated_trajectory(result)
+    write_tum_trajectory(out / "trajectory.txt", estimate)
+    write_tum_trajectory(out / "keyframes.txt", keyframe_trajectory(result.slam))
+
+    metrics = {}
+    reference = ground_truth_trajectory(result)
+    if reference is not None:
+        write_tum_trajectory(out / "trajectory_gt.txt", reference)
+        ate_metrics, aligned = trajectory_metrics(estimate, reference)
+        metrics.update(ate_metrics)
+        if aligned is not None:
+            write_trajectory_plot(out / "trajectory.png", aligned.positions, reference.positions,
+                                  title=f"{getattr(dataset, 'name', 'run')}: ATE RMSE "
+                                        f"{ate_metrics['ate_rmse_cm']:.2f} cm (SE(3)-aligned)")
+
+    cloud = result.slam.global_cloud()
+    has_classes = getattr(dataset, "class_table", None) is not None
+    write_gaussian_ply(out / "map.ply", cloud, cloud.class_ids(pipeline.palette) if has_classes else None)
+
+    evaluation = evaluate_rendering(result, pipeline, eval_every)
+    metrics["rendering"] = evaluation.metrics()
+    if evaluation.rows:
+        write_montage(out / "montage.png", evaluation.rows)
+    metrics.update(performance_metrics(result, pipeline.device))
+
+    parameters = {**flatten(cfg), "params_file": params_file, "dataset": getattr(dataset, "name", None),
+                  "eval_every": eval_every}
+    metrics_io.write_metrics_json(out / "metrics.json", metrics, parameters=parameters, device=pipeline.device)
+    return metrics
+
+
+def _headline(metrics: dict) -> list[tuple[str, float, str]]:
+    rendering = metrics.get("rendering", {})
+    miou = rendering.get("miou", math.nan)
+    return [("ATE RMSE", metrics.get("ate_rmse_cm", math.nan), "cm"), ("PSNR", rendering.get("psnr", math.nan), "dB"),
+            ("SSIM", rendering.get("ssim", math.nan), ""), ("mIoU", 100.0 * miou if miou is not None else math.nan, "%"),
+            ("fps", metrics.get("fps", math.nan), "")]
+
+
+def format_summary(metrics: dict) -> str:
+    """Headline figures (ATE cm, PSNR, SSIM, mIoU, fps) first, then every metric (:func:`io.metrics.format_summary`)."""
+    lines = []
+    for name, value, unit in _headline(metrics):
+        text = "n/a" if value is None or not math.isfinite(value) else f"{value:.4g} {unit}".rstrip()
+        lines.append(f"{name:<9} {text}")
+    return "\n".join([*lines, "", metrics_io.format_summary(metrics)])
