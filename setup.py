@@ -19,7 +19,7 @@ setup(
         (f"share/{PACKAGE}/params", glob("params/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("gausem_ros/launch/*.launch.py")),
     ],
-    install_requires=["numpy", "torch", "opencv-python-headless", "PyYAML", "tqdm", "packaging"],
+    install_requires=["numpy", "torch", "opencv-python-headless", "PyYAML", "tqdm", "packaging", "matplotlib"],
     extras_require={
         "loop": ["gtsam>=4.3.0"],
         "faiss": ["faiss-cpu"],
@@ -31,6 +31,14 @@ setup(
     entry_points={
         "console_scripts": [
             "gausem = gausem_core.cli:main",
+            "gausem-ros = gausem_ros.run_all:main",
+            "gausem-launch = gausem_ros.launcher:main",
+            "gausem-player = gausem_ros.player:main",
+            "gausem-bag = gausem_ros.convert:main",
+            "gausem-segmentation = gausem_ros.nodes.segmentation:main",
+            "gausem-tracking-mapping = gausem_ros.nodes.tracking_mapping:main",
+            "gausem-loop-detection = gausem_ros.nodes.loop_detection:main",
+            "gausem-pose-graph = gausem_ros.nodes.pose_graph:main",
         ],
     },
 )

@@ -19,7 +19,13 @@ import yaml
 class TrackingConfig:
     """Frame-to-model pose optimisation (paper Eq. 2)."""
 
-    iterations: int = 60
+    method: str = "gauss_newton"  # "gauss_newton" (coarse-to-fine IRLS) or "adam" (through the renderer)
+    pyramid_levels: int = 3
+    renders_per_level: int = 2  # model re-renders per pyramid level (Gauss-Newton)
+    level_iterations: int = 8  # Gauss-Newton iterations per render
+    huber_delta: float = 0.01  # Gauss-Newton: |r| below this is weighted quadratically (IRLS floor of the L1 weights)
+    max_depth_residual: float = 0.1  # Gauss-Newton: metres; larger depth residuals are treated as occlusions
+    iterations: int = 60  # Adam iterations
     lr_translation: float = 1e-2
     lr_rotation: float = 1e-2
     final_lr_fraction: float = 0.02  # learning rates decay exponentially to this fraction over the iterations
@@ -68,8 +74,13 @@ class SubmapConfig:
     policy: str = "semantic"  # "semantic" (overlap AND class KL) or "motion" (LoopSplat's 0.5 m / 50 deg rule)
     max_overlap: float = 0.5
     min_class_kl: float = 0.4
+    min_keyframes: int = 4  # hysteresis: a submap keeps at least this many keyframes (semantic policy; 1 = off)
     motion_translation: float = 0.5
     motion_rotation_deg: float = 50.0
+    boundary_iterations: int = 20  # boundary local BA on a submap that is closed: mapper iterations ...
+    boundary_window: int = 4  # ... over its last this many keyframes
+    memory_budget_mb: float = 256.0  # inactive submaps in CPU memory up to this; least recently used beyond go to disk
+    cache_dir: str = ""  # where spilled submaps go (a private folder inside it); "" = the system temp folder
 
 
 @dataclass
@@ -81,13 +92,42 @@ class SemanticsConfig:
 
 
 @dataclass
+class RegistrationConfig:
+    """Semantic-Guided Registration of two submaps (paper §III-B, Eq. 5-6) and its acceptance test."""
+
+    top_k: int = 10  # descriptor pairs of the coarse step (Eq. 5)
+    views: int = 4  # fine step: at most this many distinct source keyframes of the top pairs
+    lambda_sem: float = 1.0
+    lambda_feat: float = 0.5
+    w_depth: float = 0.5  # depth residual weight in the Gauss-Newton fine step (Eq. 6 has none; 0 drops it)
+    downsample: int = 1  # the fine step renders at the keyframe resolution divided by this
+    pyramid_levels: int = 2
+    iterations: int = 8  # Gauss-Newton iterations per view and pyramid level
+    silhouette_threshold: float = 0.95  # pixels rendered with a lower alpha are not compared
+    max_depth_residual: float = 0.1  # metres: larger depth differences are occlusions, not overlap
+    min_fitness: float = 0.5  # accept when at least this fraction of the source views is explained by the target
+    max_spread_translation: float = 0.05  # metres: accept when the per-view estimates agree this well ...
+    max_spread_rotation_deg: float = 2.0  # ... and this well
+    sigma_translation: float = 0.01  # floors of the loop-edge standard deviations (metres, radians)
+    sigma_rotation: float = 0.005
+
+
+@dataclass
 class LoopConfig:
-    enabled: bool = True
-    keyframe_every: int = 5
+    """Semantic-aware loop closure (paper §III-C, Algorithm 1) and the global refinement after the last frame."""
+
+    enabled: bool = True  # ablation "w/o loop closure" when false
+    keyframe_every: int = 5  # d_k: mapping keyframes whose frame index is a multiple of this enter the database
     check_every: int = 6
     max_descriptor_distance: float = 0.2
     exclude_recent: int = 6
     robust_kernel: str = "huber"
+    odometry_sigma_translation: float = 0.005  # pose-graph odometry edges (metres, radians)
+    odometry_sigma_rotation: float = 0.002
+    remap_iterations_per_keyframe: int = 10  # mapping with fixed poses after an intra-submap loop
+    global_refinement: bool = True  # ablation "w/o global refinement" when false
+    refine_iterations_per_keyframe: int = 10  # both refinement stages
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
 
 @dataclass

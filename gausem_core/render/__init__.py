@@ -35,6 +35,11 @@ class RenderOutput:
     semantic: torch.Tensor  # (H, W, 3)
     alpha: torch.Tensor  # (H, W) silhouette sum_i w_i
 
+    @property
+    def expected_depth(self) -> torch.Tensor:
+        """Depth of the covered part of each pixel (``depth / alpha``; 0 where nothing is rendered)."""
+        return self.depth / self.alpha.clamp_min(1e-6)
+
 
 def select_backend(backend: str, cloud: GaussianCloud) -> str:
     """Resolve ``"auto"`` to the back-end ``render`` will use for ``cloud``."""

@@ -16,7 +16,7 @@ def tracking_loss(out: RenderOutput, obs: Observation, w_color: float, w_depth: 
         return (out.color.sum() + out.depth.sum()) * 0.0
     color = (out.color - obs.rgb).abs().sum(-1)
     semantic = (out.semantic - obs.semantic).abs().sum(-1)
-    depth = (out.depth - obs.depth).abs()
+    depth = (out.expected_depth - obs.depth).abs()
     return (w_color * color + w_semantic * semantic + w_depth * depth)[mask].sum() / mask.sum()
 
 
@@ -27,8 +27,16 @@ def ssim_l1_loss(rendered: torch.Tensor, target: torch.Tensor, lam: float) -> to
 
 def mapping_loss(out: RenderOutput, obs: Observation, w_color: float, w_depth: float, w_semantic: float,
                  ssim_lambda: float) -> torch.Tensor:
-    """Eq. 3: depth L1 on valid pixels + weighted SSIM losses for colour and semantics."""
+    """Eq. 3: depth L1 on valid pixels + weighted SSIM losses for colour and semantics.
+
+    The depth term compares the expected depth of the covered part (``depth / alpha``) and adds the uncovered
+    fraction ``1 - alpha``: comparing the alpha-weighted depth sum itself would pull Gaussians behind the surface
+    wherever the silhouette stays below 1.
+    """
     valid = obs.valid_depth
-    depth = (out.depth - obs.depth).abs()[valid].mean() if valid.any() else out.depth.sum() * 0.0
+    if valid.any():
+        depth = (out.expected_depth - obs.depth).abs()[valid].mean() + (1 - out.alpha)[valid].mean()
+    else:
+        depth = out.depth.sum() * 0.0
     return (w_depth * depth + w_color * ssim_l1_loss(out.color, obs.rgb, ssim_lambda)
             + w_semantic * ssim_l1_loss(out.semantic, obs.semantic, ssim_lambda))

@@ -64,7 +64,7 @@ class Mapper:
         """Add Gaussians where the map is transparent (silhouette < tau_sil) or a new surface lies in front of it."""
         with torch.no_grad():
             out = render(cloud, invert_pose(cam_to_world), obs.camera, backend=self.backend)
-            expected_depth = out.depth / out.alpha.clamp_min(1e-6)
+            expected_depth = out.expected_depth
             behind = expected_depth > obs.depth + self.cfg.densify_depth_margin
             grow = obs.valid_depth & ((out.alpha < self.cfg.densify_silhouette_threshold) | behind)
         pixels = torch.nonzero(grow.reshape(-1)).squeeze(1)

@@ -9,8 +9,11 @@ from gausem_core.config import TrackingConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_exp
 from gausem_core.render import render
+from gausem_core.slam.direct_alignment import AlignmentWeights, ModelView, ObservedImages, align_level
 from gausem_core.slam.losses import tracking_loss
 from gausem_core.slam.observation import Observation
+
+METHODS = ("gauss_newton", "adam")
 
 
 @dataclass
@@ -28,17 +31,48 @@ def constant_velocity(previous: torch.Tensor, before_previous: torch.Tensor | No
 
 
 class Tracker:
-    """Adam on a twist xi applied on the left of world_to_cam: world_to_cam = exp(xi) @ world_to_cam_0.
+    """Estimate a frame's pose against the frozen Gaussians of a submap by minimising Eq. 2.
 
-    The learning rates decay exponentially to ``final_lr_fraction`` of their start over the iterations: the L1 loss
-    has a sharp minimum that a constant-rate Adam circles around. The best pose seen is returned.
+    ``method="gauss_newton"`` (default): coarse-to-fine IRLS Gauss-Newton on the Eq. 2 residuals, linearised through
+    the observed images against model views rendered at the current estimate (see ``direct_alignment``).
+    ``method="adam"``: the paper's optimiser, Adam on a twist xi applied on the left of world_to_cam
+    (world_to_cam = exp(xi) @ world_to_cam_0) with gradients through the renderer; learning rates decay
+    exponentially to ``final_lr_fraction`` over the iterations and the best pose seen is returned.
     """
 
     def __init__(self, cfg: TrackingConfig, backend: str = "auto"):
+        if cfg.method not in METHODS:
+            raise ValueError(f"tracking.method must be one of {METHODS}, got {cfg.method!r}")
         self.cfg = cfg
         self.backend = backend
 
     def track(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor) -> TrackingResult:
+        if self.cfg.method == "gauss_newton":
+            return self._track_gauss_newton(cloud.detach(), obs, init_cam_to_world.detach())
+        return self._track_adam(cloud, obs, init_cam_to_world)
+
+    def _track_gauss_newton(self, cloud: GaussianCloud, obs: Observation, pose: torch.Tensor) -> TrackingResult:
+        cfg = self.cfg
+        weights = AlignmentWeights(cfg.w_color, cfg.w_semantic, cfg.w_depth, cfg.huber_delta, cfg.max_depth_residual)
+        pyramid = [ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera)]
+        for _ in range(cfg.pyramid_levels - 1):
+            pyramid.append(pyramid[-1].downsampled())
+        pose = pose.to(cloud.dtype)
+        cost, iterations = float("nan"), 0
+        with torch.no_grad():
+            for level in reversed(pyramid):
+                for _ in range(cfg.renders_per_level):
+                    out = render(cloud, invert_pose(pose), level.camera, backend=self.backend)
+                    mask = out.alpha > cfg.silhouette_threshold
+                    model = ModelView(out.color, out.semantic, out.expected_depth, mask,
+                                      level.camera)
+                    eye = torch.eye(4, dtype=pose.dtype, device=pose.device)
+                    motion, cost = align_level(model, level, eye, weights, cfg.level_iterations)
+                    pose = pose @ invert_pose(motion)
+                    iterations += 1
+        return TrackingResult(pose, cost, iterations)
+
+    def _track_adam(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor) -> TrackingResult:
         cfg = self.cfg
         frozen = cloud.detach()
         w2c0 = invert_pose(init_cam_to_world.detach()).to(frozen.dtype)

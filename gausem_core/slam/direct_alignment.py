@@ -1,0 +1,125 @@
+"""Gauss-Newton alignment of an observed RGB-D-semantic frame to a rendered model view (dense direct odometry).
+
+The model (colour, semantic colour, expected depth) is rendered once per level at the current pose estimate; its
+pixels with silhouette > threshold are back-projected, moved by the relative motion, projected into the observed
+frame and compared with the observed colour, semantics and depth there: the residuals of paper Eq. 2 with the model
+and the observation swapped in role. The L1 norm of Eq. 2 is minimised by iteratively re-weighted least squares
+(weights 1 / max(|r|, delta)); the Jacobian comes from the observed images' gradients, so no back-propagation through
+the rasteriser is needed, and a coarse-to-fine image pyramid widens the basin of convergence.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from gausem_core.geometry import PinholeCamera, invert_pose, se3_exp, skew
+
+
+@dataclass
+class ModelView:
+    """A rendered model view: colour and semantic colour (H,W,3), expected depth (H,W), valid mask (H,W)."""
+
+    color: torch.Tensor
+    semantic: torch.Tensor
+    depth: torch.Tensor
+    mask: torch.Tensor
+    camera: PinholeCamera
+
+
+@dataclass
+class ObservedImages:
+    """One pyramid level of the observation, channels first for sampling: (C, H, W) with C = 3 + 3 + 1."""
+
+    stack: torch.Tensor
+    grad_u: torch.Tensor
+    grad_v: torch.Tensor
+    camera: PinholeCamera
+
+    @classmethod
+    def build(cls, rgb: torch.Tensor, semantic: torch.Tensor, depth: torch.Tensor, camera: PinholeCamera):
+        stack = torch.cat([rgb.permute(2, 0, 1), semantic.permute(2, 0, 1), depth[None]], 0)
+        padded = F.pad(stack[None], (1, 1, 1, 1), mode="replicate")[0]
+        grad_u = 0.5 * (padded[:, 1:-1, 2:] - padded[:, 1:-1, :-2])
+        grad_v = 0.5 * (padded[:, 2:, 1:-1] - padded[:, :-2, 1:-1])
+        return cls(stack, grad_u, grad_v, camera)
+
+    def downsampled(self) -> "ObservedImages":
+        """Half resolution: colour and semantics averaged, depth averaged over valid pixels only."""
+        h, w = self.stack.shape[1] // 2 * 2, self.stack.shape[2] // 2 * 2
+        s = self.stack[:, :h, :w]
+        colour = F.avg_pool2d(s[None, :6], 2)[0]
+        depth, valid = s[6:7], (s[6:7] > 0).float()
+        depth_sum, count = F.avg_pool2d((depth * valid)[None], 2)[0], F.avg_pool2d(valid[None], 2)[0]
+        depth = torch.where(count > 0.99, depth_sum / count.clamp_min(1e-6), torch.zeros_like(depth_sum))
+        camera = self.camera.scaled(w // 2, h // 2)
+        return ObservedImages.build(colour[:3].permute(1, 2, 0), colour[3:6].permute(1, 2, 0), depth[0], camera)
+
+
+def _sample(image: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples (C, N) of a (C, H, W) image at continuous pixel coordinates (centres at +0.5)."""
+    h, w = image.shape[1:]
+    grid = torch.stack([2 * u / w - 1, 2 * v / h - 1], -1)[None, None]
+    return F.grid_sample(image[None], grid, mode="bilinear", align_corners=False)[0, :, 0]
+
+
+@dataclass
+class AlignmentWeights:
+    color: float
+    semantic: float
+    depth: float
+    huber_delta: float = 0.01  # IRLS floor of |r| (L1 weights 1/|r| are capped at 1/delta)
+    max_depth_residual: float = 0.1  # metres: larger depth residuals are occlusions, not misalignment
+
+
+def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
+                iterations: int, damping: float = 1e-4) -> tuple[torch.Tensor, float]:
+    """Refine ``motion`` (observed-camera-from-model-camera, 4x4) on one level; returns it and the final mean L1."""
+    cam = observed.camera
+    rays = model.camera.pixel_rays(model.depth.dtype, model.depth.device)
+    points = (rays * model.depth[..., None])[model.mask]  # (N, 3) in the model camera
+    ref = torch.cat([model.color[model.mask], model.semantic[model.mask]], 1).T  # (6, N)
+    channel_w = torch.tensor([weights.color] * 3 + [weights.semantic] * 3, dtype=points.dtype, device=points.device)
+    cost = float("nan")
+    for _ in range(iterations):
+        p = points @ motion[:3, :3].T + motion[:3, 3]
+        z = p[:, 2]
+        u, v = cam.fx * p[:, 0] / z + cam.cx, cam.fy * p[:, 1] / z + cam.cy
+        inside = (z > 1e-3) & (u > 0.5) & (u < cam.width - 0.5) & (v > 0.5) & (v < cam.height - 0.5)
+        obs = _sample(observed.stack, u, v)
+        gu, gv = _sample(observed.grad_u, u, v), _sample(observed.grad_v, u, v)
+        depth_res = obs[6] - z
+        valid = inside & (obs[6] > 0) & (depth_res.abs() < weights.max_depth_residual)
+        if int(valid.sum()) < 12:
+            break
+        p, z, obs, gu, gv, depth_res = p[valid], z[valid], obs[:, valid], gu[:, valid], gv[:, valid], depth_res[valid]
+        # d(u, v)/dp (N, 2, 3) and dp/dxi = [I | -[p]x] (N, 3, 6) for a left increment exp(xi) on the motion
+        zero = torch.zeros_like(z)
+        dproj = torch.stack([torch.stack([cam.fx / z, zero, -cam.fx * p[:, 0] / z**2], -1),
+                             torch.stack([zero, cam.fy / z, -cam.fy * p[:, 1] / z**2], -1)], 1)
+        eye = torch.eye(3, dtype=p.dtype, device=p.device).expand(len(p), 3, 3)
+        dp = torch.cat([eye, -skew(p)], 2)
+        duv = dproj @ dp  # (N, 2, 6)
+        img_grad = torch.stack([gu, gv], -1)  # (C, N, 2)
+        jac = torch.einsum("cnk,nkj->cnj", img_grad, duv)  # (7, N, 6)
+        jac_depth = jac[6] - dp[:, 2]  # observed depth moves with the pixel; the point's own z moves too
+        res = torch.cat([obs[:6] - ref[:, valid], depth_res[None]], 0)  # (7, N)
+        jac = torch.cat([jac[:6], jac_depth[None]], 0)
+        chan = torch.cat([channel_w, torch.tensor([weights.depth], dtype=p.dtype, device=p.device)])[:, None]
+        w = chan / res.abs().clamp_min(weights.huber_delta)  # IRLS weights of the L1 norm
+        cost = float((chan * res.abs()).sum() / len(p))
+        jw = (jac * w[..., None]).reshape(-1, 6)
+        jf = jac.reshape(-1, 6)
+        h = jw.T @ jf
+        g = jw.T @ res.reshape(-1)
+        h = h + damping * torch.diag(h.diagonal()) + 1e-9 * torch.eye(6, dtype=h.dtype, device=h.device)
+        xi = -torch.linalg.solve(h, g)
+        motion = se3_exp(xi) @ motion
+        if float(xi.norm()) < 1e-6:
+            break
+    return motion, cost
+
+
+def model_to_observed(cam_to_world_model: torch.Tensor, cam_to_world_obs: torch.Tensor) -> torch.Tensor:
+    return invert_pose(cam_to_world_obs) @ cam_to_world_model
