@@ -6,7 +6,7 @@ import torch
 
 from gausem_core.config import SubmapConfig
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
-from gausem_core.eval.fragmentation import allocation_cohesion, object_instances, submap_cohesion
+from gausem_core.eval.fragmentation import allocation_cohesion, object_instances, split_visits, submap_cohesion
 from gausem_core.geometry import PinholeCamera, make_pose, se3_exp
 from gausem_core.slam.allocation import (
     Frustum, FrustumUnion, MotionAllocation, SemanticAllocation, SubmapExtent, class_histogram, class_kl,
@@ -127,6 +127,24 @@ def test_semantic_policy_needs_both_conditions(turn, label, new):
     assert "overlap" in decision.reason and "class KL" in decision.reason
 
 
+def test_semantic_policy_hysteresis_waits_for_min_keyframes():
+    extent = SubmapExtent.start(observation(0), pose(), num_classes=2)
+    policy = SemanticAllocation(0.5, 0.4, min_keyframes=3)
+    turned = pose(omega=(0, math.pi, 0))
+    first = policy.should_start_new(extent, observation(1), turned)
+    assert not first.new and "1 < 3 keyframes" in first.reason and first.overlap == 0.0 and first.kl > 0.4
+    extent.add(observation(0), pose(rho=(0.1, 0, 0)))
+    extent.add(observation(0), pose(rho=(0.2, 0, 0)))
+    assert extent.num_keyframes == 3 and policy.should_start_new(extent, observation(1), turned).new
+
+
+def test_kl_to_anchor_grows_the_histograms_with_unseen_class_ids():
+    extent = SubmapExtent.start(observation(0), pose(), num_classes=1)  # e.g. a system without a class table
+    expected = class_kl(class_histogram(observation(4).labels, 5), class_histogram(observation(0).labels, 5))
+    assert extent.kl_to_anchor(observation(4).labels) == pytest.approx(expected) and expected > 1.0
+    assert extent.kl_to_anchor(observation(0).labels) == 0.0
+
+
 @pytest.mark.parametrize("rho, omega, new", [((0.4, 0, 0), (0, 0, 0), False), ((0.3, 0.3, 0.3), (0, 0, 0), True),
                                              ((0, 0, 0), (0, math.radians(45), 0), False),
                                              ((0, 0, 0), (math.radians(55), 0, 0), True)])
@@ -144,7 +162,8 @@ def test_euler_angles_zyx():
 
 
 def test_make_allocation_from_config():
-    assert make_allocation(SubmapConfig(max_overlap=0.3, min_class_kl=0.2)) == SemanticAllocation(0.3, 0.2)
+    semantic = SubmapConfig(max_overlap=0.3, min_class_kl=0.2, min_keyframes=2)
+    assert make_allocation(semantic) == SemanticAllocation(0.3, 0.2, 2)
     motion = SubmapConfig(policy="motion", motion_translation=1.0, motion_rotation_deg=30.0)
     assert make_allocation(motion) == MotionAllocation(1.0, 30.0)
     with pytest.raises(ValueError, match="policy"):
@@ -176,6 +195,15 @@ def test_submap_cohesion_by_hand():
     assert cohesion.mean == pytest.approx(0.875) and cohesion.worst == 0.75
 
 
+def test_split_visits_separates_revisits():
+    instances = torch.tensor([0, 0, 0, 0, 1, 1, -1, 0])
+    keyframes = torch.tensor([0, 1, 3, 9, 2, 8, 5, 9])
+    assert split_visits(instances, keyframes, revisit_gap=2).tolist() == [0, 0, 0, 1, 2, 3, -1, 1]
+    assert split_visits(instances, keyframes, revisit_gap=6).tolist() == [0, 0, 0, 0, 1, 1, -1, 0]
+    with pytest.raises(ValueError, match="revisit_gap"):
+        split_visits(instances, keyframes, revisit_gap=0)
+
+
 # --- the synthetic sequence -------------------------------------------------------------------------------------------
 STRUCTURE = tuple(SYNTHETIC_CLASSES.id_of(n) for n in ("floor", "wall", "ceiling"))
 
@@ -196,15 +224,21 @@ def visible_objects(obs: Observation) -> set[int]:
 
 
 def test_synthetic_semantic_boundaries_follow_class_content_and_keep_objects_whole(synthetic_keyframes):
+    """The allocation alone on ground-truth poses (fast and deterministic), default parameters: submap boundaries
+    (frames), counts, and object cohesion per visit (revisits after a loop are loop closure's business)."""
     num_classes = len(SYNTHETIC_CLASSES)
-    semantic, _ = partition_keyframes(SemanticAllocation(), synthetic_keyframes, num_classes)
-    motion, _ = partition_keyframes(MotionAllocation(), synthetic_keyframes, num_classes)
+    semantic, _ = partition_keyframes(make_allocation(SubmapConfig()), synthetic_keyframes, num_classes)
+    paper, _ = partition_keyframes(make_allocation(SubmapConfig(min_keyframes=1)), synthetic_keyframes, num_classes)
+    motion, _ = partition_keyframes(make_allocation(SubmapConfig(policy="motion")), synthetic_keyframes, num_classes)
     boundaries = [k for k in range(1, len(semantic)) if semantic[k] != semantic[k - 1]]
-    assert 2 <= len(boundaries) + 1 < motion[-1] + 1
+    assert [5 * k for k in boundaries] == [55, 85, 145] and semantic[-1] + 1 == 4
+    assert paper[-1] + 1 == 6 and motion[-1] + 1 == 12
     anchors = [0] + boundaries
     for previous, boundary in zip(anchors, boundaries):  # the objects in view changed since the previous anchor
         assert visible_objects(synthetic_keyframes[boundary][0]) != visible_objects(synthetic_keyframes[previous][0])
     views = [(o.depth, o.labels, o.camera, p) for o, p in synthetic_keyframes]
-    semantic_cohesion = allocation_cohesion(views, semantic, STRUCTURE, stride=3)
-    motion_cohesion = allocation_cohesion(views, motion, STRUCTURE, stride=3)
-    assert semantic_cohesion.mean > motion_cohesion.mean + 0.05
+    cohesion = {name: allocation_cohesion(views, ids, STRUCTURE, stride=3, revisit_gap=5).mean
+                for name, ids in (("semantic", semantic), ("paper", paper), ("motion", motion))}
+    assert cohesion["semantic"] >= 0.9 and cohesion["semantic"] > cohesion["paper"] > cohesion["motion"] + 0.1
+    whole = allocation_cohesion(views, semantic, STRUCTURE, stride=3)  # a revisited object is split at least once
+    assert whole.mean < cohesion["semantic"]

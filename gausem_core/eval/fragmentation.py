@@ -4,6 +4,10 @@ Objects are instances found without an instance annotation: points of one class 
 26-connected. Each point carries the submap of the keyframe that observed it; an object's cohesion is the fraction of
 its points in its majority submap (1 = never split). Structural classes (floor, wall, ...) span the scene and are
 excluded by the caller.
+
+An object the camera comes back to after a while (a loop) necessarily lands in a later submap too: that split is
+loop closure's business, not allocation's. ``revisit_gap`` makes each visit its own object: an object's points seen
+again after more than ``revisit_gap`` keyframes without any of them start a new visit.
 """
 from __future__ import annotations
 
@@ -73,6 +77,27 @@ def object_instances(points: torch.Tensor, labels: torch.Tensor, voxel: float = 
     return instance
 
 
+def split_visits(instances: torch.Tensor, keyframes: torch.Tensor, revisit_gap: int) -> torch.Tensor:
+    """(N,) visit id per point (-1 where ``instances`` is -1): an instance's points split where the keyframe indices
+    (N,) that observe it jump by more than ``revisit_gap``."""
+    if instances.shape != keyframes.shape:
+        raise ValueError(f"split_visits: instances {tuple(instances.shape)} and keyframes {tuple(keyframes.shape)} "
+                         f"must have one shape")
+    if revisit_gap < 1:
+        raise ValueError(f"split_visits: revisit_gap must be >= 1, got {revisit_gap}")
+    visits = torch.full_like(instances, -1)
+    seen = instances >= 0
+    if not bool(seen.any()):
+        return visits
+    stride = int(keyframes.max()) + 1
+    keys = instances[seen] * stride + keyframes[seen]
+    pairs = torch.unique(keys)  # sorted: by instance, then keyframe
+    starts = torch.ones(len(pairs), dtype=torch.bool)
+    starts[1:] = (pairs[1:] // stride != pairs[:-1] // stride) | (pairs[1:] - pairs[:-1] > revisit_gap)
+    visits[seen] = (starts.cumsum(0) - 1)[torch.searchsorted(pairs, keys)]
+    return visits
+
+
 @dataclass(frozen=True)
 class Cohesion:
     """Per object (instance id, class id, points, fraction in its majority submap); ``mean`` over objects, ``worst``."""
@@ -108,17 +133,21 @@ def submap_cohesion(instances: torch.Tensor, labels: torch.Tensor, submaps: torc
 
 def allocation_cohesion(keyframes: list[tuple[torch.Tensor, torch.Tensor, PinholeCamera, torch.Tensor]],
                         submap_of_keyframe: list[int], ignore_classes: tuple[int, ...], voxel: float = 0.1,
-                        stride: int = 2, min_points: int = 50) -> Cohesion:
-    """Cohesion of a keyframe-to-submap assignment. keyframes: (depth (H, W), labels (H, W), camera, cam_to_world)
-    with reference (e.g. ground-truth) poses, so that objects are found in one consistent world frame."""
+                        stride: int = 2, min_points: int = 50, revisit_gap: int | None = None) -> Cohesion:
+    """Cohesion of a keyframe-to-submap assignment. keyframes (in time order): (depth (H, W), labels (H, W), camera,
+    cam_to_world) with reference (e.g. ground-truth) poses, so that objects are found in one consistent world frame.
+    With ``revisit_gap`` (keyframes), each visit of an object counts as one object (see the module notes)."""
     if len(keyframes) != len(submap_of_keyframe):
         raise ValueError(f"allocation_cohesion: {len(keyframes)} keyframes but {len(submap_of_keyframe)} submap ids")
-    points, labels, submaps = [], [], []
-    for (depth, kf_labels, camera, pose), submap in zip(keyframes, submap_of_keyframe):
+    points, labels, submaps, observers = [], [], [], []
+    for index, ((depth, kf_labels, camera, pose), submap) in enumerate(zip(keyframes, submap_of_keyframe)):
         p, lab = keyframe_points(depth, kf_labels, camera, pose, stride)
         points.append(p)
         labels.append(lab)
         submaps.append(torch.full((len(p),), submap, dtype=torch.long))
+        observers.append(torch.full((len(p),), index, dtype=torch.long))
     points, labels, submaps = torch.cat(points), torch.cat(labels), torch.cat(submaps)
     instances = object_instances(points, labels, voxel, ignore_classes)
+    if revisit_gap is not None:
+        instances = split_visits(instances, torch.cat(observers), revisit_gap)
     return submap_cohesion(instances, labels, submaps, min_points)

@@ -4,7 +4,9 @@ Two interchangeable policies with one call signature, built from :class:`SubmapC
 
 - :class:`SemanticAllocation` (the paper's rule): a new submap when the current keyframe's viewing frustum overlaps
   the active submap's bounding volume by less than ``max_overlap`` AND the KL divergence of its class histogram from
-  the submap anchor's exceeds ``min_class_kl``.
+  the submap anchor's exceeds ``min_class_kl``; with hysteresis, not before the submap holds ``min_keyframes``
+  keyframes (1 = the paper's rule as written). Without it, the rule fires right after a submap starts whenever the
+  object that filled the anchor view leaves it, and splits that object.
 - :class:`MotionAllocation` (LoopSplat's rule): a new submap when the keyframe moved more than ``translation`` metres
   or turned more than ``rotation_deg`` about any Euler axis relative to the submap's first keyframe.
 
@@ -155,8 +157,13 @@ def class_histogram(labels: torch.Tensor, num_classes: int, valid: torch.Tensor 
     if flat.min() < 0 or flat.max() >= num_classes:
         raise ValueError(f"class_histogram: labels must lie in [0, {num_classes - 1}], "
                          f"got [{int(flat.min())}, {int(flat.max())}]")
-    counts = torch.bincount(flat.long(), minlength=num_classes).double()
-    return (counts / counts.sum() + epsilon) / (1 + num_classes * epsilon)
+    return smoothed_histogram(torch.bincount(flat.long(), minlength=num_classes), epsilon)
+
+
+def smoothed_histogram(counts: torch.Tensor, epsilon: float = HISTOGRAM_EPSILON) -> torch.Tensor:
+    """Per-class counts (C,) -> the smoothed proportions of :func:`class_histogram`."""
+    counts = counts.double()
+    return (counts / counts.sum() + epsilon) / (1 + len(counts) * epsilon)
 
 
 def class_kl(h_current: torch.Tensor, h_anchor: torch.Tensor) -> float:
@@ -177,25 +184,41 @@ def class_kl(h_current: torch.Tensor, h_anchor: torch.Tensor) -> float:
 # --- the submap's summary and the policies -------------------------------------------------------------------------
 @dataclass
 class SubmapExtent:
-    """What allocation needs of the active submap: its first keyframe's pose, its anchor class histogram and its
-    bounding volume (union of keyframe frusta). Update it with :meth:`add` for every keyframe the submap keeps."""
+    """What allocation needs of the active submap: its first keyframe's pose, its anchor keyframe's class counts and
+    its bounding volume (union of keyframe frusta). Update it with :meth:`add` for every keyframe the submap keeps.
+
+    ``num_classes`` is the histogram length; a keyframe that shows a larger class id lengthens both histograms (so a
+    system that does not know its class table can pass 1)."""
 
     first_pose: torch.Tensor
-    anchor_histogram: torch.Tensor
+    anchor_counts: torch.Tensor
     volume: FrustumUnion
     num_classes: int
 
     @classmethod
     def start(cls, obs: Observation, cam_to_world: torch.Tensor, num_classes: int) -> "SubmapExtent":
         """The extent of a submap whose anchor (first) keyframe is ``obs`` at ``cam_to_world``."""
-        extent = cls(cam_to_world.detach().clone(), class_histogram(obs.labels, num_classes), FrustumUnion(),
-                     num_classes)
+        counts = torch.bincount(obs.labels.reshape(-1).long(), minlength=num_classes).cpu()
+        extent = cls(cam_to_world.detach().clone(), counts, FrustumUnion(), num_classes)
         extent.add(obs, cam_to_world)
         return extent
 
+    @property
+    def num_keyframes(self) -> int:
+        """Keyframes added (with valid depth)."""
+        return len(self.volume.frusta)
+
     def add(self, obs: Observation, cam_to_world: torch.Tensor) -> None:
-        """Grow the bounding volume by a keyframe's frustum."""
-        self.volume.add(Frustum(obs.camera, cam_to_world.detach().clone(), *depth_range(obs.depth)))
+        """Grow the bounding volume by a keyframe's frustum (none for a keyframe without valid depth)."""
+        if bool(obs.valid_depth.any()):
+            self.volume.add(Frustum(obs.camera, cam_to_world.detach().clone(), *depth_range(obs.depth)))
+
+    def kl_to_anchor(self, labels: torch.Tensor) -> float:
+        """r_kl of a keyframe's class ids (H, W) against the anchor keyframe's."""
+        classes = max(self.num_classes, len(self.anchor_counts), int(labels.max()) + 1)
+        anchor = torch.zeros(classes, dtype=torch.long)
+        anchor[:len(self.anchor_counts)] = self.anchor_counts
+        return class_kl(class_histogram(labels, classes), smoothed_histogram(anchor))
 
 
 @dataclass(frozen=True)
@@ -210,18 +233,25 @@ class Decision:
 
 @dataclass(frozen=True)
 class SemanticAllocation:
-    """The paper's spatial-semantic rule: new submap iff r_olap < max_overlap AND r_kl > min_class_kl."""
+    """The paper's spatial-semantic rule: new submap iff r_olap < max_overlap AND r_kl > min_class_kl, with
+    hysteresis: never before the active submap holds ``min_keyframes`` keyframes."""
 
     max_overlap: float = 0.5
     min_class_kl: float = 0.4
+    min_keyframes: int = 1
 
     def should_start_new(self, extent: SubmapExtent, obs: Observation, cam_to_world: torch.Tensor) -> Decision:
+        if not bool(obs.valid_depth.any()):
+            return Decision(False, math.nan, math.nan, "no valid depth: the keyframe has no frustum")
         overlap = frustum_overlap(obs.camera, cam_to_world, depth_range(obs.depth), extent.volume)
-        kl = class_kl(class_histogram(obs.labels, extent.num_classes), extent.anchor_histogram)
+        kl = extent.kl_to_anchor(obs.labels)
         spatial, semantic = overlap < self.max_overlap, kl > self.min_class_kl
+        grown = extent.num_keyframes >= self.min_keyframes
         reason = (f"overlap {overlap:.3f} {'<' if spatial else '>='} {self.max_overlap} and "
                   f"class KL {kl:.3f} {'>' if semantic else '<='} {self.min_class_kl}")
-        return Decision(spatial and semantic, overlap, kl, reason)
+        if not grown:
+            reason += f"; the submap holds {extent.num_keyframes} < {self.min_keyframes} keyframes"
+        return Decision(spatial and semantic and grown, overlap, kl, reason)
 
 
 def euler_xyz_deg(rot: torch.Tensor) -> torch.Tensor:
@@ -258,7 +288,7 @@ Allocation = SemanticAllocation | MotionAllocation
 def make_allocation(cfg: SubmapConfig) -> Allocation:
     """The policy named by ``cfg.policy`` ("semantic" or "motion") with its thresholds."""
     if cfg.policy == "semantic":
-        return SemanticAllocation(cfg.max_overlap, cfg.min_class_kl)
+        return SemanticAllocation(cfg.max_overlap, cfg.min_class_kl, cfg.min_keyframes)
     if cfg.policy == "motion":
         return MotionAllocation(cfg.motion_translation, cfg.motion_rotation_deg)
     raise ValueError(f"submaps.policy must be 'semantic' or 'motion', got {cfg.policy!r}")

@@ -1,26 +1,115 @@
-"""The SLAM system: one object that takes observations and owns the map (tracker + mapper over a submap)."""
+"""The SLAM system: one object that takes observations and owns the map (tracker + mapper over submaps).
+
+Submaps (paper §III-A). Each submap has its own frame, anchored at its first keyframe (``anchor`` = world-from-
+submap; the first keyframe sits at the identity and is never moved by bundle adjustment). At every keyframe the
+allocation policy (``submaps.policy``) decides whether the keyframe starts a new submap. If so, the active submap gets
+a boundary local BA over its last keyframes and is closed; the new submap's anchor is the old anchor composed with
+the keyframe's pose in the old submap, and it is initialised from the keyframe by semantic sampling.
+
+Frames are stored relative to a reference keyframe of their submap, so corrections of anchors or keyframe poses (loop
+closure, pose graph) carry every frame along. Memory: only the active submap (Gaussians and keyframe images) lives on
+the compute device. A closed submap's tensors go to a :class:`SubmapStore` (CPU memory up to
+``submaps.memory_budget_mb``, disk beyond) and come back on demand; its anchor and keyframe poses stay at hand.
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import weakref
+from dataclasses import dataclass
 
 import torch
 
 from gausem_core.config import SlamConfig
 from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import invert_pose
+from gausem_core.geometry import PinholeCamera, invert_pose
+from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.observation import Observation
-from gausem_core.slam.tracker import Tracker, constant_velocity
+from gausem_core.slam.submap_store import SubmapStore
+from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity
+
+_IMAGES = ("rgb", "depth", "semantic", "labels")
 
 
 @dataclass
-class Submap:
-    """Gaussians and keyframes in a local frame anchored at the first keyframe; ``anchor`` is world-from-submap."""
+class StoredObservation:
+    """A closed submap's keyframe observation: camera and timestamp at hand, the images in the store."""
 
-    submap_id: int
-    anchor: torch.Tensor
-    cloud: GaussianCloud
-    keyframes: list[Keyframe] = field(default_factory=list)
+    store: SubmapStore
+    key: tuple
+    camera: PinholeCamera
+    timestamp: float
+
+    def load(self, device: torch.device | str = "cpu") -> Observation:
+        """The observation, its images read back (bit-identical) onto ``device``."""
+        return Observation(**self.store.load(self.key, device), camera=self.camera, timestamp=self.timestamp)
+
+
+class Submap:
+    """Gaussians and keyframes in a local frame anchored at the first keyframe; ``anchor`` is world-from-submap.
+
+    While active, ``cloud`` and the keyframes' ``obs`` are tensors on the compute device. After :meth:`offload`
+    (inactive) they live in a :class:`SubmapStore`: ``cloud`` reads a CPU copy back (assigning it writes the store)
+    and each keyframe's ``obs`` is a :class:`StoredObservation`. Anchor and keyframe poses always stay in memory.
+    """
+
+    def __init__(self, submap_id: int, anchor: torch.Tensor, cloud: GaussianCloud,
+                 keyframes: list[Keyframe] | None = None, extent: SubmapExtent | None = None):
+        self.submap_id = submap_id
+        self.anchor = anchor
+        self.keyframes = list(keyframes or [])
+        self.extent = extent  # what allocation needs while the submap is active
+        self._cloud: GaussianCloud | None = cloud
+        self._store: SubmapStore | None = None
+        self.num_gaussians = len(cloud)
+
+    @property
+    def is_active(self) -> bool:
+        """Whether the tensors are resident (not offloaded to a store)."""
+        return self._store is None
+
+    @property
+    def cloud(self) -> GaussianCloud:
+        """The Gaussians in the submap frame (for an inactive submap: a copy read from the store)."""
+        return self.load_cloud()
+
+    @cloud.setter
+    def cloud(self, cloud: GaussianCloud) -> None:
+        if self._store is None:
+            self._cloud = cloud
+        else:
+            self._store.store(self._cloud_key, cloud.tensors())
+        self.num_gaussians = len(cloud)
+
+    def load_cloud(self, device: torch.device | str | None = None) -> GaussianCloud:
+        """The Gaussians on ``device`` (default: where they are; the CPU for an inactive submap). An inactive
+        submap's come back as a bit-identical copy; an active submap's are its own tensors (moved if asked)."""
+        if self._store is None:
+            return self._cloud if device is None else self._cloud.to(device)
+        return GaussianCloud(**self._store.load(self._cloud_key, device or "cpu"))
+
+    def observation(self, keyframe: Keyframe, device: torch.device | str = "cpu") -> Observation:
+        """One of the keyframes' observation: an active submap's own, an inactive one's read back onto ``device``."""
+        obs = keyframe.obs
+        return obs.load(device) if isinstance(obs, StoredObservation) else obs
+
+    def world_pose(self, keyframe: Keyframe) -> torch.Tensor:
+        """World-from-camera of one of this submap's keyframes."""
+        return self.anchor @ keyframe.cam_to_world
+
+    def offload(self, store: SubmapStore) -> None:
+        """Move the Gaussians and the keyframe images into ``store``; the submap becomes inactive."""
+        if self._store is not None:
+            raise ValueError(f"submap {self.submap_id} is already offloaded")
+        store.store(self._cloud_key, self._cloud.tensors())
+        for kf in self.keyframes:
+            key = ("keyframe", self.submap_id, kf.frame_id)
+            store.store(key, {name: getattr(kf.obs, name) for name in _IMAGES})
+            kf.obs = StoredObservation(store, key, kf.obs.camera, kf.obs.timestamp)
+        self._cloud, self._store = None, store
+
+    @property
+    def _cloud_key(self) -> tuple:
+        return ("cloud", self.submap_id)
 
 
 @dataclass
@@ -46,15 +135,31 @@ class FrameResult:
     tracking_loss: float
     tracking_iterations: int
     mapping_loss: float | None
-    num_gaussians: int
+    num_gaussians: int  # in the active submap
+    submap_id: int  # the submap the frame belongs to
+    allocation: Decision | None  # the allocation decision (keyframes after the first)
 
 
 class GauSemSLAM:
-    def __init__(self, cfg: SlamConfig, device: torch.device | str = "cpu"):
+    """Tracking, mapping and submap allocation over a stream of observations.
+
+    ``num_classes``: length of the class histograms (the class table's size); they grow to the largest class id seen,
+    so 1 is fine when the table is unknown. Call :meth:`close` (or use ``with``) to delete spilled submaps at once;
+    otherwise that happens when the object is collected.
+    """
+
+    def __init__(self, cfg: SlamConfig, device: torch.device | str = "cpu", num_classes: int = 1):
+        if cfg.submaps.boundary_window < 1 or cfg.submaps.boundary_iterations < 0:
+            raise ValueError("submaps.boundary_window must be >= 1 and submaps.boundary_iterations >= 0, got "
+                             f"{cfg.submaps.boundary_window} and {cfg.submaps.boundary_iterations}")
         self.cfg = cfg
         self.device = torch.device(device)
+        self.num_classes = num_classes
         self.tracker = Tracker(cfg.tracking, cfg.backend)
         self.mapper = Mapper(cfg.mapping, cfg.backend, cfg.seed)
+        self.allocation = make_allocation(cfg.submaps)
+        self.store = SubmapStore(int(cfg.submaps.memory_budget_mb * 2**20), cfg.submaps.cache_dir or None)
+        self._close = weakref.finalize(self, self.store.close)
         self.submaps: list[Submap] = []
         self.frames: list[FrameRecord] = []
 
@@ -63,54 +168,90 @@ class GauSemSLAM:
         return self.submaps[-1]
 
     def process(self, obs: Observation) -> FrameResult:
-        """Track the frame against the active submap, then map when it is a keyframe."""
+        """Track the frame against the active submap; at a keyframe, start a new submap when the allocation policy
+        says so, else map the keyframe into the active one."""
         frame_id = len(self.frames)
         if not self.submaps:
-            return self._start(obs, frame_id)
-        submap = self.active
-        prev = self._local_pose(-1)
-        before = self._local_pose(-2) if len(self.frames) > 1 and self.cfg.tracking.constant_velocity else None
-        result = self.tracker.track(submap.cloud, obs, constant_velocity(prev, before))
-        pose = result.cam_to_world
-        is_keyframe = frame_id % self.cfg.mapping.every == 0
-        mapping_loss = None
-        if is_keyframe:
-            kf = Keyframe(frame_id, obs, pose)
-            submap.keyframes.append(kf)
-            submap.cloud = self.mapper.densify(submap.cloud, obs, pose)
-            window = submap.keyframes[-self.cfg.mapping.window:]
-            submap.cloud, losses = self.mapper.optimise(submap.cloud, window, self.cfg.mapping.iterations)
-            mapping_loss = losses[-1] if losses else None
-            self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, torch.eye(4, dtype=pose.dtype)))
-        else:
-            reference = submap.keyframes[-1]
-            self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, reference,
+            loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
+            return self._result(TrackingResult(self.frames[-1].cam_to_world, 0.0, 0), True, loss, None)
+        tracked = self._track(obs)
+        pose = tracked.cam_to_world.detach()
+        if frame_id % self.cfg.mapping.every:
+            reference = self.active.keyframes[-1]
+            self.frames.append(FrameRecord(frame_id, obs.timestamp, self.active, reference,
                                            invert_pose(reference.cam_to_world) @ pose))
-        return FrameResult(frame_id, self.frames[-1].cam_to_world, is_keyframe, result.loss, result.iterations,
-                           mapping_loss, len(submap.cloud))
+            return self._result(tracked, False, None, None)
+        decision = self.allocation.should_start_new(self.active.extent, obs, pose)
+        if decision.new:
+            anchor = self.active.anchor @ pose
+            self._close_active()
+            loss = self._open_submap(obs, frame_id, anchor)
+        else:
+            loss = self._map_keyframe(obs, frame_id, pose)
+        # the keyframe is self.active.keyframes[-1]: keyframe-level modules (loop closure) hook in here
+        return self._result(tracked, True, loss, decision)
 
-    def _start(self, obs: Observation, frame_id: int) -> FrameResult:
-        """The first frame defines the world frame (identity pose): no ground truth is ever read."""
-        pose = torch.eye(4, device=self.device)
-        kf = Keyframe(frame_id, obs, pose, fixed=True)
-        cloud = self.mapper.initialise(obs, pose)
-        cloud, losses = self.mapper.optimise(cloud, [kf], self.cfg.mapping.init_iterations)
-        submap = Submap(len(self.submaps), torch.eye(4, device=self.device), cloud, [kf])
+    def _track(self, obs: Observation) -> TrackingResult:
+        previous = self._local_pose(-1)
+        before = self._local_pose(-2) if len(self.frames) > 1 and self.cfg.tracking.constant_velocity else None
+        return self.tracker.track(self.active.cloud, obs, constant_velocity(previous, before))
+
+    def _map_keyframe(self, obs: Observation, frame_id: int, pose: torch.Tensor) -> float | None:
+        """Add a keyframe to the active submap: densify, then BA over the recent keyframes."""
+        submap = self.active
+        kf = Keyframe(frame_id, obs, pose)
+        submap.keyframes.append(kf)
+        submap.extent.add(obs, pose)
+        submap.cloud = self.mapper.densify(submap.cloud, obs, pose)
+        window = submap.keyframes[-self.cfg.mapping.window:]
+        submap.cloud, losses = self.mapper.optimise(submap.cloud, window, self.cfg.mapping.iterations)
+        self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, torch.eye(4, device=pose.device)))
+        return losses[-1] if losses else None
+
+    def _open_submap(self, obs: Observation, frame_id: int, anchor: torch.Tensor) -> float | None:
+        """A new active submap anchored (world-from-submap) at ``anchor``: its first keyframe is ``obs``, fixed at the
+        identity, and its Gaussians come from semantic sampling and the initial optimisation."""
+        eye = torch.eye(4, device=self.device)
+        kf = Keyframe(frame_id, obs, eye, fixed=True)
+        cloud, losses = self.mapper.optimise(self.mapper.initialise(obs, eye), [kf], self.cfg.mapping.init_iterations)
+        submap = Submap(len(self.submaps), anchor, cloud, [kf], SubmapExtent.start(obs, eye, self.num_classes))
         self.submaps.append(submap)
-        self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, torch.eye(4, device=self.device)))
-        return FrameResult(frame_id, pose, True, 0.0, 0, losses[-1] if losses else None, len(cloud))
+        self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, eye.clone()))
+        return losses[-1] if losses else None
+
+    def _close_active(self) -> None:
+        """Boundary local BA over the active submap's last keyframes, then move it to the store."""
+        submap = self.active
+        window = submap.keyframes[-self.cfg.submaps.boundary_window:]
+        submap.cloud, _ = self.mapper.optimise(submap.cloud, window, self.cfg.submaps.boundary_iterations)
+        submap.offload(self.store)
+
+    def _result(self, tracked: TrackingResult, is_keyframe: bool, mapping_loss: float | None,
+                allocation: Decision | None) -> FrameResult:
+        record = self.frames[-1]
+        return FrameResult(record.frame_id, record.cam_to_world, is_keyframe, tracked.loss, tracked.iterations,
+                           mapping_loss, self.active.num_gaussians, self.active.submap_id, allocation)
 
     def _local_pose(self, index: int) -> torch.Tensor:
         """A recent frame's pose in the active submap's frame."""
-        record = self.frames[index]
-        return invert_pose(self.active.anchor) @ record.cam_to_world
+        return invert_pose(self.active.anchor) @ self.frames[index].cam_to_world
 
     def trajectory(self) -> list[tuple[float, torch.Tensor]]:
         """(timestamp, cam_to_world) of every processed frame, with all corrections applied."""
         return [(f.timestamp, f.cam_to_world) for f in self.frames]
 
     def global_cloud(self) -> GaussianCloud:
-        """All submaps' Gaussians in the world frame."""
+        """All submaps' Gaussians in the world frame, on the compute device (inactive ones read from the store)."""
         if not self.submaps:
             return GaussianCloud.empty(device=self.device)
-        return GaussianCloud.cat([s.cloud.transformed(s.anchor) for s in self.submaps])
+        return GaussianCloud.cat([s.load_cloud(self.device).transformed(s.anchor) for s in self.submaps])
+
+    def close(self) -> None:
+        """Drop the stored submaps and delete their spill folder (idempotent); the map is unusable afterwards."""
+        self._close()
+
+    def __enter__(self) -> "GauSemSLAM":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,177 @@
+"""GauSemSLAM with submaps: allocation at keyframes, anchor chaining, offload/reload, trajectory and map coverage.
+
+Tracking is replaced by an oracle that returns the ground-truth pose (in the active submap's frame), so these tests
+exercise the submap machinery and do not depend on tracker accuracy; mapping runs for real, with tiny iteration counts.
+"""
+import math
+
+import pytest
+import torch
+
+from gausem_core.config import from_flat
+from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
+from gausem_core.geometry import invert_pose, se3_exp
+from gausem_core.slam.allocation import Decision, make_allocation, partition_keyframes
+from gausem_core.slam.observation import Observation
+from gausem_core.slam.system import GauSemSLAM, StoredObservation
+from gausem_core.slam.tracker import TrackingResult
+
+CHEAP = {"backend": "torch", "mapping.iterations": 2, "mapping.init_iterations": 5,
+         "mapping.init_samples_fraction": 0.25, "submaps.boundary_iterations": 2}
+DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(),
+                                                                                     reason="needs CUDA")])]
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    """Every 5th frame of the default synthetic sequence at 80x60: observations and world poses (first frame = I)."""
+    data = SyntheticDataset("default", resolution=(80, 60), stride=5)
+    frames = [data[i] for i in range(len(data))]
+    first = torch.tensor(frames[0].gt_pose)
+    observations = [Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
+                                             f.timestamp) for f in frames]
+    return observations, [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]
+
+
+class OracleTracker:
+    """Returns the ground-truth pose of the next frame in the active submap's frame."""
+
+    def __init__(self, slam: GauSemSLAM, world_poses: list[torch.Tensor]):
+        self.slam, self.world_poses = slam, world_poses
+
+    def track(self, cloud, obs, init_cam_to_world) -> TrackingResult:
+        world = self.world_poses[len(self.slam.frames)].to(self.slam.device)
+        return TrackingResult(invert_pose(self.slam.active.anchor) @ world, 0.0, 0)
+
+
+class ScriptedPolicy:
+    """Starts a new submap at the keyframes with the given timestamps."""
+
+    def __init__(self, timestamps):
+        self.timestamps = set(timestamps)
+
+    def should_start_new(self, extent, obs, cam_to_world) -> Decision:
+        return Decision(obs.timestamp in self.timestamps, math.nan, math.nan, "scripted")
+
+
+def run(sequence, count, overrides=None, switch_at=None, device="cpu", stored=None):
+    """SLAM over the first ``count`` frames with oracle tracking (and a scripted policy switching at ``switch_at``);
+    copies of what goes to the submap store are kept in ``stored`` when given."""
+    observations, poses = sequence
+    slam = GauSemSLAM(from_flat({**CHEAP, **(overrides or {})}), device, len(SYNTHETIC_CLASSES))
+    slam.tracker = OracleTracker(slam, poses)
+    if switch_at is not None:
+        slam.allocation = ScriptedPolicy(observations[i].timestamp for i in switch_at)
+    if stored is not None:
+        keep = slam.store.store
+
+        def recording_store(key, tensors):
+            stored[key] = {name: t.clone() for name, t in tensors.items()}
+            keep(key, tensors)
+        slam.store.store = recording_store
+    inputs = [Observation(*(getattr(o, n).to(device) for n in ("rgb", "depth", "semantic", "labels")), o.camera,
+                          o.timestamp) for o in observations[:count]]
+    return slam, [slam.process(obs) for obs in inputs], inputs
+
+
+def boundaries(submap_ids):
+    return [k for k in range(1, len(submap_ids)) if submap_ids[k] != submap_ids[k - 1]]
+
+
+def test_new_submaps_start_exactly_at_the_policy_decisions(sequence):
+    slam, results, _ = run(sequence, 10, {"mapping.every": 2}, switch_at=[4, 8])
+    assert [r.submap_id for r in results] == [0, 0, 0, 0, 1, 1, 1, 1, 2, 2]
+    assert [r.is_keyframe for r in results] == [i % 2 == 0 for i in range(10)]
+    assert [r.allocation is not None and r.allocation.new for r in results] == [i in (4, 8) for i in range(10)]
+    assert [[kf.frame_id for kf in s.keyframes] for s in slam.submaps] == [[0, 2], [4, 6], [8]]
+    for submap in slam.submaps:  # the first keyframe anchors the submap: fixed at the identity
+        assert submap.keyframes[0].fixed and torch.equal(submap.keyframes[0].cam_to_world, torch.eye(4))
+        assert submap.num_gaussians == len(submap.cloud) > 0
+    assert [s.is_active for s in slam.submaps] == [False, False, True]
+    assert [f.submap.submap_id for f in slam.frames] == [r.submap_id for r in results]
+
+
+def test_semantic_policy_in_the_loop_decides_as_on_its_own(sequence):
+    """The system's boundaries are those of the allocation run alone on the same keyframes and poses."""
+    observations, poses = sequence
+    slam, results, _ = run(sequence, len(observations), {"mapping.every": 1})
+    expected, _ = partition_keyframes(make_allocation(slam.cfg.submaps), list(zip(observations, poses)),
+                                      len(SYNTHETIC_CLASSES))
+    assert [r.submap_id for r in results] == expected
+    assert len(boundaries(expected)) >= 2
+    for k in boundaries(expected):
+        assert results[k].allocation.new and "overlap" in results[k].allocation.reason
+
+
+def test_anchors_chain_and_frames_follow_corrections(sequence):
+    observations, poses = sequence
+    slam, results, _ = run(sequence, 12, {"mapping.every": 2, "mapping.optimise_poses": False}, switch_at=[6])
+    old, new = slam.submaps
+    # the switch keyframe: tracked in the old submap, then the new submap's identity-fixed anchor keyframe
+    assert torch.equal(new.anchor, old.anchor @ (invert_pose(old.anchor) @ poses[6]))
+    assert torch.allclose(results[6].cam_to_world, poses[6], atol=1e-5)
+    for result, pose in zip(results, poses):  # every frame's world pose survives the switch
+        assert torch.allclose(result.cam_to_world, pose, atol=1e-5)
+    assert all(torch.allclose(p, q, atol=1e-5) for (_, p), q in zip(slam.trajectory(), poses))
+    # later corrections move the frames that reference the corrected anchor / keyframe, and only those
+    before = [p for _, p in slam.trajectory()]
+    correction = se3_exp(torch.tensor([0.1, -0.2, 0.05, 0.02, 0.0, -0.03]))
+    old.anchor = correction @ old.anchor
+    old.keyframes[1].cam_to_world = old.keyframes[1].cam_to_world @ se3_exp(torch.tensor([0.0, 0.0, 0.1, 0, 0, 0]))
+    after = [p for _, p in slam.trajectory()]
+    for i in range(12):
+        if i in (2, 3):  # referenced keyframe 2
+            assert not torch.allclose(after[i], correction @ before[i], atol=1e-3)
+        elif i < 6:
+            assert torch.allclose(after[i], correction @ before[i], atol=1e-5)
+        else:
+            assert torch.equal(after[i], before[i])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("budget_mb, spilled", [(0.0, True), (64.0, False)])
+def test_inactive_submaps_leave_the_device_and_come_back_bit_identical(sequence, device, budget_mb, spilled):
+    stored = {}
+    slam, _, inputs = run(sequence, 8, {"mapping.every": 2, "submaps.memory_budget_mb": budget_mb},
+                          switch_at=[4], device=device, stored=stored)
+    closed, active = slam.submaps
+    assert not closed.is_active and active.is_active and ("cloud", 0) in stored and ("cloud", 1) not in stored
+    assert slam.store.on_disk(("cloud", 0)) is spilled
+    for name, tensor in closed.load_cloud(device).tensors().items():
+        assert tensor.device.type == device and torch.equal(tensor, stored[("cloud", 0)][name])
+    assert all(t.device.type == "cpu" for t in closed.load_cloud().tensors().values())
+    for kf in closed.keyframes:
+        assert isinstance(kf.obs, StoredObservation) and kf.obs.timestamp == inputs[kf.frame_id].timestamp
+        back = closed.observation(kf, device)
+        for name in ("rgb", "depth", "semantic", "labels"):
+            original = getattr(inputs[kf.frame_id], name)
+            assert getattr(back, name).dtype == original.dtype and torch.equal(getattr(back, name), original)
+    assert all(t.device.type == device for t in active.cloud.tensors().values())
+    # writing an inactive submap's Gaussians goes to the store
+    moved = closed.load_cloud(device)
+    moved.means += 1.0
+    closed.cloud = moved
+    assert torch.equal(closed.load_cloud().means, moved.means.cpu()) and not closed.is_active
+
+
+def test_trajectory_and_global_cloud_cover_all_frames(sequence):
+    observations, _ = sequence
+    slam, results, _ = run(sequence, 9, {"mapping.every": 2, "submaps.memory_budget_mb": 0.0}, switch_at=[4, 6])
+    assert [t for t, _ in slam.trajectory()] == [o.timestamp for o in observations[:9]]
+    # keyframe BA (and the boundary BA at each switch) may since have refined the poses a little
+    assert all(torch.allclose(p, r.cam_to_world, atol=0.05) for (_, p), r in zip(slam.trajectory(), results))
+    cloud = slam.global_cloud()
+    sizes = [s.num_gaussians for s in slam.submaps]
+    assert len(slam.submaps) == 3 and len(cloud) == sum(sizes)
+    parts = torch.split(cloud.means, sizes)
+    for submap, part in zip(slam.submaps, parts):
+        assert torch.allclose(part, submap.load_cloud().transformed(submap.anchor).means)
+    directory = slam.store.directory
+    assert directory.is_dir()
+    slam.close()
+    assert not directory.exists()
+
+
+def test_boundary_settings_are_checked():
+    with pytest.raises(ValueError, match="boundary_window"):
+        GauSemSLAM(from_flat({"submaps.boundary_window": 0}))
