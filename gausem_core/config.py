@@ -100,14 +100,17 @@ class RegistrationConfig:
     lambda_sem: float = 1.0
     lambda_feat: float = 0.5
     w_depth: float = 0.5  # depth residual weight in the Gauss-Newton fine step (Eq. 6 has none; 0 drops it)
-    downsample: int = 1  # the fine step renders at the keyframe resolution divided by this
-    pyramid_levels: int = 2
-    iterations: int = 8  # Gauss-Newton iterations per view and pyramid level
+    downsample: int = 2  # the fine step renders at the keyframe resolution divided by this
+    pyramid_levels: int = 3
+    renders_per_level: int = 1  # target re-renders (re-linearisations) per pyramid level
+    iterations: int = 10  # Gauss-Newton iterations per view and pyramid level
     silhouette_threshold: float = 0.95  # pixels rendered with a lower alpha are not compared
     max_depth_residual: float = 0.1  # metres: larger depth differences are occlusions, not overlap
-    min_fitness: float = 0.5  # accept when at least this fraction of the source views is explained by the target
-    max_spread_translation: float = 0.05  # metres: accept when the per-view estimates agree this well ...
-    max_spread_rotation_deg: float = 2.0  # ... and this well
+    max_semantic_residual: float = 0.3  # L1 over RGB: semantic colours closer than this are the same class
+    min_overlap: float = 0.2  # accept when the target renders at least this fraction of the source views ...
+    min_fitness: float = 0.8  # ... and agrees in depth and class on at least this fraction of that overlap
+    max_spread_translation: float = 0.025  # metres: accept when the per-view estimates agree this well ...
+    max_spread_rotation_deg: float = 1.0  # ... and this well
     sigma_translation: float = 0.01  # floors of the loop-edge standard deviations (metres, radians)
     sigma_rotation: float = 0.005
 
@@ -122,8 +125,8 @@ class LoopConfig:
     max_descriptor_distance: float = 0.2
     exclude_recent: int = 6
     robust_kernel: str = "huber"
-    odometry_sigma_translation: float = 0.005  # pose-graph odometry edges (metres, radians)
-    odometry_sigma_rotation: float = 0.002
+    odometry_sigma_translation: float = 0.01  # pose-graph odometry edges per keyframe step (metres, radians)
+    odometry_sigma_rotation: float = 0.005
     remap_iterations_per_keyframe: int = 10  # mapping with fixed poses after an intra-submap loop
     global_refinement: bool = True  # ablation "w/o global refinement" when false
     refine_iterations_per_keyframe: int = 10  # both refinement stages

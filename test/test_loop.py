@@ -6,8 +6,9 @@ import pytest
 import torch
 
 from gausem_core.config import LoopConfig
+from gausem_core.geometry import PinholeCamera
 from gausem_core.slam.loop import (DescriptorDatabase, LoopDetector, gaussian_idf, landmark_distance,
-                                   landmark_scores)
+                                   landmark_scores, observed_gaussians)
 from gausem_core.slam.loop.database import _import_faiss
 
 BACKENDS = ["torch"] + (["faiss"] if _import_faiss() is not None else [])
@@ -163,10 +164,38 @@ def test_detector_min_submap_gap_and_errors():
     assert detector.add_keyframe(0, 7, place, torch.zeros(2)) is None
     assert detector.add_keyframe(1, 7, place, torch.zeros(2)) is None  # same submap: gap 0 < 1
     with pytest.raises(ValueError, match="landmark scores"):
-        detector.add_keyframe(2, 8, place, torch.zeros(3))
+        detector.add_keyframe(2, 8, place, torch.zeros(3, 1))
     with pytest.raises(ValueError, match="check_every"):
         LoopDetector(check_every=0)
     cfg = LoopConfig(keyframe_every=3, check_every=4, max_descriptor_distance=0.1, exclude_recent=2)
     from_cfg = LoopDetector.from_config(cfg, backend="torch")
     assert (from_cfg.keyframe_every, from_cfg.check_every, from_cfg.max_descriptor_distance,
             from_cfg.exclude_recent) == (3, 4, 0.1, 2)
+
+
+def test_detector_compares_grown_landmark_vectors_zero_padded():
+    """A class discovered later appends a score; older vectors are compared as if it scored 0 there."""
+    place = torch.ones(4)
+    detector = LoopDetector(check_every=3, exclude_recent=0, descriptor_dim=4, backend="torch")
+    detector.add_keyframe(0, 0, place, torch.tensor([1.0, 2.0]))
+    detector.add_keyframe(1, 0, place, torch.tensor([1.0, 2.5]))
+    loop = detector.add_keyframe(2, 0, place, torch.tensor([1.0, 2.0, 3.0]))
+    assert loop is not None and loop.match_keyframe == 0
+    assert loop.landmark_distance == pytest.approx(3.0)
+
+
+def test_observed_gaussians_in_view_and_unoccluded():
+    camera = PinholeCamera(10.0, 10.0, 5.0, 5.0, 10, 10)
+    depth = torch.full((10, 10), 2.0)
+    depth[0, 0] = 0.0  # no reading at the top-left pixel
+    means = torch.tensor([[0.0, 0.0, 1.0],  # in front of the surface
+                          [0.0, 0.0, 2.05],  # on it (within the margin)
+                          [0.0, 0.0, 3.0],  # behind it: occluded
+                          [0.0, 0.0, -1.0],  # behind the camera
+                          [2.0, 0.0, 1.0],  # outside the image
+                          [-0.45, -0.45, 1.0]])  # on the pixel without depth
+    seen = observed_gaussians(means, torch.eye(4), camera, depth, margin=0.1)
+    assert seen.tolist() == [True, True, False, False, False, False]
+    moved = torch.eye(4)
+    moved[2, 3] = -1.0  # the camera steps back 1 m: the first point is now 2 m away, still in front
+    assert observed_gaussians(means, moved, camera, depth, margin=0.1).tolist()[:3] == [True, False, False]

@@ -121,3 +121,26 @@ def test_correction_keeps_camera_coordinates_of_gaussians():
     torch.testing.assert_close(moved.colors, cloud.colors)
     with pytest.raises(ValueError, match="4x4"):
         correct_poses(torch.eye(3), torch.eye(4))
+
+
+def test_per_edge_sigmas_weight_loop_against_odometry():
+    """Two nodes, odometry says b = a, a loop says b is 10 cm along x: the share each edge gets follows its sigma."""
+    loop = _pose([0.1, 0.0, 0.0], [0.0, 0.0, 0.0])
+
+    def solve(odometry, loop_sigmas):
+        graph = PoseGraph(robust_kernel="none")
+        graph.add_node(0, np.eye(4))
+        graph.add_node(1, np.eye(4))
+        graph.add_odometry(0, 1, odometry)
+        graph.add_loop(0, 1, loop, loop_sigmas)
+        return graph.optimize().poses[1][0, 3]
+
+    assert solve((0.01, 0.01), (0.01, 0.01)) == pytest.approx(0.05, abs=1e-6)  # equal weights: half way
+    assert solve((0.01, 0.03), (0.01, 0.01)) == pytest.approx(0.09, abs=1e-6)  # variance ratio 9 : 1
+    graph = PoseGraph()
+    graph.add_node(0, np.eye(4))
+    graph.add_node(1, np.eye(4))
+    with pytest.raises(ValueError, match="sigmas must be two positive"):
+        graph.add_loop(0, 1, loop, (0.0, 0.1))
+    with pytest.raises(ValueError, match="sigmas must be two positive"):
+        graph.add_odometry(0, 1, (0.1,))

@@ -1,12 +1,17 @@
-"""SGR coarse step (Eq. 5): descriptor pairs, chordal-mean init, Gauss-Newton on SE(3)."""
+"""SGR: coarse step (Eq. 5: descriptor pairs, chordal-mean init, Gauss-Newton on SE(3)), fine step (Eq. 6), the
+combined registration and the keyframe-pair alignment of intra-submap loops."""
 import math
 
 import pytest
 import torch
 
+from gausem_core.config import RegistrationConfig
 from gausem_core.geometry import invert_pose, make_pose, se3_exp, se3_log, so3_exp
-from gausem_core.slam.registration import (chordal_mean_alignment, coarse_registration, gauss_newton_alignment,
-                                           top_k_descriptor_pairs)
+from gausem_core.semantics.descriptors import make_descriptor
+from gausem_core.slam.registration import (align_keyframes, chordal_mean_alignment, coarse_registration,
+                                           fine_registration, gauss_newton_alignment, is_acceptable,
+                                           semantic_guided_registration, top_k_descriptor_pairs)
+from loop_scene import frame, make_submap, perturbation, pose_error
 
 
 def _known_transform():
@@ -97,3 +102,67 @@ def test_registration_rejects_bad_input():
         coarse_registration(torch.randn(2, 4), poses, torch.randn(3, 4), poses)
     with pytest.raises(ValueError, match="k must be positive"):
         top_k_descriptor_pairs(torch.randn(2, 4), torch.randn(3, 4), k=0)
+
+
+# --- fine step (Eq. 6) and the combined registration on a synthetic scene ------------------------------------------
+def _overlapping_submaps():
+    """Target over frames 0-18, source over frames 9-27 of the loop sequence, each in its own (true) frame."""
+    target = make_submap(0, [0, 6, 12, 18])
+    source = make_submap(1, [9, 15, 21, 27])
+    truth = (invert_pose(target.anchor) @ source.anchor).double()
+    poses = torch.stack([kf.cam_to_world for kf in source.keyframes])
+    return source, target, truth, poses
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fine_step_recovers_a_perturbed_submap_transform(seed):
+    source, target, truth, poses = _overlapping_submaps()
+    cfg = RegistrationConfig()
+    init = perturbation(0.06, 4.0, seed) @ truth
+    fine = fine_registration(source.cloud, target.cloud, poses, source.keyframes[0].obs.camera, init, cfg,
+                             make_descriptor("fallback"), backend="torch")
+    translation, rotation = pose_error(fine.transform, truth)
+    assert translation < 0.025 and rotation < 1.0  # from 6 cm and 4 degrees
+    assert fine.views == 4 and fine.fitness > 0.7 and is_acceptable(fine, cfg)
+    at_init = fine_registration(source.cloud, target.cloud, poses, source.keyframes[0].obs.camera, init,
+                                RegistrationConfig(iterations=0), make_descriptor("fallback"), backend="torch")
+    assert at_init.fitness < fine.fitness and at_init.loss > fine.loss  # Eq. 6 (with the feature term) went down
+
+
+def test_fine_step_rejects_a_far_initial_guess():
+    source, target, truth, poses = _overlapping_submaps()
+    cfg = RegistrationConfig()
+    init = perturbation(0.5, 25.0, 3) @ truth
+    fine = fine_registration(source.cloud, target.cloud, poses[:2], source.keyframes[0].obs.camera, init, cfg,
+                             backend="torch")
+    assert not is_acceptable(fine, cfg)
+
+
+def test_semantic_guided_registration_coarse_then_fine():
+    """Keyframe descriptors pair source views with similar target views; the coarse step (poses of those pairs) lands
+    within reach of the fine step, which recovers the transform."""
+    source, target, truth, _ = _overlapping_submaps()
+    describe = make_descriptor("fallback")
+    descriptors = [torch.stack([torch.from_numpy(describe.describe(kf.obs.semantic)) for kf in s.keyframes])
+                   for s in (source, target)]
+    poses = [torch.stack([kf.cam_to_world for kf in s.keyframes]).double() for s in (source, target)]
+    reg = semantic_guided_registration(source.cloud, poses[0], descriptors[0], target.cloud, poses[1], descriptors[1],
+                                       source.keyframes[0].obs.camera, RegistrationConfig(), describe, "torch")
+    translation, rotation = pose_error(reg.transform, truth)
+    assert translation < 0.025 and rotation < 1.0
+    assert pose_error(reg.coarse.transform, truth)[0] > 2 * translation  # the fine step did the rest
+    assert reg.accepted and reg.seconds_coarse > 0 and reg.seconds_fine > 0
+    floors = RegistrationConfig()
+    assert reg.sigmas[0] >= floors.sigma_rotation and reg.sigmas[1] >= floors.sigma_translation
+
+
+def test_align_keyframes_measures_the_relative_pose_of_two_views():
+    (ref, ref_pose), (cur, cur_pose) = frame(30), frame(36)
+    truth = invert_pose(cur_pose) @ ref_pose  # current-from-reference
+    init = perturbation(0.05, 3.0, 4).float() @ truth
+    motion, fitness = align_keyframes(ref, cur, init, RegistrationConfig(pyramid_levels=3))
+    translation, rotation = pose_error(motion, truth)
+    assert translation < 0.01 and rotation < 0.3
+    assert fitness > 0.7  # the rest left the view
+    _, fitness_far = align_keyframes(ref, frame(120)[0], init, RegistrationConfig(pyramid_levels=3))
+    assert fitness_far < 0.5 * fitness  # another place: little overlap at any pose near the guess

@@ -53,14 +53,14 @@ class PoseGraph:
         self._gtsam = gtsam = _import_gtsam()
         self._odometry_noise = self._diagonal(odometry_sigmas)
         self._prior_noise = self._diagonal(prior_sigmas)
-        self._loop_noise = self._diagonal(loop_sigmas)
+        self._estimator = None
         if robust_kernel != "none":
             width = ROBUST_KERNELS[robust_kernel] if robust_width is None else robust_width
             if width <= 0:
                 raise ValueError(f"PoseGraph: robust_width must be positive, got {width}")
-            estimator = {"huber": gtsam.noiseModel.mEstimator.Huber,
-                         "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[robust_kernel].Create(width)
-            self._loop_noise = gtsam.noiseModel.Robust.Create(estimator, self._loop_noise)
+            self._estimator = {"huber": gtsam.noiseModel.mEstimator.Huber,
+                               "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[robust_kernel].Create(width)
+        self._loop_noise = self._robust(loop_sigmas)
         self._graph = gtsam.NonlinearFactorGraph()
         self._initial = gtsam.Values()
         self._keys: list[int] = []
@@ -68,6 +68,17 @@ class PoseGraph:
     def _diagonal(self, sigmas: tuple[float, float]):
         rot, trans = sigmas  # GTSAM's Pose3 tangent order is (rotation, translation)
         return self._gtsam.noiseModel.Diagonal.Sigmas(np.array([rot] * 3 + [trans] * 3, dtype=np.float64))
+
+    @staticmethod
+    def _checked(sigmas, where: str) -> tuple[float, float]:
+        if len(sigmas) != 2 or min(sigmas) <= 0:
+            raise ValueError(f"PoseGraph.{where}: sigmas must be two positive values, got {sigmas}")
+        return float(sigmas[0]), float(sigmas[1])
+
+    def _robust(self, sigmas: tuple[float, float]):
+        """The loop noise model: diagonal ``sigmas`` under the robust kernel (if any)."""
+        noise = self._diagonal(sigmas)
+        return noise if self._estimator is None else self._gtsam.noiseModel.Robust.Create(self._estimator, noise)
 
     @property
     def keys(self) -> list[int]:
@@ -83,17 +94,21 @@ class PoseGraph:
             self._graph.add(self._gtsam.PriorFactorPose3(key, pose, self._prior_noise))
         self._keys.append(key)
 
-    def add_odometry(self, a: int, b: int) -> None:
-        """An odometry edge a -> b measuring their current relative pose a^-1 b."""
+    def add_odometry(self, a: int, b: int, sigmas: tuple[float, float] | None = None) -> None:
+        """An odometry edge a -> b measuring their current relative pose a^-1 b; ``sigmas`` (rotation, translation)
+        replaces the graph's odometry sigmas for this edge (e.g. grown with the distance between the nodes)."""
         self._check_keys(a, b, "add_odometry")
         relative = self._initial.atPose3(a).between(self._initial.atPose3(b))
-        self._graph.add(self._gtsam.BetweenFactorPose3(a, b, relative, self._odometry_noise))
+        noise = self._odometry_noise if sigmas is None else self._diagonal(self._checked(sigmas, "add_odometry"))
+        self._graph.add(self._gtsam.BetweenFactorPose3(a, b, relative, noise))
 
-    def add_loop(self, a: int, b: int, relative) -> None:
-        """A loop edge a -> b with measured relative pose a^-1 b (4x4), under the robust loop noise."""
+    def add_loop(self, a: int, b: int, relative, sigmas: tuple[float, float] | None = None) -> None:
+        """A loop edge a -> b with measured relative pose a^-1 b (4x4) under the robust loop noise; ``sigmas``
+        (rotation, translation) replaces the graph's loop sigmas for this edge (e.g. a registration's uncertainty)."""
         self._check_keys(a, b, "add_loop")
         measured = self._pose3(relative, f"loop {a}->{b}")
-        self._graph.add(self._gtsam.BetweenFactorPose3(a, b, measured, self._loop_noise))
+        noise = self._loop_noise if sigmas is None else self._robust(self._checked(sigmas, "add_loop"))
+        self._graph.add(self._gtsam.BetweenFactorPose3(a, b, measured, noise))
 
     def optimize(self, max_iterations: int = 100) -> PoseGraphResult:
         """Levenberg-Marquardt from the initial poses."""

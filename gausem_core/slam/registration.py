@@ -1,16 +1,37 @@
-"""Semantic-Guided Registration of two submaps (paper §III-B): the coarse step (Eq. 5).
+"""Semantic-Guided Registration of two submaps (paper §III-B): the coarse step (Eq. 5) and the fine step (Eq. 6).
 
 Conventions: keyframe poses are cam_to_world in their own submap's frame; the result ``T`` maps source-submap
 coordinates to target-submap coordinates, so a source keyframe and a target keyframe that see the place from the
 same viewpoint satisfy ``T_t ≈ T @ T_s``. (With world-from-anchor poses A_s, A_t of the two submaps, T = A_t^-1 A_s.)
+
+Fine step (unidirectional, Gaussians frozen), at the keyframe resolution divided by ``downsample``: each selected
+source keyframe pose T_s^i is rendered once in the SOURCE submap (colour, semantics, depth: the reference of Eq. 6)
+and the TARGET submap is rendered at T T_s^i. The colour + lambda_sem * semantic (+ w_depth * depth) residuals
+between the two are minimised by the tracker's coarse-to-fine IRLS Gauss-Newton
+(:func:`~gausem_core.slam.direct_alignment.align_level`), one view at a time; the per-view corrected poses are fused
+into one T by Eq. 5's Gauss-Newton on SE(3), and the target is re-rendered at the fused T for the next pyramid level.
+The dense-feature term of Eq. 6 (lambda_feat times the squared distance of the semantic images' patch features) is
+not in the Gauss-Newton system, whose residuals are per-pixel image channels; it enters the Eq. 6 loss reported at
+the result. There too the overlap (the fraction of source-view pixels the target renders as well) and the fitness
+(the fraction of those where the two agree in depth and class) are measured. The spread of the per-view estimates
+around the fused T is the registration's uncertainty: with overlap and fitness it decides acceptance, and it sets
+the loop edge's standard deviations.
 """
 from __future__ import annotations
 
+import math
+import time
 from dataclasses import dataclass
 
 import torch
 
-from gausem_core.geometry import invert_pose, make_pose, se3_exp, se3_log
+from gausem_core.config import RegistrationConfig
+from gausem_core.gaussians import GaussianCloud
+from gausem_core.geometry import PinholeCamera, invert_pose, make_pose, se3_exp, se3_log
+from gausem_core.render import render
+from gausem_core.semantics.descriptors import DescriptorExtractor
+from gausem_core.slam.direct_alignment import AlignmentWeights, ModelView, ObservedImages, align_level
+from gausem_core.slam.observation import Observation
 
 _JACOBIAN_STEP = 1e-6  # central-difference step (rad / m) of the numerical Jacobian, in float64
 
@@ -30,11 +51,12 @@ class CoarseRegistration:
     iterations: int
 
 
-def top_k_descriptor_pairs(source: torch.Tensor, target: torch.Tensor,
-                           k: int = 10) -> tuple[torch.Tensor, torch.Tensor]:
+def top_k_descriptor_pairs(source: torch.Tensor, target: torch.Tensor, k: int = 10,
+                           max_distance: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The k (source, target) index pairs with the smallest L2 distance between L2-normalised descriptors.
 
     source (S, D), target (T, D) -> pairs (min(k, S*T), 2) long, distances (same length,), closest first.
+    ``max_distance``: drop pairs at this distance or more, but always keep the closest pair.
     """
     if source.dim() != 2 or target.dim() != 2 or source.shape[1] != target.shape[1]:
         raise ValueError(f"top_k_descriptor_pairs: need (S, D) and (T, D) descriptors, got {tuple(source.shape)} "
@@ -48,6 +70,9 @@ def top_k_descriptor_pairs(source: torch.Tensor, target: torch.Tensor,
     dist = torch.cdist(s, t).flatten()
     distances, flat = torch.sort(dist, stable=True)
     flat, distances = flat[:k], distances[:k]
+    if max_distance is not None:
+        keep = max(int((distances < max_distance).sum()), 1)
+        flat, distances = flat[:keep], distances[:keep]
     return torch.stack([flat // t.shape[0], flat % t.shape[0]], 1), distances
 
 
@@ -98,17 +123,19 @@ def gauss_newton_alignment(source_poses: torch.Tensor, target_poses: torch.Tenso
 
 def coarse_registration(source_descriptors: torch.Tensor, source_poses: torch.Tensor,
                         target_descriptors: torch.Tensor, target_poses: torch.Tensor, k: int = 10,
-                        init: torch.Tensor | None = None, max_iterations: int = 20) -> CoarseRegistration:
+                        init: torch.Tensor | None = None, max_iterations: int = 20,
+                        max_distance: float | None = None) -> CoarseRegistration:
     """SGR coarse step: match the k closest keyframe descriptor pairs, then solve Eq. 5 on their poses.
 
     Descriptors (S, D) / (T, D) and cam_to_world poses (S, 4, 4) / (T, 4, 4) of the keyframes of the source and
-    target submaps, each pose in its own submap's frame. ``init`` defaults to the chordal mean of the matched pairs.
+    target submaps, each pose in its own submap's frame. ``init`` defaults to the chordal mean of the matched pairs;
+    ``max_distance`` drops all but the closest pair at that descriptor distance or more (views of other places).
     """
     if source_descriptors.shape[0] != source_poses.shape[0] or target_descriptors.shape[0] != target_poses.shape[0]:
         raise ValueError(f"coarse_registration: descriptor and pose counts differ (source "
                          f"{source_descriptors.shape[0]} vs {source_poses.shape[0]}, target "
                          f"{target_descriptors.shape[0]} vs {target_poses.shape[0]})")
-    pairs, _ = top_k_descriptor_pairs(source_descriptors, target_descriptors, k)
+    pairs, _ = top_k_descriptor_pairs(source_descriptors, target_descriptors, k, max_distance)
     transform, rms, iterations = gauss_newton_alignment(source_poses[pairs[:, 0]], target_poses[pairs[:, 1]], init,
                                                         max_iterations)
     return CoarseRegistration(transform, pairs, rms, iterations)
@@ -120,3 +147,228 @@ def _check_pose_pairs(source: torch.Tensor, target: torch.Tensor, where: str) ->
                          f"{tuple(source.shape)} and {tuple(target.shape)}")
     if not (torch.isfinite(source).all() and torch.isfinite(target).all()):
         raise ValueError(f"{where}: poses contain non-finite values")
+
+
+@dataclass(frozen=True)
+class FineRegistration:
+    """Result of :func:`fine_registration`.
+
+    transform (4, 4) float64 source -> target; overlap: fraction of the source views' rendered pixels that the target
+    renders too; fitness: fraction of those overlapping pixels where the depths agree within ``max_depth_residual``
+    and the semantic colours within ``max_semantic_residual``; loss: Eq. 6 averaged over the views; spread (rotation
+    rad, translation m): RMS disagreement of the per-view estimates with ``transform``; views: views that contributed.
+    """
+
+    transform: torch.Tensor
+    overlap: float
+    fitness: float
+    loss: float
+    spread: tuple[float, float]
+    views: int
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Coarse + fine SGR: the transform (float64, source -> target), the fine result, and the acceptance verdict.
+
+    sigmas (rotation rad, translation m): standard deviations for the loop edge, the fine spread floored by the
+    configured sigmas. seconds_coarse / seconds_fine: wall-clock split of the two steps.
+    """
+
+    transform: torch.Tensor
+    coarse: CoarseRegistration
+    fine: FineRegistration
+    accepted: bool
+    sigmas: tuple[float, float]
+    seconds_coarse: float
+    seconds_fine: float
+
+
+def _pyramid(images: ObservedImages, levels: int) -> list[ObservedImages]:
+    """``levels`` images, finest first, each half the size of the one before."""
+    pyramid = [images]
+    for _ in range(levels - 1):
+        pyramid.append(pyramid[-1].downsampled())
+    return pyramid
+
+
+def _source_views(cloud: GaussianCloud, poses: torch.Tensor, camera: PinholeCamera, levels: int, threshold: float,
+                  backend: str) -> list[list[ObservedImages]]:
+    """Render the source submap at its keyframe poses: one image pyramid (finest first) per view."""
+    pyramids = []
+    for pose in poses:
+        out = render(cloud, _world_to_cam(pose, cloud), camera, backend=backend)
+        depth = torch.where(out.alpha > threshold, out.expected_depth, torch.zeros_like(out.depth))
+        pyramids.append(_pyramid(ObservedImages.build(out.color, out.semantic, depth, camera), levels))
+    return pyramids
+
+
+def _world_to_cam(cam_to_world: torch.Tensor, cloud: GaussianCloud) -> torch.Tensor:
+    return invert_pose(cam_to_world).to(device=cloud.device, dtype=cloud.dtype)
+
+
+def _spread(source_poses: torch.Tensor, corrected: torch.Tensor, transform: torch.Tensor) -> tuple[float, float]:
+    """RMS rotation (rad) and translation (m) of corrected_i^-1 T T_s^i over the views."""
+    error = invert_pose(corrected) @ transform @ source_poses
+    rotation = se3_log(error)[:, 3:].norm(dim=1)
+    return float(rotation.pow(2).mean().sqrt()), float(error[:, :3, 3].norm(dim=1).pow(2).mean().sqrt())
+
+
+def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses: torch.Tensor,
+                      camera: PinholeCamera, init: torch.Tensor, cfg: RegistrationConfig,
+                      features: DescriptorExtractor | None = None, backend: str = "auto") -> FineRegistration:
+    """SGR fine step (Eq. 6): refine ``init`` (source -> target, 4x4) with both submaps' Gaussians frozen.
+
+    ``source_poses`` (V, 4, 4): the source keyframe poses to compare the submaps from; ``features``: the dense
+    semantic feature extractor of the Eq. 6 feature term (None leaves the term out of the reported loss). Both clouds
+    must be on one device; poses and the result are float64 on the CPU.
+    """
+    if source_poses.dim() != 3 or source_poses.shape[1:] != (4, 4) or source_poses.shape[0] == 0:
+        raise ValueError(f"fine_registration: need (V, 4, 4) source poses, got {tuple(source_poses.shape)}")
+    src = source_poses.to("cpu", torch.float64)
+    transform = init.to("cpu", torch.float64)
+    camera = camera.scaled(camera.width // cfg.downsample, camera.height // cfg.downsample)
+    weights = AlignmentWeights(1.0, cfg.lambda_sem, cfg.w_depth, max_depth_residual=cfg.max_depth_residual)
+    with torch.no_grad():
+        pyramids = _source_views(source, src, camera, cfg.pyramid_levels, cfg.silhouette_threshold, backend)
+        used = torch.zeros(0, dtype=torch.long)
+        corrected = src[:0]
+        for level in [l for l in reversed(range(cfg.pyramid_levels)) for _ in range(cfg.renders_per_level)]:
+            poses, ok = [], []
+            for i, pyramid in enumerate(pyramids):
+                observed = pyramid[level]
+                model_pose = transform @ src[i]
+                out = render(target, _world_to_cam(model_pose, target), observed.camera, backend=backend)
+                model = ModelView(out.color, out.semantic, out.expected_depth, out.alpha > cfg.silhouette_threshold,
+                                  observed.camera)
+                eye = torch.eye(4, dtype=out.color.dtype, device=out.color.device)
+                motion, cost = align_level(model, observed, eye, weights, cfg.iterations)
+                if math.isfinite(cost):
+                    poses.append(model_pose @ invert_pose(motion.to("cpu", torch.float64)))
+                    ok.append(i)
+            if not ok:
+                break
+            used, corrected = torch.tensor(ok), torch.stack(poses)
+            transform, _, _ = gauss_newton_alignment(src[used], corrected, init=transform, max_iterations=5)
+        spread = _spread(src[used], corrected, transform) if len(used) else (math.inf, math.inf)
+        overlap, fitness, loss = _evaluate(target, transform, src, pyramids, cfg, features, backend)
+    return FineRegistration(transform, overlap, fitness, loss, spread, len(used))
+
+
+def _evaluate(target: GaussianCloud, transform: torch.Tensor, source_poses: torch.Tensor,
+              pyramids: list[list[ObservedImages]], cfg: RegistrationConfig, features: DescriptorExtractor | None,
+              backend: str) -> tuple[float, float, float]:
+    """Overlap, fitness and Eq. 6 loss of ``transform`` over the views (finest pyramid level)."""
+    agreeing, overlapping, total, losses = 0, 0, 0, []
+    for pose, pyramid in zip(source_poses, pyramids):
+        observed = pyramid[0]
+        out = render(target, _world_to_cam(transform @ pose, target), observed.camera, backend=backend)
+        color, semantic, depth = observed.stack[:3], observed.stack[3:6], observed.stack[6]
+        seen = depth > 0
+        both = seen & (out.alpha > cfg.silhouette_threshold)
+        rendered_semantic = out.semantic.permute(2, 0, 1)
+        agree = (((out.expected_depth - depth).abs() < cfg.max_depth_residual)
+                 & ((rendered_semantic - semantic).abs().sum(0) < cfg.max_semantic_residual))
+        agreeing += int((both & agree).sum())
+        overlapping += int(both.sum())
+        total += int(seen.sum())
+        loss = 0.0
+        if both.any():
+            loss = float(((out.color.permute(2, 0, 1) - color).abs().sum(0)[both]).mean()
+                         + cfg.lambda_sem * ((rendered_semantic - semantic).abs().sum(0)[both]).mean())
+        if features is not None:
+            dense = features.dense_features(torch.stack([rendered_semantic, semantic]).permute(0, 2, 3, 1))
+            loss += cfg.lambda_feat * float((dense[0] - dense[1]).pow(2).sum(-1).mean())
+        losses.append(loss)
+    return overlapping / max(total, 1), agreeing / max(overlapping, 1), sum(losses) / len(losses)
+
+
+def fine_views(pairs: torch.Tensor, source_poses: torch.Tensor, count: int) -> torch.Tensor:
+    """Up to ``count`` source keyframe indices for the fine step: the distinct sources of the descriptor pairs
+    (closest first), then the other source keyframes nearest to the first one (camera centres), which see much of
+    the same place."""
+    seen: list[int] = []
+    for s in pairs[:, 0].tolist():
+        if s not in seen:
+            seen.append(s)
+    centres = source_poses[:, :3, 3].to(torch.float64)
+    by_distance = torch.argsort((centres - centres[seen[0]]).norm(dim=1), stable=True).tolist()
+    seen += [s for s in by_distance if s not in seen]
+    return torch.tensor(seen[:count], dtype=torch.long)
+
+
+def semantic_guided_registration(source_cloud: GaussianCloud, source_poses: torch.Tensor,
+                                 source_descriptors: torch.Tensor, target_cloud: GaussianCloud,
+                                 target_poses: torch.Tensor, target_descriptors: torch.Tensor,
+                                 camera: PinholeCamera, cfg: RegistrationConfig,
+                                 features: DescriptorExtractor | None = None, backend: str = "auto",
+                                 max_pair_distance: float | None = None) -> Registration:
+    """Coarse (Eq. 5, top-k descriptor pairs closer than ``max_pair_distance``) then fine (Eq. 6) registration of
+    the source submap to the target.
+
+    Keyframe poses (S, 4, 4) / (T, 4, 4) are cam_to_world in their own submap's frame, descriptors (S, D) / (T, D).
+    Accepted by :func:`is_acceptable`.
+    """
+    start = time.perf_counter()
+    coarse = coarse_registration(source_descriptors, source_poses, target_descriptors, target_poses, cfg.top_k,
+                                 max_distance=max_pair_distance)
+    middle = time.perf_counter()
+    views = fine_views(coarse.pairs, source_poses, cfg.views)
+    fine = fine_registration(source_cloud, target_cloud, source_poses[views], camera, coarse.transform, cfg,
+                             features, backend)
+    end = time.perf_counter()
+    return Registration(fine.transform, coarse, fine, is_acceptable(fine, cfg), edge_sigmas(fine, cfg),
+                        middle - start, end - middle)
+
+
+def is_acceptable(fine: FineRegistration, cfg: RegistrationConfig) -> bool:
+    """Accept a fine registration: overlap and fitness at least ``min_overlap`` and ``min_fitness``, per-view
+    estimates within the spread limits."""
+    rotation, translation = fine.spread
+    return (fine.overlap >= cfg.min_overlap and fine.fitness >= cfg.min_fitness
+            and translation <= cfg.max_spread_translation
+            and rotation <= math.radians(cfg.max_spread_rotation_deg))
+
+
+def edge_sigmas(fine: FineRegistration, cfg: RegistrationConfig) -> tuple[float, float]:
+    """Loop-edge standard deviations (rotation rad, translation m): the fine spread, floored by the config."""
+    rotation, translation = fine.spread
+    return max(cfg.sigma_rotation, rotation), max(cfg.sigma_translation, translation)
+
+
+def align_keyframes(reference: Observation, current: Observation, init: torch.Tensor,
+                    cfg: RegistrationConfig) -> tuple[torch.Tensor, float]:
+    """Relative pose of two keyframes from their images (intra-submap loops): the colour + lambda_sem * semantic
+    (+ w_depth * depth) residuals of Eq. 6 between the two observations, minimised coarse-to-fine by Gauss-Newton.
+
+    ``init``: current-camera-from-reference-camera (4x4) to start from. Returns that motion refined (float64) and the
+    fitness: the fraction of the reference's valid-depth pixels that land in the current image on a depth reading
+    within ``max_depth_residual``.
+    """
+    weights = AlignmentWeights(1.0, cfg.lambda_sem, cfg.w_depth, max_depth_residual=cfg.max_depth_residual)
+    reference_pyramid = _pyramid(ObservedImages.build(reference.rgb, reference.semantic, reference.depth,
+                                                      reference.camera), cfg.pyramid_levels)
+    current_pyramid = _pyramid(ObservedImages.build(current.rgb, current.semantic, current.depth, current.camera),
+                               cfg.pyramid_levels)
+    motion = init.to(reference.depth.device, reference.depth.dtype)
+    with torch.no_grad():
+        for ref, cur in zip(reversed(reference_pyramid), reversed(current_pyramid)):
+            stack = ref.stack
+            model = ModelView(stack[:3].permute(1, 2, 0), stack[3:6].permute(1, 2, 0), stack[6], stack[6] > 0,
+                              ref.camera)
+            motion, _ = align_level(model, cur, motion, weights, cfg.iterations)
+        fitness = _warp_fitness(reference, current, motion, cfg.max_depth_residual)
+    return motion.to("cpu", torch.float64), fitness
+
+
+def _warp_fitness(reference: Observation, current: Observation, motion: torch.Tensor, max_residual: float) -> float:
+    """Fraction of the reference's valid-depth pixels that ``motion`` maps onto a current depth within the bound."""
+    valid = reference.valid_depth
+    points = reference.camera.backproject(reference.depth)[valid] @ motion[:3, :3].T + motion[:3, 3]
+    cam = current.camera
+    uv = cam.project(points)
+    u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+    inside = (points[:, 2] > 1e-3) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    measured = current.depth[v[inside], u[inside]]
+    hits = (measured > 0) & ((measured - points[inside, 2]).abs() < max_residual)
+    return int(hits.sum()) / max(int(valid.sum()), 1)

@@ -34,7 +34,9 @@ class LoopDetector:
     score vector is closest to the query's is the loop.
 
     Landmark score vectors (:func:`~gausem_core.slam.loop.landmarks.landmark_scores`) are computed by the caller, who
-    owns the Gaussians; a stored keyframe is compared with the vector it was added with.
+    owns the Gaussians; a stored keyframe is compared with the vector it was added with. Vectors may grow as classes
+    are discovered (classes appended at the end): a shorter vector is compared zero-padded, which is exact, since a
+    class unknown when the vector was made was not observed (score 0).
     """
 
     def __init__(self, *, keyframe_every: int = 5, check_every: int = 6, max_descriptor_distance: float = 0.2,
@@ -65,11 +67,9 @@ class LoopDetector:
     def add_keyframe(self, keyframe_id: int, submap_id: int, descriptor: torch.Tensor,
                      landmark_scores: torch.Tensor) -> LoopCandidate | None:
         """Check the keyframe for a loop (on every ``check_every``-th call), then store it. Returns the loop or None."""
-        if self._keyframes:
-            first_scores = next(iter(self._keyframes.values()))[1]
-            if landmark_scores.shape != first_scores.shape:
-                raise ValueError(f"LoopDetector.add_keyframe: landmark scores of keyframe {keyframe_id} have shape "
-                                 f"{tuple(landmark_scores.shape)}, earlier ones {tuple(first_scores.shape)}")
+        if landmark_scores.dim() != 1:
+            raise ValueError(f"LoopDetector.add_keyframe: landmark scores of keyframe {keyframe_id} must be a vector, "
+                             f"got shape {tuple(landmark_scores.shape)}")
         is_check = (len(self.database) + 1) % self.check_every == 0
         loop = self._detect(keyframe_id, submap_id, descriptor, landmark_scores) if is_check else None
         self.database.add(keyframe_id, descriptor)
@@ -84,7 +84,13 @@ class LoopDetector:
             match_submap, match_scores = self._keyframes[match]
             if submap_id - match_submap < self.min_submap_gap:
                 continue
-            land_dist = landmark_distance(landmark_scores.detach().cpu(), match_scores)
+            land_dist = landmark_distance(*_zero_padded(landmark_scores.detach().cpu(), match_scores))
             if best is None or land_dist < best.landmark_distance:
                 best = LoopCandidate(keyframe_id, match, submap_id, match_submap, desc_dist, land_dist)
         return best
+
+
+def _zero_padded(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two score vectors padded with zeros to the same length."""
+    n = max(len(a), len(b))
+    return torch.nn.functional.pad(a, (0, n - len(a))), torch.nn.functional.pad(b, (0, n - len(b)))

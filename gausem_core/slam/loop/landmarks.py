@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import torch
 
+from gausem_core.geometry import PinholeCamera, invert_pose, transform_points
+
 
 def _class_counts(class_ids: torch.Tensor, num_classes: int, where: str) -> torch.Tensor:
     if num_classes <= 0:
@@ -57,3 +59,17 @@ def landmark_distance(a: torch.Tensor, b: torch.Tensor) -> float:
         raise ValueError(f"landmark_distance: need two vectors of equal length, "
                          f"got {tuple(a.shape)} and {tuple(b.shape)}")
     return float(torch.linalg.vector_norm(a.to(torch.float64) - b.to(torch.float64)))
+
+
+def observed_gaussians(means: torch.Tensor, cam_to_world: torch.Tensor, camera: PinholeCamera, depth: torch.Tensor,
+                       margin: float = 0.1) -> torch.Tensor:
+    """Which Gaussians (centres (N, 3)) a frame observes, (N,) bool: the centre projects into the image, in front
+    of the camera, onto a valid depth reading (H, W) that it is not more than ``margin`` metres behind (unoccluded)."""
+    points = transform_points(invert_pose(cam_to_world.to(means.dtype)), means)
+    z = points[:, 2]
+    uv = camera.project(points)
+    u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+    inside = (z > 1e-3) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    measured = torch.zeros_like(z)
+    measured[inside] = depth.to(z.dtype)[v[inside], u[inside]]
+    return inside & (measured > 0) & (z <= measured + margin)

@@ -1,0 +1,103 @@
+"""The loop-closure orchestrator on hand-made submaps: inter-submap loops (SGR, anchor graph, rigid correction),
+intra-submap loops (keyframe-pair registration, keyframe graph, re-mapping), switches and the learned palette."""
+import pytest
+import torch
+
+from gausem_core.config import LoopConfig, MappingConfig, RegistrationConfig
+from gausem_core.gaussians import GaussianCloud
+from gausem_core.slam.correction import anchor_correction, correct_poses
+from gausem_core.slam.mapper import Mapper
+from loop_scene import PALETTE, frame, make_submap, perturbation, pose_error
+
+pytest.importorskip("gtsam")
+from gausem_core.slam.loop_closure import LoopClosure, SemanticPalette  # noqa: E402
+
+
+def _closure(**overrides) -> LoopClosure:
+    cfg = LoopConfig(**{"check_every": 1, "max_descriptor_distance": 0.45, "global_refinement": False, **overrides})
+    return LoopClosure(cfg, Mapper(MappingConfig()), backend="torch", database_backend="torch")
+
+
+def _feed(closure, submaps):
+    for submap in submaps:
+        for kf in submap.keyframes:
+            closure.on_keyframe(submaps, submap, kf)
+
+
+def test_inter_submap_loop_moves_the_drifted_submap_rigidly():
+    """Submap 0 starts the loop; submap 1 ends it with a drifted anchor. Its last keyframe revisits frame 0."""
+    first = make_submap(0, list(range(0, 50, 5)))
+    truth = frame(330)[1]
+    last = make_submap(1, list(range(330, 360, 5)), anchor=perturbation(0.08, 3.0, 1).float() @ truth)
+    old_anchor = last.anchor.clone()
+    world_poses = torch.stack([last.world_pose(kf) for kf in last.keyframes])
+    local_means = last.cloud.means.clone()
+    closure = _closure()
+    _feed(closure, [first, last])
+    closed = closure.loops
+    assert [(r.query_frame, r.match_frame, r.intra) for r in closed] == [(355, 0, False)]
+    assert closed[0].fitness > 0.9
+    before, after = pose_error(old_anchor, truth), pose_error(last.anchor, truth)
+    assert after[0] < 0.5 * before[0] and after[1] < 0.5 * before[1]
+    assert pose_error(first.anchor, frame(0)[1]) == pytest.approx((0.0, 0.0), abs=1e-5)  # the graph's prior
+    # rigid correction: world keyframe poses and centres move by C = A' A^-1, the submap-frame data stay as they were
+    correction = anchor_correction(old_anchor, last.anchor)
+    moved = torch.stack([last.world_pose(kf) for kf in last.keyframes])
+    torch.testing.assert_close(moved, correct_poses(world_poses, correction), atol=1e-5, rtol=0)
+    torch.testing.assert_close(last.cloud.transformed(last.anchor).means,
+                               last.cloud.transformed(old_anchor).transformed(correction).means, atol=1e-4, rtol=0)
+    assert torch.equal(last.cloud.means, local_means)
+
+
+def test_intra_submap_loop_pulls_drifted_keyframes_back():
+    """One submap: out along frames 0..36, back along 30..0 with growing drift; the way back revisits the way out."""
+    frames = [0, 6, 12, 18, 24, 30, 36, 30, 24, 18, 12, 6, 0]
+    submap = make_submap(0, frames, ids=list(range(0, 5 * len(frames), 5)), size=(80, 60))
+    truth = [kf.cam_to_world.clone() for kf in submap.keyframes]
+    drift = torch.eye(4)
+    for kf in submap.keyframes[7:]:
+        drift = drift @ perturbation(0.01, 0.6, kf.frame_id).float()
+        kf.cam_to_world = kf.cam_to_world @ drift
+    before = [pose_error(kf.cam_to_world, t) for kf, t in zip(submap.keyframes, truth)]
+    closure = _closure(check_every=6, max_descriptor_distance=0.2, remap_iterations_per_keyframe=1)
+    gaussians = len(submap.cloud)
+    _feed(closure, [submap])
+    assert [(r.query_frame, r.match_frame, r.intra, r.accepted) for r in closure.records] == [(55, 5, True, True)]
+    after = [pose_error(kf.cam_to_world, t) for kf, t in zip(submap.keyframes, truth)]
+    assert after[0] == (0.0, 0.0)  # the fixed first keyframe
+    assert after[11][0] < 0.3 * before[11][0] and after[11][1] < 0.3 * before[11][1]  # the loop keyframe
+    assert sum(e[0] for e in after[7:]) < 0.5 * sum(e[0] for e in before[7:])
+    assert 0 < len(submap.cloud) <= gaussians  # re-mapped (and pruned) with the corrected poses
+
+
+def test_switches_and_rejected_loops():
+    first = make_submap(0, list(range(0, 50, 5)), size=(80, 60))
+    last = make_submap(1, list(range(330, 360, 5)), size=(80, 60))
+    disabled = _closure(enabled=False)
+    _feed(disabled, [first, last])
+    assert disabled.records == [] and len(disabled.detector.database) == 0
+    # a loop whose registration cannot be verified is recorded but not closed
+    strict = _closure(registration=RegistrationConfig(min_fitness=1.01))
+    anchor = last.anchor.clone()
+    _feed(strict, [first, last])
+    assert strict.records and not any(r.accepted for r in strict.records) and strict.loops == []
+    assert torch.equal(last.anchor, anchor)
+
+
+def test_only_keyframes_on_the_loop_grid_enter_the_database():
+    submap = make_submap(0, [0, 3, 6, 9, 12], size=(80, 60))
+    closure = _closure(keyframe_every=6)
+    _feed(closure, [submap])
+    assert closure.detector.database.ids.tolist() == [0, 6, 12]
+
+
+def test_semantic_palette_learns_colours_in_order():
+    palette = SemanticPalette()
+    palette.update(PALETTE[torch.tensor([[2, 2], [5, 2]])])
+    palette.update(PALETTE[torch.tensor([[5, 7]])])
+    assert len(palette) == 3
+    assert {tuple(c) for c in palette.colors[:2].tolist()} == {tuple(PALETTE[2].tolist()), tuple(PALETTE[5].tolist())}
+    torch.testing.assert_close(palette.colors[2], PALETTE[7])
+    cloud = GaussianCloud.from_points(torch.zeros(2, 3), torch.zeros(2, 3), PALETTE[[7, 2]] + 0.01, torch.ones(2))
+    ids = palette.class_ids(cloud)
+    torch.testing.assert_close(palette.colors[ids], PALETTE[[7, 2]])

@@ -1,0 +1,49 @@
+"""Two-stage global refinement: per-submap L_refine optimisation, then alignment of submaps to the global map."""
+import torch
+
+from gausem_core.config import LoopConfig, MappingConfig, RegistrationConfig
+from gausem_core.semantics.descriptors import make_descriptor
+from gausem_core.slam.mapper import Mapper
+from gausem_core.slam.refinement import align_to_global, global_refinement, refine_submap
+from loop_scene import frame, make_submap, perturbation, pose_error
+
+
+def test_stage_one_lowers_the_refinement_loss_and_keeps_the_fixed_keyframe():
+    submap = make_submap(0, [0, 4, 8], size=(80, 60))
+    truth = [kf.cam_to_world.clone() for kf in submap.keyframes]
+    observations = [kf.obs for kf in submap.keyframes]
+    cloud, losses = refine_submap(submap.cloud, submap.keyframes, observations, Mapper(MappingConfig()), 6,
+                                  make_descriptor("fallback"), 0.5, backend="torch")
+    assert len(losses) == 6 and losses[-1] < 0.8 * losses[0]
+    assert 0 < len(cloud) <= len(submap.cloud)
+    assert torch.equal(submap.keyframes[0].cam_to_world, truth[0])
+    for kf, pose in zip(submap.keyframes[1:], truth[1:]):
+        translation, rotation = pose_error(kf.cam_to_world, pose)
+        assert translation < 0.01 and rotation < 0.5  # the poses were right: the refinement keeps them
+
+
+def test_stage_two_aligns_a_misplaced_submap_to_the_others():
+    reference = make_submap(0, [0, 6, 12, 18])
+    misplaced = make_submap(1, [9, 15, 21, 27])
+    truth = misplaced.anchor.clone()
+    misplaced.anchor = perturbation(0.05, 2.5, 7).float() @ truth
+    before = pose_error(misplaced.anchor, truth)
+    assert align_to_global(misplaced, [reference], RegistrationConfig(), make_descriptor("fallback"), "torch")
+    after = pose_error(misplaced.anchor, truth)
+    assert after[0] < 0.5 * before[0] and after[1] < 0.5 * before[1]
+    assert not align_to_global(misplaced, [], RegistrationConfig(), None, "torch")  # nothing to align to
+
+
+def test_global_refinement_runs_both_stages_and_holds_the_first_submap():
+    first = make_submap(0, [0, 6, 12], size=(80, 60))
+    second = make_submap(1, [9, 15, 21], size=(80, 60))
+    second.anchor = perturbation(0.04, 2.0, 8).float() @ frame(9, 80, 60)[1]
+    anchor = first.anchor.clone()
+    before = pose_error(second.anchor, frame(9, 80, 60)[1])
+    cfg = LoopConfig(refine_iterations_per_keyframe=2, registration=RegistrationConfig(downsample=1))
+    report = global_refinement([first, second], Mapper(MappingConfig()), cfg, make_descriptor("fallback"), "torch")
+    assert set(report.first_pass_loss) == set(report.last_pass_loss) == {0, 1}
+    assert report.aligned == {1: True}
+    assert torch.equal(first.anchor, anchor)
+    after = pose_error(second.anchor, frame(9, 80, 60)[1])
+    assert after[0] < 0.5 * before[0] and after[1] < 0.5 * before[1]
