@@ -76,7 +76,8 @@ class Launcher:
                 if any(node.poll() is not None for node in self.nodes):
                     break
                 time.sleep(0.1)
-            self.signal_all(signal.SIGINT)
+            if not self._stopping:  # a forwarded signal already reached every child; a second SIGINT interrupts
+                self.signal_all(signal.SIGINT)  # rclpy's shutdown (exit 130)
             deadline = time.monotonic() + self.grace
             for child in self.children:
                 try:

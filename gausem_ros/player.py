@@ -11,9 +11,12 @@ Ground truth is never published; ``--gt-out FILE`` writes the dataset's ground-t
 TUM trajectory for evaluation.
 
 Timing: frames follow their recorded stamps scaled by ``--rate`` (0 = as fast as possible). ``--lockstep`` publishes
-frame k+1 only after ``gausem/odometry`` for frame k arrived (or ``--timeout`` seconds passed, which is logged).
+frame k+1 only after ``gausem/odometry`` for frame k arrived, or tracking_mapping's ``gausem/diagnostics`` said it
+dropped frame k (bad input, a diverged estimate), or ``--timeout`` seconds passed (which is logged).
 A frame is the messages from one rgb image up to the next; the player first waits (``--wait-subscribers`` s at most)
 until every topic it publishes has a subscriber, so that no frame is lost to discovery.
+A bag found corrupt or truncated (on opening or part-way) ends playback with a logged error (``Player.error``; the
+command exits with 1) after the frames read so far; the player never dies in a callback.
 """
 from __future__ import annotations
 
@@ -26,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -38,7 +42,8 @@ from gausem_core.data import Dataset, open_dataset
 from gausem_core.data.spec import SPEC_HELP
 from gausem_core.eval.trajectory import Trajectory, write_tum_trajectory
 
-from .bags import TUM_TOPICS, read_bag
+from .bags import TUM_TOPICS, BagError, read_bag
+from .nodes.common import DIAGNOSTICS_TOPIC, LAST_FRAME_KEY
 from .qos import EVENT_QOS, IMAGE_QOS
 
 # input key -> (message type, published topic)
@@ -118,12 +123,14 @@ class Player(Node):
             raise ValueError(f"player: rate must be >= 0, timeout > 0 and wait_subscribers >= 0, got {rate}, "
                              f"{timeout}, {wait_subscribers}")
         self.rate, self.lockstep, self.timeout, self.wait_subscribers = rate, lockstep, timeout, wait_subscribers
+        self.error: str | None = None  # why playback stopped early (a corrupt or truncated bag)
+        self.published = 0
         self._frames = iter(frames)
-        self._next = next(self._frames, None)
+        self._next = self._read_next()
         self._pubs = {key: self.create_publisher(cls, topic, IMAGE_QOS) for key, (cls, topic) in OUTPUTS.items()}
         self._clock_pub = self.create_publisher(Clock, "/clock", IMAGE_QOS)
         self.create_subscription(Odometry, "gausem/odometry", self._on_odometry, EVENT_QOS)
-        self.published = 0
+        self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics, EVENT_QOS)
         self.odometry_received = 0
         self.timeouts = 0
         self.ground_truth: list[tuple[float, np.ndarray]] = []
@@ -132,13 +139,32 @@ class Player(Node):
         self._start: tuple[float, int] | None = None  # (wall time, stamp ns) of the first frame
         self._timer = self.create_timer(period, self._tick)
 
+    def _read_next(self) -> PlayerFrame | None:
+        """The next frame; None at the end or, logged and kept in ``error``, when the source cannot be read on."""
+        try:
+            return next(self._frames, None)
+        except BagError as err:
+            self.error = f"playback stopped after {self.published} frames: {err}"
+            self.get_logger().error(self.error)
+            return None
+
     @property
     def done(self) -> bool:
         return self._next is None and self._awaiting is None
 
     def _on_odometry(self, msg: Odometry) -> None:
         self.odometry_received += 1
-        if self._awaiting is not None and ma.time_to_ns(msg.header.stamp) >= self._awaiting - _STAMP_TOLERANCE_NS:
+        self._answered(ma.time_to_ns(msg.header.stamp))
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            handled = next((kv.value for kv in status.values if kv.key == LAST_FRAME_KEY), None)
+            if handled is not None:
+                self._answered(int(handled))
+
+    def _answered(self, stamp_ns: int) -> None:
+        """Lock-step: the tracker is done with the frame stamped ``stamp_ns``."""
+        if self._awaiting is not None and stamp_ns >= self._awaiting - _STAMP_TOLERANCE_NS:
             self._awaiting = None
 
     def _tick(self) -> None:
@@ -152,7 +178,7 @@ class Player(Node):
             self._awaiting = None
         if self._next is None or not self._ready(now):
             return
-        frame, self._next = self._next, next(self._frames, None)
+        frame = self._next
         if self._start is None:
             self._start = (now, frame.stamp_ns)
         for key, msg in frame.messages:
@@ -163,6 +189,7 @@ class Player(Node):
             self.ground_truth.append((ma.ns_to_seconds(frame.stamp_ns), frame.gt_pose))
         if self.lockstep:
             self._awaiting, self._waiting_since = frame.stamp_ns, now
+        self._next = self._read_next()
 
     def _ready(self, now: float) -> bool:
         if self._start is None:  # the first frame waits for subscribers on every topic it carries
@@ -242,7 +269,7 @@ def main(args=None) -> int:
         if player is not None:
             player.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return 1 if player is not None and player.error else 0
 
 
 if __name__ == "__main__":

@@ -1,26 +1,34 @@
 """All GauSem nodes in one process on a SingleThreadedExecutor (entry point ``gausem-ros``), optionally with the
-player: ``gausem-ros [SOURCE --lockstep ...] [--save DIR] --ros-args --params-file params/synthetic.yaml``.
+player: ``gausem-ros [SOURCE --lockstep ...] [--save DIR] [--report DIR] --ros-args --params-file FILE``.
 
 Which nodes: tracking_mapping always; segmentation unless ``semantics.segmenter`` is ``labels`` (then the labels come
 with the data); loop_detection (needs labels) and pose_graph when ``loop.enabled``. The ROS arguments (params file,
-``-p``, remappings) apply to every node. With a SOURCE the process ends when the player is done (after ``--save``);
-without, it runs until Ctrl-C.
+``-p``, remappings) apply to every node. With a SOURCE the process ends when the player is done (after ``--save`` and
+``--report``); without, it runs until Ctrl-C. ``--report DIR`` evaluates the run like ``gausem run`` (ATE, PSNR, SSIM,
+mIoU, fps; trajectories, map, metrics JSON, montage in DIR) against a reference dataset: SOURCE when it is a dataset,
+else ``--reference SPEC`` (for a bag from ``gausem-bag SPEC``: the same SPEC; opened at the processed image size).
 """
 from __future__ import annotations
 
 import argparse
 import sys
 import time
+from collections.abc import Callable
+from pathlib import Path
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.utilities import remove_ros_args
+from tqdm import tqdm
 
+from gausem_core.data import open_dataset
+
+from .evaluation import write_report
 from .nodes.loop_detection import LoopDetectionNode
 from .nodes.pose_graph import PoseGraphNode
 from .nodes.segmentation import SegmentationNode
 from .nodes.tracking_mapping import TrackingMappingNode
-from .player import add_player_arguments, player_from_args
+from .player import add_player_arguments, is_bag, player_from_args
 
 
 def build_nodes(**node_kwargs) -> list:
@@ -36,32 +44,93 @@ def build_nodes(**node_kwargs) -> list:
     return nodes
 
 
-def spin_until_done(executor, player, linger: float = 1.0) -> None:
-    """Spin until the player is done (then ``linger`` s more for the last outputs), or forever without one."""
+def spin_until_done(executor, player, linger: float = 1.0, on_spin: Callable[[], None] = lambda: None) -> None:
+    """Spin until the player is done (then ``linger`` s more for the last outputs), or forever without one;
+    ``on_spin`` after every spin."""
     while rclpy.ok(context=executor.context) and (player is None or not player.done):
         executor.spin_once(timeout_sec=0.1)
+        on_spin()
     end = time.monotonic() + linger
     while rclpy.ok(context=executor.context) and time.monotonic() < end:
         executor.spin_once(timeout_sec=0.1)
+        on_spin()
+
+
+def progress_bar(tracking: TrackingMappingNode, disable: bool) -> tuple[tqdm, Callable[[], None]]:
+    """A terminal progress bar over the processed frames (fps, dropped inputs) and its update function."""
+    bar = tqdm(desc="gausem-ros", unit="frame", disable=disable)
+
+    def update() -> None:
+        if tracking.frames_processed != bar.n:
+            seconds = tracking.seconds
+            bar.set_postfix(fps=f"{tracking.frames_processed / seconds:.2f}" if seconds else "-",
+                            dropped=sum(tracking.drops.counts.values()), refresh=False)
+            bar.update(tracking.frames_processed - bar.n)
+
+    return bar, update
+
+
+def params_file(argv: list[str]) -> str | None:
+    """The last ``--params-file`` among the ROS arguments (for the report's provenance)."""
+    files = [b for a, b in zip(argv, argv[1:]) if a == "--params-file"]
+    return files[-1] if files else None
+
+
+def report(tracking: TrackingMappingNode, ns: argparse.Namespace, argv: list[str]) -> None:
+    """Evaluate the run against the reference dataset, write the outputs to ``ns.report`` and print the summary."""
+    from gausem_core.report import format_summary
+
+    if not tracking.frames_processed:
+        raise ValueError("--report: no frame was processed, there is nothing to evaluate")
+    camera = tracking.camera
+    reference = open_dataset(ns.reference or ns.source, size=(camera.width, camera.height))
+    metrics = write_report(tracking.slam, tracking.cfg, reference, ns.report, tracking.seconds,
+                           eval_every=ns.eval_every, params_file=params_file(argv))
+    print(format_summary(metrics))
+    print(f"outputs written to {ns.report}/")
+
+
+def parse_arguments(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="gausem-ros", description=__doc__.split("\n")[0])
+    add_player_arguments(parser, required=False)
+    parser.add_argument("--save", help="after playback, write map.ply and trajectory.txt to this folder")
+    parser.add_argument("--report", type=Path, metavar="DIR",
+                        help="after playback, evaluate the run like `gausem run` and write its outputs to DIR")
+    parser.add_argument("--reference", metavar="SPEC",
+                        help="dataset with ground truth and labels for --report when SOURCE is a bag (default: SOURCE)")
+    parser.add_argument("--eval-every", type=int, default=5, help="--report: evaluate rendering on every n-th frame")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    ns = parser.parse_args(remove_ros_args(argv)[1:])
+    if ns.report and not ns.source:
+        parser.error("--report needs a SOURCE to play")
+    if ns.report and not ns.reference and is_bag(ns.source):
+        parser.error("--report with a bag needs --reference SPEC: the dataset the bag was made from")
+    return ns
 
 
 def main(args=None) -> int:
     argv = sys.argv if args is None else ["gausem-ros", *args]
-    parser = argparse.ArgumentParser(prog="gausem-ros", description=__doc__.split("\n")[0])
-    add_player_arguments(parser, required=False)
-    parser.add_argument("--save", help="after playback, write map.ply and trajectory.txt to this folder")
-    ns = parser.parse_args(remove_ros_args(argv)[1:])
+    ns = parse_arguments(argv)
     rclpy.init(args=argv)
-    nodes, executor = [], SingleThreadedExecutor()
+    nodes, executor, player = [], SingleThreadedExecutor(), None
     try:
         nodes = build_nodes()
         player = player_from_args(ns) if ns.source else None
         for node in nodes + ([player] if player else []):
             executor.add_node(node)
-        spin_until_done(executor, player)
+        tracking = nodes[0]
+        bar, update = progress_bar(tracking, disable=player is None or ns.quiet)
+        spin_until_done(executor, player, on_spin=update)
+        bar.close()
+        if player is not None:
+            tracking.get_logger().info(f"processed {tracking.frames_processed} of {player.published} frames "
+                                       f"({player.timeouts} lock-step timeouts); dropped: "
+                                       f"{dict(tracking.drops.counts) or 'none'}")
         if ns.save:
-            ply, trajectory = nodes[0].save_map(ns.save)
-            nodes[0].get_logger().info(f"wrote {ply} and {trajectory}")
+            ply, trajectory = tracking.save_map(ns.save)
+            tracking.get_logger().info(f"wrote {ply} and {trajectory}")
+        if ns.report:
+            report(tracking, ns, argv)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as err:
@@ -72,7 +141,7 @@ def main(args=None) -> int:
         for node in executor.get_nodes() or nodes:
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return 1 if player is not None and player.error else 0
 
 
 if __name__ == "__main__":

@@ -18,6 +18,11 @@ def overrides(values: dict) -> list[Parameter]:
     return [Parameter(name, value=value) for name, value in values.items()]
 
 
+def ros_param_args(values: dict) -> list[str]:
+    """The same values as ROS command-line arguments: ``-p name:=value`` pairs (to follow ``--ros-args``)."""
+    return [arg for name, value in values.items() for arg in ("-p", f"{name}:={value}")]
+
+
 @contextlib.contextmanager
 def ros_session(domain_id: int):
     """(context, executor); every node added to the executor is destroyed before the context shuts down."""

@@ -1,6 +1,9 @@
 """GauSem's ROS 2 nodes through real rclpy pub/sub in one process (each test on its own ROS domain)."""
+import dataclasses
+
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
@@ -127,23 +130,30 @@ def test_tracking_node_in_lockstep_with_the_player(tmp_path):
         client = recorder.node.create_client(Trigger, "gausem/save_map")
         future = client.call_async(Trigger.Request())
         assert spin_until(executor, future.done, 10.0) and future.result().success
+        reset = recorder.node.create_client(Trigger, "gausem/reset").call_async(Trigger.Request())
+        assert spin_until(executor, reset.done, 10.0) and reset.result().success
+        assert tracking.frames_processed == 0 and not tracking.slam.frames
+        assert spin_until(executor, lambda: not recorder.messages["gausem/path"][-1].poses, 5.0)
     trajectory = (tmp_path / "out" / "trajectory.txt").read_text().splitlines()
     assert len(trajectory) == frames + 1 and (tmp_path / "out" / "map.ply").stat().st_size > 0
 
 
-def _frame_messages(stamp: float, size=(40, 30), rgb_encoding="rgb8", depth=None):
+def _frame_messages(stamp: float, size=(40, 30), rgb_encoding="rgb8", depth=None, label=0):
+    """rgb, depth (32FC1 exactly as given: NaN and inf go on the wire) and labels of one frame."""
     header = ma.make_header(stamp, "cam")
     w, h = size
     rgb = np.random.default_rng(int(stamp * 10)).integers(0, 256, (h, w, 3), dtype=np.uint8)
     image = ma.rgb_to_image(rgb, header)
     if rgb_encoding != "rgb8":
         image.encoding = rgb_encoding
-    depth = np.full((h, w), 2.0, np.float32) if depth is None else depth
-    labels = np.zeros((h, w), np.int64)
-    return image, ma.depth_to_image(depth, header), ma.labels_to_image(labels, header)
+    depth = np.full((h, w), 2.0, np.float32) if depth is None else depth.astype(np.float32)
+    labels = np.full((h, w), label, np.int64)
+    return image, ma.numpy_to_image(depth, "32FC1", header), ma.labels_to_image(labels, header)
 
 
 def test_bad_input_is_dropped_and_reported_and_the_node_keeps_running():
+    """Issue 6 §5: wrong encodings, rgb/depth size mismatches, NaN/inf/zero depth, missing or invalid camera_info,
+    labels outside the class table, duplicate and out-of-order stamps, a diverged pose estimate."""
     camera = PinholeCamera(40.0, 40.0, 20.0, 15.0, 40, 30)
     with ros_session(103) as (ctx, executor):
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
@@ -162,23 +172,44 @@ def test_bad_input_is_dropped_and_reported_and_the_node_keeps_running():
                 pub.publish(msg)
             assert spin_until(executor, expect, 20.0), dict(tracking.drops.counts)
 
-        dropped = lambda reason: lambda: tracking.drops.counts[reason] >= 1  # noqa: E731
+        def dropped(reason, count=1):
+            return lambda: tracking.drops.counts[reason] == count
+
+        def stale(count):
+            return lambda: tracking._inputs.synchronizer.dropped["stale"] >= count
+
         send(_frame_messages(1.0), dropped("no_camera_info"))
         info_pub.publish(ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam")))
         spin_for(executor, 0.3)
+        uncalibrated = ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam"))
+        uncalibrated.k = np.zeros(9)
+        info_pub.publish(uncalibrated)  # dropped: the valid camera_info before it stays in use
+        assert spin_until(executor, dropped("bad_camera_info"), 5.0)
         send(_frame_messages(1.1, rgb_encoding="mono16"), dropped("bad_encoding"))
-        send(_frame_messages(1.2, size=(20, 30)), dropped("size_mismatch"))
-        send(_frame_messages(1.3, depth=np.full((30, 40), np.nan, np.float32)), dropped("invalid_depth"))
+        send(_frame_messages(1.2, size=(20, 30)), dropped("size_mismatch"))  # all three differ from camera_info
+        send(_frame_messages(1.21, depth=np.full((30, 20), 2.0)), dropped("size_mismatch", 2))  # rgb vs depth
+        for i, value in enumerate((np.nan, np.inf, -np.inf, 0.0)):
+            send(_frame_messages(1.3 + i / 100, depth=np.full((30, 40), value)), dropped("invalid_depth", i + 1))
+        send(_frame_messages(1.35, label=len(SYNTHETIC_CLASSES)), dropped("bad_labels"))
         send(_frame_messages(1.4), lambda: tracking.frames_processed == 1)
-        send(_frame_messages(1.4), lambda: tracking._inputs.synchronizer.dropped["stale"] >= 3)  # duplicate stamp
+        send(_frame_messages(1.4), stale(3))  # duplicate stamp
         send(_frame_messages(1.5), lambda: tracking.frames_processed == 2)
-        assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == 2, 5.0)
-        assert spin_until(executor, lambda: _diagnostics(recorder).get("frames_processed") == "2", 5.0)
+        send(_frame_messages(1.45), stale(6))  # out of order: older than the last processed frame
+
+        process = tracking.slam.process  # a core whose estimate diverges on the next frame
+        tracking.slam.process = lambda obs: dataclasses.replace(process(obs), cam_to_world=torch.full((4, 4), np.nan))
+        send(_frame_messages(1.6), dropped("tracking_diverged"))
+        tracking.slam.process = process
+        send(_frame_messages(1.7), lambda: tracking.frames_processed == 4)
+        assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == 3, 5.0)
+        assert spin_until(executor, lambda: _diagnostics(recorder).get("frames_processed") == "4", 5.0)
         report = _diagnostics(recorder)
-    for reason in ("no_camera_info", "bad_encoding", "size_mismatch", "invalid_depth"):
-        assert report[f"dropped.{reason}"] == "1"
-    assert int(report["sync.stale"]) >= 3
-    assert [ma.header_seconds(o.header) for o in recorder.messages["gausem/odometry"]] == [1.4, 1.5]
+    expected = {"no_camera_info": 1, "bad_camera_info": 1, "bad_encoding": 1, "size_mismatch": 2, "invalid_depth": 4,
+                "bad_labels": 1, "tracking_diverged": 1}
+    assert {k: int(v) for k, v in report.items() if k.startswith("dropped.")} == {
+        f"dropped.{k}": v for k, v in expected.items()}
+    assert int(report["sync.stale"]) >= 6
+    assert [ma.header_seconds(o.header) for o in recorder.messages["gausem/odometry"]] == [1.4, 1.5, 1.7]
 
 
 class _BrightnessSegmenter(Segmenter):
@@ -279,3 +310,78 @@ def test_run_all_builds_the_node_set_the_parameters_ask_for():
             node.destroy_node()
     assert names == ["tracking_mapping", "loop_detection", "pose_graph"]
     assert names_without == ["tracking_mapping"]
+
+
+def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
+    """Frames 0-3 with every node up, 4-5 with loop_detection and pose_graph down, 6-9 after fresh instances start."""
+    slam = {**FAST_SLAM, "mapping.every": 2}  # keyframes 0, 2, 4, 6, 8
+    loops = {"loop.check_every": 1, "loop.exclude_recent": 0, "loop.max_descriptor_distance": 2.0}  # a loop per check
+    frames = list(open_source("synthetic", size=(80, 60), max_frames=10))
+    with ros_session(108) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(slam))
+        recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS)])
+        constraint_pub = recorder.node.create_publisher(PointCloud2, "gausem/loop_constraints", EVENT_QOS)
+        executor.add_node(tracking)
+        executor.add_node(recorder.node)
+
+        def start_helpers():
+            helpers = (LoopDetectionNode(context=ctx, parameter_overrides=overrides({**slam, **loops})),
+                       PoseGraphNode(context=ctx))
+            for node in helpers:
+                executor.add_node(node)
+            assert spin_until(executor, lambda: constraint_pub.get_subscription_count() == 1, 5.0)
+            return helpers
+
+        def play(first: int, last: int) -> None:
+            player = Player(frames[first:last], rate=0.0, lockstep=True, timeout=30.0, context=ctx)
+            executor.add_node(player)
+            assert spin_until(executor, lambda: player.done, 30.0)
+            assert player.timeouts == 0 and tracking.frames_processed == last
+            executor.remove_node(player)
+            player.destroy_node()
+
+        loop_detection, pose_graph = start_helpers()
+        play(0, 4)
+        assert spin_until(executor, lambda: tracking.loop_candidates, 5.0)  # keyframe 2 -> 0
+        for node in (loop_detection, pose_graph):  # both "crash"
+            executor.remove_node(node)
+            node.destroy_node()
+        candidates_before = len(tracking.loop_candidates)
+        play(4, 6)  # keyframe 4 reaches nobody; tracking goes on
+        assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == 6, 5.0)
+        assert len(tracking.loop_candidates) == candidates_before
+
+        loop_detection, pose_graph = start_helpers()
+        play(6, 10)
+        assert spin_until(executor, lambda: len(tracking.loop_candidates) > candidates_before, 5.0)
+        assert spin_until(executor, lambda: sorted(pose_graph.keyframes) == [6, 8], 5.0)
+        before = {k.frame_id: k.cam_to_world.clone() for s in tracking.slam.submaps for k in s.keyframes}
+        (_, pose_6), (_, pose_8) = pose_graph.keyframes[6], pose_graph.keyframes[8]  # as the records carried them
+        relative = np.linalg.inv(pose_6) @ pose_8 @ _translation(0.05)
+        constraint = ma.LoopConstraintRecord(6, 8, 0, 0, relative, 1.0, np.eye(6), True)  # stands in for registration
+        constraint_pub.publish(ma.records_to_pointcloud2([constraint], ma.make_header(1.0, "map")))
+        assert spin_until(executor, lambda: tracking.pose_graph_updates, 10.0)
+        after = {k.frame_id: k.cam_to_world for s in tracking.slam.submaps for k in s.keyframes}
+    assert [c.query_keyframe_id for c in tracking.loop_candidates] == [2, 8]  # 4 and 6 found no earlier keyframe
+    assert tracking.loop_candidates[-1].match_keyframe_id == 6
+    update = {n.node_id: n.pose for n in tracking.pose_graph_updates[0].nodes}
+    assert sorted(update) == [6, 8] and pose_graph.updates_published == 1
+    np.testing.assert_allclose(after[8].double().numpy(), update[8], atol=1e-6)  # the tracker applied the correction
+    assert not np.allclose(after[8].numpy(), before[8].numpy(), atol=1e-4)
+    np.testing.assert_allclose(after[0].numpy(), before[0].numpy())  # keyframes the new pose graph never saw stay
+    assert tracking.frames_processed == 10 and not tracking.drops.counts
+
+
+def test_lockstep_goes_on_past_a_frame_the_tracker_drops():
+    frames = list(open_source("synthetic", size=(80, 60), max_frames=4))
+    bad = frames[1]
+    bad.messages = [(key, ma.depth_to_image(np.zeros((60, 80), np.float32), msg.header) if key == "depth" else msg)
+                    for key, msg in bad.messages]
+    with ros_session(109) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
+        player = Player(frames, rate=0.0, lockstep=True, timeout=60.0, context=ctx)
+        executor.add_node(tracking)
+        executor.add_node(player)
+        assert spin_until(executor, lambda: player.done, 30.0)  # the drop, reported on gausem/diagnostics, answers
+    assert player.timeouts == 0 and player.odometry_received == tracking.frames_processed == 3
+    assert tracking.drops.counts == {"invalid_depth": 1}

@@ -17,8 +17,9 @@ import msg_adapters as ma  # noqa: E402
 from gausem_core.geometry import PinholeCamera  # noqa: E402
 from gausem_ros import bags, convert  # noqa: E402
 from gausem_ros.player import Player, open_source  # noqa: E402
+from gausem_ros.player import main as player_main  # noqa: E402
 from gausem_ros.qos import IMAGE_QOS  # noqa: E402
-from ros_harness import Recorder, ros_session, spin_until  # noqa: E402
+from ros_harness import FAST_SLAM, Recorder, ros_param_args, ros_session, spin_until  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -73,7 +74,8 @@ def test_player_paces_frames_at_the_recorded_rate(tmp_path):
     _tum_bag(tmp_path / "tum.bag", 4)  # 3 intervals of 1/30 s -> 0.1 s at rate 1, 0.2 s at rate 0.5
     with ros_session(112) as (ctx, executor):
         player = Player(open_source(str(tmp_path / "tum.bag")), rate=0.5, context=ctx)
-        recorder = Recorder(ctx, [(Image, "rgb/image", IMAGE_QOS)])
+        recorder = Recorder(ctx, [(Image, "rgb/image", IMAGE_QOS), (Image, "depth/image", IMAGE_QOS),
+                                  (CameraInfo, "rgb/camera_info", IMAGE_QOS)])
         arrivals = []
         recorder.node.create_subscription(Image, "rgb/image", lambda m: arrivals.append(
             recorder.node.get_clock().now().nanoseconds / 1e9), IMAGE_QOS)
@@ -96,14 +98,38 @@ def test_gausem_bag_writes_a_ros2_bag_the_player_replays(tmp_path):
     assert by_topic["/semantic/labels"][0].encoding == "mono16"
 
 
+@pytest.mark.slow
 def test_launcher_runs_tracking_and_player_as_separate_processes(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO), "ROS_DOMAIN_ID": "113", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     cmd = [sys.executable, "-m", "gausem_ros.launcher", "--params-file", str(REPO / "params" / "synthetic.yaml"),
            "--nodes", "tracking_mapping", "--play",
            f"synthetic --size 80x60 --max-frames 2 --rate 0 --lockstep --timeout 30 --gt-out {tmp_path / 'gt.txt'}",
-           "--", "-p", "tracking.iterations:=3", "-p", "mapping.iterations:=2", "-p", "mapping.init_iterations:=3",
-           "-p", "mapping.init_samples_fraction:=0.1", "-p", "mapping.every:=100", "-p", "device:=cpu"]
+           "--", *ros_param_args(FAST_SLAM)]
     result = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "published 2 frames, 2 odometry messages received, 0 lock-step timeouts" in result.stderr
     assert len((tmp_path / "gt.txt").read_text().splitlines()) == 3  # header + 2 ground-truth poses
+
+
+def test_a_damaged_bag_ends_playback_with_an_error_and_the_player_survives(tmp_path, monkeypatch, capfd):
+    def damaged(frames):  # damage found part-way: rosbags raises while iterating
+        yield from frames
+        raise bags.BagError("bag x.bag is corrupt or truncated: unexpected end of file")
+
+    with ros_session(114) as (ctx, executor):
+        player = Player(damaged(open_source("synthetic", size=(16, 12), max_frames=2)), rate=0.0, context=ctx)
+        recorder = Recorder(ctx, [(Image, topic, IMAGE_QOS) for topic in ("rgb/image", "depth/image",
+                                                                          "semantic/labels")]
+                            + [(CameraInfo, "rgb/camera_info", IMAGE_QOS)])
+        executor.add_node(player)
+        executor.add_node(recorder.node)
+        assert spin_until(executor, lambda: player.done and len(recorder.messages["rgb/image"]) == 2, 10.0)
+    assert player.published == 2 and "playback stopped after 2 frames" in player.error
+
+    _tum_bag(tmp_path / "tum.bag", 3)  # damage found on opening: the ROS 1 index is gone
+    with (tmp_path / "tum.bag").open("r+b") as f:
+        f.truncate((tmp_path / "tum.bag").stat().st_size * 2 // 3)
+    monkeypatch.setenv("ROS_DOMAIN_ID", "115")
+    assert player_main([str(tmp_path / "tum.bag"), "--rate", "0", "--wait-subscribers", "0"]) == 1
+    error = f"playback stopped after 0 frames: bag {tmp_path / 'tum.bag'} is corrupt or truncated"
+    assert error in capfd.readouterr().err

@@ -20,6 +20,7 @@ from ..qos import EVENT_QOS
 
 CLASS_TABLES = {"synthetic": SYNTHETIC_CLASSES, "nyu40": NYU40_CLASSES, "scannet20": SCANNET20_CLASSES}
 DIAGNOSTICS_TOPIC = "gausem/diagnostics"
+LAST_FRAME_KEY = "last_frame_stamp_ns"  # tracking_mapping's diagnostics: stamp of the last frame it handled, in ns
 _DYNAMIC = ParameterDescriptor(dynamic_typing=True)
 
 
@@ -58,10 +59,12 @@ class FrameRejected(ValueError):
 
 class DropReport:
     """Counts dropped inputs by reason, logs each reason's first drop and then at most one per ``log_period`` s, and
-    publishes the counts (plus any extra counters) as ``diagnostic_msgs/DiagnosticArray`` on gausem/diagnostics."""
+    publishes the counts (plus the node's ``status()`` values) as ``diagnostic_msgs/DiagnosticArray`` on
+    gausem/diagnostics, after every drop and whenever the node calls ``publish``."""
 
-    def __init__(self, node, log_period: float = 5.0):
+    def __init__(self, node, log_period: float = 5.0, status: Callable[[], dict] = dict):
         self._node = node
+        self._status = status
         self._pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, EVENT_QOS)
         self._last_logged: dict[str, float] = {}
         self._log_period = log_period
@@ -75,8 +78,8 @@ class DropReport:
             self._node.get_logger().warning(f"dropped input ({reason}, {self.counts[reason]} so far): {detail}")
         self.publish()
 
-    def publish(self, extra: dict | None = None) -> None:
-        values = {**{f"dropped.{k}": v for k, v in sorted(self.counts.items())}, **(extra or {})}
+    def publish(self) -> None:
+        values = {**{f"dropped.{k}": v for k, v in sorted(self.counts.items())}, **self._status()}
         level = DiagnosticStatus.WARN if self.counts else DiagnosticStatus.OK
         status = DiagnosticStatus(level=level, name=self._node.get_fully_qualified_name(),
                                   message=f"{sum(self.counts.values())} inputs dropped",

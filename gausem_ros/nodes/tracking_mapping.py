@@ -7,19 +7,23 @@ Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_f
 ``gausem/path`` (latched, re-published after every frame and every correction), TF ``map_frame`` -> camera frame,
 ``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/keyframes``
 (KeyframeRecord, pose in its submap frame, empty descriptor: loop_detection describes the keyframe's semantic labels),
-``gausem/submaps`` (SubmapEvent) and ``gausem/diagnostics`` (dropped inputs by reason).
+``gausem/submaps`` (SubmapEvent) and ``gausem/diagnostics`` (dropped inputs by reason, frames processed, the stamp of
+the last frame handled). ``seconds``: the processing time so far, for fps.
 Services (std_srvs/Trigger): ``gausem/save_map`` writes ``map.ply`` and ``trajectory.txt`` (TUM) to ``output_dir``;
 ``gausem/reset`` starts a new map.
 
 Frames are processed one at a time, the newest synchronised one first (``NewestFrameQueue``); superseded frames and
 bad input (wrong encodings, size mismatches, too little valid depth, no camera_info yet, stamps not after the last
-processed one, labels outside the class table) are dropped with a warning and counted, never raised.
+processed one, labels outside the class table) are dropped with a warning and counted, never raised; so are the
+outputs of a frame whose pose estimate is not finite (``tracking_diverged``). Published poses are projected onto
+SE(3) in float64.
 Pose-graph updates are applied when they arrive: an ANCHOR node moves the submap with that id (its Gaussians and
 keyframes follow, being stored in the submap frame), a KEYFRAME node sets the pose of the keyframe with that frame id.
 """
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -39,8 +43,8 @@ from gausem_core.slam.system import GauSemSLAM
 from ..qos import EVENT_QOS, LATCHED_QOS, input_qos
 from ..sync import make_synchronizer
 from ..tf import make_transform_broadcaster
-from .common import (DropReport, FrameRejected, NewestFrameQueue, class_table, declare_parameters,
-                     declare_slam_config, run_node)
+from .common import (LAST_FRAME_KEY, DropReport, FrameRejected, NewestFrameQueue, class_table,
+                     declare_parameters, declare_slam_config, run_node)
 
 NODE_DEFAULTS = {
     "classes": "synthetic",      # class table of the labels: synthetic, nyu40, scannet20 or a class-table file
@@ -57,7 +61,13 @@ NODE_DEFAULTS = {
 
 
 def _numpy_pose(pose: torch.Tensor) -> np.ndarray:
-    return pose.detach().cpu().double().numpy()
+    """A core pose as a float64 matrix whose rotation is projected onto SO(3): chains of float32 pose updates drift
+    off orthonormality (2e-4 seen) beyond what the message adapters accept. Non-finite poses are returned as is."""
+    m = pose.detach().cpu().double().numpy()
+    if np.isfinite(m).all():
+        u, _, vt = np.linalg.svd(m[:3, :3])
+        m[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    return m
 
 
 class TrackingMappingNode(Node):
@@ -67,10 +77,11 @@ class TrackingMappingNode(Node):
         self.params = p = declare_parameters(self, NODE_DEFAULTS)
         self.palette = class_table(p.classes).palette if p.use_labels else UNLABELLED_PALETTE
         self.device = resolve_device(self.cfg.device)
-        self.drops = DropReport(self)
+        self.drops = DropReport(self, status=self._status)
+        self._handled_ns = -1  # stamp of the last synchronised frame handled (processed or dropped)
         self.loop_candidates: list[ma.LoopCandidateRecord] = []
         self.pose_graph_updates: list[ma.PoseGraphUpdate] = []
-        self._camera = None
+        self.camera = None  # the latest valid rgb/camera_info (PinholeCamera)
         self._reset_state()
 
         inputs = [(Image, "rgb/image"), (Image, "depth/image")] + ([(Image, "semantic/labels")] if p.use_labels
@@ -97,6 +108,7 @@ class TrackingMappingNode(Node):
         torch.manual_seed(self.cfg.seed)
         self.slam = GauSemSLAM(self.cfg, self.device)
         self.frames_processed = 0
+        self._busy: tuple[float, float] | None = None  # perf_counter at the first processed frame's start, last end
         self._last_stamp = -math.inf
         self._camera_frame = self.params.camera_frame or "camera"
         self._map_dirty = False
@@ -104,7 +116,7 @@ class TrackingMappingNode(Node):
     # --- inputs -------------------------------------------------------------------------------------------------
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
-            self._camera = ma.camera_info_to_camera(msg)
+            self.camera = ma.camera_info_to_camera(msg)
         except ValueError as err:
             self.drops.drop("bad_camera_info", str(err))
 
@@ -117,7 +129,7 @@ class TrackingMappingNode(Node):
         if stamp <= self._last_stamp:
             raise FrameRejected("stale_stamp", f"frame stamped {stamp:.6f} s is not after the last processed "
                                                f"frame ({self._last_stamp:.6f} s)")
-        if self._camera is None:
+        if self.camera is None:
             raise FrameRejected("no_camera_info", "no valid rgb/camera_info received yet; waiting for it")
         try:
             rgb = ma.image_to_rgb(rgb_msg)
@@ -128,7 +140,7 @@ class TrackingMappingNode(Node):
             raise FrameRejected("bad_encoding", str(err)) from err
         except ValueError as err:  # data length / step inconsistent with the declared size
             raise FrameRejected("bad_image", str(err)) from err
-        camera = self._camera
+        camera = self.camera
         sizes = {"rgb": rgb.shape[:2], "depth": depth.shape, "labels": labels.shape,
                  "camera_info": (camera.height, camera.width)}
         if len(set(sizes.values())) > 1:
@@ -144,19 +156,35 @@ class TrackingMappingNode(Node):
             raise FrameRejected("bad_labels", str(err)) from err
 
     # --- processing ---------------------------------------------------------------------------------------------
+    @property
+    def seconds(self) -> float:
+        """Wall time from the start of the first processed frame (message conversion included) to the end of the
+        last one: the ROS counterpart of the offline pipeline's loop time (0 before any frame)."""
+        return self._busy[1] - self._busy[0] if self._busy else 0.0
+
     def _process(self, msgs: tuple[Image, ...]) -> None:
+        start = time.perf_counter()
+        self._handled_ns = ma.time_to_ns(msgs[0].header.stamp)
         try:
             obs = self._observation(*msgs)
         except FrameRejected as err:
             self.drops.drop(err.reason, str(err))
             return
+        self._track_and_publish(obs, msgs[0].header.frame_id)
+        self._busy = (self._busy[0] if self._busy else start, time.perf_counter())
+
+    def _track_and_publish(self, obs: Observation, image_frame: str) -> None:
         submaps_before = len(self.slam.submaps)
         result = self.slam.process(obs)
         self._last_stamp = obs.timestamp
         self.frames_processed += 1
-        self._camera_frame = self.params.camera_frame or msgs[0].header.frame_id or "camera"
-        header = ma.make_header(obs.timestamp, self.params.map_frame)
         pose = _numpy_pose(result.cam_to_world)
+        if not np.isfinite(pose).all():
+            self.drops.drop("tracking_diverged", f"frame stamped {obs.timestamp:.6f} s: the estimated pose is not "
+                                                 "finite; nothing is published for it (reset with gausem/reset)")
+            return
+        self._camera_frame = self.params.camera_frame or image_frame or "camera"
+        header = ma.make_header(obs.timestamp, self.params.map_frame)
         self._odometry_pub.publish(ma.matrix_to_odometry(pose, header, self._camera_frame))
         self._tf.sendTransform(ma.matrix_to_transform(pose, header, self._camera_frame))
         self._publish_path()
@@ -164,14 +192,17 @@ class TrackingMappingNode(Node):
         if result.is_keyframe:
             self._publish_keyframe(result.frame_id, obs.timestamp, header)
         self._map_dirty = True
-        self.drops.publish({"frames_processed": self.frames_processed,
-                            **{f"sync.{k}": v for k, v in self._sync_drops().items()}})
+        self.drops.publish()
 
-    def _sync_drops(self) -> dict:
-        return dict(getattr(self._inputs.synchronizer, "dropped", {}))
+    def _status(self) -> dict:
+        """Diagnostics besides the drop counts: frames processed, the last handled frame (lock-step players take
+        it as the answer for a frame that produced no odometry) and the synchroniser's drops."""
+        sync = getattr(self._inputs.synchronizer, "dropped", {})
+        return {"frames_processed": self.frames_processed, LAST_FRAME_KEY: self._handled_ns,
+                **{f"sync.{k}": v for k, v in sync.items()}}
 
     def _publish_path(self) -> None:
-        poses = [(t, _numpy_pose(p)) for t, p in self.slam.trajectory()]
+        poses = [(t, m) for t, m in ((t, _numpy_pose(p)) for t, p in self.slam.trajectory()) if np.isfinite(m).all()]
         self._path_pub.publish(ma.poses_to_path(poses, self.params.map_frame))
 
     def _publish_submap_events(self, submaps_before: int, header) -> None:
@@ -264,6 +295,7 @@ class TrackingMappingNode(Node):
 
     def _on_reset(self, request, response):
         del request
+        self.slam.close()  # deletes the old map's spilled submaps now
         self._reset_state()
         self._queue.clear()
         self._publish_path()

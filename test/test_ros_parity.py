@@ -1,0 +1,118 @@
+"""Lock-step ROS runs give the offline pipeline's trajectory (max pose difference <= 1 mm): all nodes in one process
+(``gausem-ros`` on a bag written by ``gausem-bag``, evaluated with ``--report``, as ``make demo`` runs it) and the nodes
+as separate processes (``gausem-launch``), seen by a plain rclpy subscriber."""
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("rosbags")
+
+from nav_msgs.msg import Odometry, Path as PathMsg  # noqa: E402
+from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
+
+import msg_adapters as ma  # noqa: E402
+from gausem_core.config import load_config  # noqa: E402
+from gausem_core.data import SYNTHETIC_CLASSES, open_dataset  # noqa: E402
+from gausem_core.eval.trajectory import read_tum_trajectory  # noqa: E402
+from gausem_core.pipeline import Pipeline  # noqa: E402
+from gausem_ros import convert  # noqa: E402
+from gausem_ros.player import Player, open_source  # noqa: E402
+from gausem_ros.qos import EVENT_QOS, IMAGE_QOS, LATCHED_QOS  # noqa: E402
+from ros_harness import FAST_SLAM, Recorder, ros_param_args, ros_session, spin_until  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+PARAMS = REPO / "params" / "synthetic.yaml"
+FRAMES, SIZE = 8, (80, 60)
+SLAM = {**FAST_SLAM, "mapping.every": 4}  # keyframes 0 and 4: bundle adjustment moves keyframe 4 after its frame
+NODES = {"tracking_mapping", "loop_detection", "pose_graph"}
+MAX_TRANSLATION, MAX_ROTATION = 1e-3, 1e-3  # metres, radians
+
+
+def _env(domain_id: int) -> dict:
+    return {**os.environ, "PYTHONPATH": str(REPO), "ROS_DOMAIN_ID": str(domain_id),
+            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+
+
+@pytest.fixture(scope="module")
+def offline():
+    """(timestamps, poses) of the offline pipeline with the same parameter file and overrides."""
+    cfg = load_config(PARAMS, SLAM)
+    result = Pipeline(open_dataset("synthetic", size=SIZE, max_frames=FRAMES), cfg, progress=False).run()
+    return result.timestamps, result.poses
+
+
+def _assert_same_trajectory(stamps, poses, offline) -> None:
+    offline_stamps, offline_poses = offline
+    assert len(poses) == len(offline_poses) == FRAMES  # no frame lost or duplicated
+    np.testing.assert_allclose(stamps, offline_stamps, atol=1e-6)
+    assert np.isfinite(poses).all()
+    translation = np.linalg.norm(poses[:, :3, 3] - offline_poses[:, :3, 3], axis=1).max()
+    relative = np.einsum("nji,njk->nik", poses[:, :3, :3], offline_poses[:, :3, :3])
+    rotation = np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1)).max()
+    assert translation <= MAX_TRANSLATION and rotation <= MAX_ROTATION, (translation, rotation)
+    assert np.linalg.norm(offline_poses[-1, :3, 3]) > 10 * MAX_TRANSLATION  # the camera did move
+
+
+@pytest.mark.slow
+def test_all_nodes_in_one_process_on_a_bag_match_the_offline_pipeline(tmp_path, offline):
+    bag, out = tmp_path / "bag", tmp_path / "out"
+    assert convert.main(["synthetic", str(bag), "--size", "x".join(map(str, SIZE)), "--max-frames", str(FRAMES)]) == 0
+    cmd = [sys.executable, "-m", "gausem_ros.run_all", str(bag), "--rate", "0", "--lockstep", "--timeout", "60",
+           "--report", str(out), "--reference", "synthetic", "--ros-args", "--params-file", str(PARAMS),
+           *ros_param_args(SLAM)]
+    result = subprocess.run(cmd, env=_env(121), cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert f"processed {FRAMES} of {FRAMES} frames (0 lock-step timeouts); dropped: none" in result.stderr
+    estimate = read_tum_trajectory(out / "trajectory.txt")
+    _assert_same_trajectory(estimate.stamps, estimate.poses, offline)
+
+    metrics = json.loads((out / "metrics.json").read_text())["metrics"]
+    assert metrics["frames"] == metrics["ate"]["pairs"] == FRAMES and metrics["rendering"]["frames"] == 2
+    assert 0 <= metrics["rendering"]["miou"] <= 1 and metrics["rendering"]["psnr"] > 0 and metrics["fps"] > 0
+    assert {"keyframes.txt", "map.ply", "montage.png", "trajectory_gt.txt", "trajectory.png"} <= {
+        p.name for p in out.iterdir()}
+    assert "ATE RMSE" in result.stdout and "mIoU" in result.stdout
+
+
+@pytest.mark.slow
+def test_nodes_as_separate_processes_match_the_offline_pipeline_for_an_external_subscriber(tmp_path, offline):
+    cmd = [sys.executable, "-m", "gausem_ros.launcher", "--params-file", str(PARAMS), "--", *ros_param_args(SLAM)]
+    with (tmp_path / "launcher.log").open("w") as log:
+        launcher = subprocess.Popen(cmd, env=_env(122), cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        with ros_session(122) as (ctx, executor):
+            recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS), (PathMsg, "gausem/path", LATCHED_QOS),
+                                      (PointCloud2, "gausem/map", LATCHED_QOS),
+                                      (Image, "semantic/labels", IMAGE_QOS)])
+            executor.add_node(recorder.node)
+            assert spin_until(executor, lambda: NODES <= set(recorder.node.get_node_names()), 60.0), \
+                (tmp_path / "launcher.log").read_text()[-3000:]
+            player = Player(open_source("synthetic", size=SIZE, max_frames=FRAMES), rate=0.0, lockstep=True,
+                            timeout=60.0, context=ctx)
+            executor.add_node(player)
+            assert spin_until(executor, lambda: player.done, 100.0)
+            got = recorder.messages
+            assert spin_until(executor, lambda: got["gausem/map"] and got["gausem/path"]
+                              and len(got["gausem/path"][-1].poses) == FRAMES, 10.0)
+            assert player.published == len(got["gausem/odometry"]) == FRAMES and player.timeouts == 0
+    finally:
+        launcher.send_signal(signal.SIGINT)
+        returncode = launcher.wait(60)
+    assert returncode == 0, (tmp_path / "launcher.log").read_text()[-3000:]
+
+    path = got["gausem/path"][-1]
+    poses = ma.path_to_poses(path)
+    _assert_same_trajectory([t for t, _ in poses], np.array([p for _, p in poses]), offline)
+    odometry = got["gausem/odometry"]
+    assert {(o.header.frame_id, o.child_frame_id) for o in odometry} == {("map", "camera")}
+    assert path.header.frame_id == "map" and got["gausem/map"][-1].header.frame_id == "map"
+    cloud, labels = ma.pointcloud2_to_cloud(got["gausem/map"][-1])
+    assert len(cloud) > 0 and 0 <= labels.min() and labels.max() < len(SYNTHETIC_CLASSES)
+    assert len(got["semantic/labels"]) == FRAMES and {m.encoding for m in got["semantic/labels"]} == {"mono16"}
