@@ -25,8 +25,13 @@ test: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/gausem demo --out $(DEMO_OUT)
 
+# Benchmark-only packages (open3d for the baselines) go into .venv first. BENCH_SUITES: the SLAM suites to run
+# (GauSem's rows take hours on a CPU; e.g. `make bench BENCH_SUITES=benchmarks/suites/smoke.yaml` for a check).
+bench: BENCH_SUITES ?= benchmarks/suites/paper.yaml benchmarks/suites/ablation.yaml
 bench: $(STAMP)
+	$(PIP) install -q -r requirements-bench.txt -c constraints.txt
 	$(VENV)/bin/gausem bench render --out benchmarks/results
+	for suite in $(BENCH_SUITES); do $(VENV)/bin/gausem bench slam --suite $$suite --out benchmarks/results || exit 1; done
 
 clean:
 	rm -rf $(VENV) out .pytest_cache
