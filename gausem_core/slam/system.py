@@ -173,7 +173,7 @@ class GauSemSLAM:
         frame_id = len(self.frames)
         if not self.submaps:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
-            return self._result(TrackingResult(self.frames[-1].cam_to_world, 0.0, 0), True, loss, None)
+            return self._result(None, True, loss, None)
         tracked = self._track(obs)
         pose = tracked.cam_to_world.detach()
         if frame_id % self.cfg.mapping.every:
@@ -226,11 +226,13 @@ class GauSemSLAM:
         submap.cloud, _ = self.mapper.optimise(submap.cloud, window, self.cfg.submaps.boundary_iterations)
         submap.offload(self.store)
 
-    def _result(self, tracked: TrackingResult, is_keyframe: bool, mapping_loss: float | None,
+    def _result(self, tracked: TrackingResult | None, is_keyframe: bool, mapping_loss: float | None,
                 allocation: Decision | None) -> FrameResult:
+        """The last frame's result (``tracked`` is None for the first frame, which defines the world frame)."""
         record = self.frames[-1]
-        return FrameResult(record.frame_id, record.cam_to_world, is_keyframe, tracked.loss, tracked.iterations,
-                           mapping_loss, self.active.num_gaussians, self.active.submap_id, allocation)
+        loss, iterations = (tracked.loss, tracked.iterations) if tracked else (0.0, 0)
+        return FrameResult(record.frame_id, record.cam_to_world, is_keyframe, loss, iterations, mapping_loss,
+                           self.active.num_gaussians, self.active.submap_id, allocation)
 
     def _local_pose(self, index: int) -> torch.Tensor:
         """A recent frame's pose in the active submap's frame."""
