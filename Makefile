@@ -22,8 +22,15 @@ $(STAMP): requirements.txt requirements-dev.txt constraints.txt setup.py
 test: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
+# The ROS 2 node suite end to end: the synthetic sequence of `gausem demo` (30 frames, 160x120) as a ROS 2 bag, replayed
+# in lock-step to all nodes in one process, evaluated like `gausem run` (summary on the terminal, outputs in DEMO_OUT).
+# `gausem demo --out DIR` is the offline counterpart. ROS domain 42 (unless ROS_DOMAIN_ID is set), local host only.
 demo: $(STAMP)
-	$(VENV)/bin/gausem demo --out $(DEMO_OUT)
+	rm -rf $(DEMO_OUT)/synthetic_bag
+	$(VENV)/bin/gausem-bag synthetic $(DEMO_OUT)/synthetic_bag --size 160x120 --max-frames 30
+	ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-42} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(VENV)/bin/gausem-ros \
+	  $(DEMO_OUT)/synthetic_bag --lockstep --rate 0 --timeout 120 --report $(DEMO_OUT) --reference synthetic \
+	  --ros-args --params-file params/synthetic.yaml
 
 # Benchmark-only packages (open3d for the baselines) go into .venv first. BENCH_SUITES: the SLAM suites to run
 # (GauSem's rows take hours on a CPU; e.g. `make bench BENCH_SUITES=benchmarks/suites/smoke.yaml` for a check).
