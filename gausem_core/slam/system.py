@@ -30,6 +30,17 @@ from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity
 _IMAGES = ("rgb", "depth", "semantic", "labels")
 
 
+def rigid_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a @ b for 4x4 rigid transforms, computed in float64 with the rotation projected back onto SO(3) (SVD), in a's
+    dtype: chains of anchors then stay rigid instead of accumulating rounding."""
+    m = a.double() @ b.double()
+    u, _, vt = torch.linalg.svd(m[:3, :3])
+    fix = torch.ones(3, dtype=m.dtype, device=m.device)
+    fix[2] = torch.det(u @ vt)
+    m[:3, :3] = u @ torch.diag(fix) @ vt
+    return m.to(a.dtype)
+
+
 @dataclass
 class StoredObservation:
     """A closed submap's keyframe observation: camera and timestamp at hand, the images in the store."""
@@ -183,7 +194,7 @@ class GauSemSLAM:
             return self._result(tracked, False, None, None)
         decision = self.allocation.should_start_new(self.active.extent, obs, pose)
         if decision.new:
-            anchor = self.active.anchor @ pose
+            anchor = rigid_product(self.active.anchor, pose)
             self._close_active()
             loss = self._open_submap(obs, frame_id, anchor)
         else:
