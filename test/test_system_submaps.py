@@ -16,7 +16,7 @@ from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM, StoredObservation, rigid_product
 from gausem_core.slam.tracker import TrackingResult
 
-CHEAP = {"backend": "torch", "mapping.iterations": 2, "mapping.init_iterations": 5,
+CHEAP = {"backend": "torch", "loop.enabled": False, "mapping.iterations": 2, "mapping.init_iterations": 5,
          "mapping.init_samples_fraction": 0.25, "submaps.boundary_iterations": 2}
 DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(),
                                                                                      reason="needs CUDA")])]
