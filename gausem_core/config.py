@@ -95,7 +95,9 @@ class SemanticsConfig:
 class RegistrationConfig:
     """Semantic-Guided Registration of two submaps (paper §III-B, Eq. 5-6) and its acceptance test."""
 
-    top_k: int = 10  # descriptor pairs of the coarse step (Eq. 5)
+    top_k: int = 10  # descriptor pairs of the coarse step (Eq. 5), of which those agreeing with the loop pair ...
+    consensus_translation: float = 0.3  # ... on T within this (metres) ...
+    consensus_rotation_deg: float = 15.0  # ... and this are used
     views: int = 4  # fine step: at most this many distinct source keyframes of the top pairs
     lambda_sem: float = 1.0
     lambda_feat: float = 0.5
@@ -127,6 +129,7 @@ class LoopConfig:
     robust_kernel: str = "huber"
     odometry_sigma_translation: float = 0.01  # pose-graph odometry edges per keyframe step (metres, radians)
     odometry_sigma_rotation: float = 0.005
+    max_correction_sigmas: float = 4.0  # reject loops implying a larger jump than this many odometry sigmas
     remap_iterations_per_keyframe: int = 10  # mapping with fixed poses after an intra-submap loop
     global_refinement: bool = True  # ablation "w/o global refinement" when false
     refine_iterations_per_keyframe: int = 10  # both refinement stages

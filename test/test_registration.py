@@ -9,8 +9,8 @@ from gausem_core.config import RegistrationConfig
 from gausem_core.geometry import invert_pose, make_pose, se3_exp, se3_log, so3_exp
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.registration import (align_keyframes, chordal_mean_alignment, coarse_registration,
-                                           fine_registration, gauss_newton_alignment, is_acceptable,
-                                           semantic_guided_registration, top_k_descriptor_pairs)
+                                           consistent_pairs, fine_registration, gauss_newton_alignment,
+                                           is_acceptable, semantic_guided_registration, top_k_descriptor_pairs)
 from loop_scene import frame, make_submap, perturbation, pose_error
 
 
@@ -139,21 +139,24 @@ def test_fine_step_rejects_a_far_initial_guess():
 
 
 def test_semantic_guided_registration_coarse_then_fine():
-    """Keyframe descriptors pair source views with similar target views; the coarse step (poses of those pairs) lands
-    within reach of the fine step, which recovers the transform."""
+    """Keyframe descriptors pair source views with similar target views (closer than the loop threshold); Eq. 5 on
+    their poses lands within reach of the fine step, which recovers the transform. A seed pair leads the coarse
+    step."""
     source, target, truth, _ = _overlapping_submaps()
     describe = make_descriptor("fallback")
     descriptors = [torch.stack([torch.from_numpy(describe.describe(kf.obs.semantic)) for kf in s.keyframes])
                    for s in (source, target)]
     poses = [torch.stack([kf.cam_to_world for kf in s.keyframes]).double() for s in (source, target)]
-    reg = semantic_guided_registration(source.cloud, poses[0], descriptors[0], target.cloud, poses[1], descriptors[1],
-                                       source.keyframes[0].obs.camera, RegistrationConfig(), describe, "torch")
-    translation, rotation = pose_error(reg.transform, truth)
-    assert translation < 0.025 and rotation < 1.0
-    assert pose_error(reg.coarse.transform, truth)[0] > 2 * translation  # the fine step did the rest
-    assert reg.accepted and reg.seconds_coarse > 0 and reg.seconds_fine > 0
-    floors = RegistrationConfig()
-    assert reg.sigmas[0] >= floors.sigma_rotation and reg.sigmas[1] >= floors.sigma_translation
+    for loop_pair in (None, (1, 2)):
+        reg = semantic_guided_registration(source.cloud, poses[0], descriptors[0], target.cloud, poses[1],
+                                           descriptors[1], source.keyframes[0].obs.camera, RegistrationConfig(),
+                                           describe, "torch", max_pair_distance=0.35, loop_pair=loop_pair)
+        translation, rotation = pose_error(reg.transform, truth)
+        assert translation < 0.025 and rotation < 1.0
+        assert reg.coarse.pairs[0].tolist() == [1, 2]  # the closest pair, and the seed
+        assert reg.accepted and reg.seconds_coarse > 0 and reg.seconds_fine > 0
+        floors = RegistrationConfig()
+        assert reg.sigmas[0] >= floors.sigma_rotation and reg.sigmas[1] >= floors.sigma_translation
 
 
 def test_align_keyframes_measures_the_relative_pose_of_two_views():
@@ -166,3 +169,18 @@ def test_align_keyframes_measures_the_relative_pose_of_two_views():
     assert fitness > 0.7  # the rest left the view
     _, fitness_far = align_keyframes(ref, frame(120)[0], init, RegistrationConfig(pyramid_levels=3))
     assert fitness_far < 0.5 * fitness  # another place: little overlap at any pose near the guess
+
+
+def test_consistent_pairs_drop_look_alike_views_of_other_places():
+    g = torch.Generator().manual_seed(5)
+    T = _known_transform()
+    src = _random_poses(6, g)
+    tgt = T @ src @ _noise(6, 1e-3, g)
+    tgt[1] = _known_transform() @ tgt[1]  # pair 1 and 4 match views of other places
+    tgt[4] = se3_exp(torch.tensor([2.0, 0.0, 0.0, 0.0, 0.0, 1.0], dtype=torch.float64)) @ tgt[4]
+    keep = consistent_pairs(src, tgt, 0.05, math.radians(2.0))
+    assert keep.tolist() == [0, 2, 3, 5]
+    est, _, _ = gauss_newton_alignment(src[keep], tgt[keep])
+    assert _error(est, T) < 5e-3
+    # with a seed, the pairs that agree with it (here a look-alike: only itself)
+    assert consistent_pairs(src, tgt, 0.05, math.radians(2.0), reference=4).tolist() == [4]

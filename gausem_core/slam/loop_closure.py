@@ -15,8 +15,10 @@ Gaussians, and every ``check_every``-th of them queries it. A detected loop (k, 
   (:func:`~gausem_core.slam.correction.anchor_correction`, the paper's T <- (T_a')^-1 T_a T for camera-from-world
   anchors), and every frame stored relative to a keyframe follows.
 
-A loop is closed only when its registration is accepted (fitness and consistency, see ``RegistrationConfig``);
-every detection is recorded, accepted or not.
+A loop is closed only when its registration is accepted (overlap, fitness and per-view consistency, see
+``RegistrationConfig``) and the correction it implies is plausible: within ``max_correction_sigmas`` of the odometry
+uncertainty accumulated over the keyframes between the two ends (a revisit of a look-alike place implies a jump far
+beyond the drift). Every detection is recorded, accepted or not.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ import torch
 
 from gausem_core.config import LoopConfig
 from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import invert_pose
+from gausem_core.geometry import invert_pose, se3_log
 from gausem_core.semantics.descriptors import DescriptorExtractor, make_descriptor
 from gausem_core.slam.loop import LoopCandidate, LoopDetector, gaussian_idf, landmark_scores, observed_gaussians
 from gausem_core.slam.mapper import Keyframe, Mapper
@@ -153,6 +155,15 @@ class LoopClosure:
         scale = max(keyframes, 1) ** 0.5
         return self.cfg.odometry_sigma_rotation * scale, self.cfg.odometry_sigma_translation * scale
 
+    def _plausible(self, current: torch.Tensor, measured: torch.Tensor, keyframes: int) -> bool:
+        """Whether a measured relative pose differs from the current estimate by at most ``max_correction_sigmas``
+        odometry standard deviations over ``keyframes`` steps, in rotation and in translation."""
+        error = invert_pose(current.detach().cpu().double()) @ measured.detach().cpu().double()
+        rotation, translation = self._odometry_sigmas(keyframes)
+        bound = self.cfg.max_correction_sigmas
+        return (float(se3_log(error)[3:].norm()) <= bound * rotation
+                and float(error[:3, 3].norm()) <= bound * translation)
+
     # --- intra-submap loops -------------------------------------------------------------------------------------
     def _close_intra(self, candidate: LoopCandidate, submap) -> tuple[bool, float]:
         keyframes = submap.keyframes
@@ -160,7 +171,7 @@ class LoopClosure:
         j, k = index[candidate.match_keyframe], index[candidate.query_keyframe]
         init = invert_pose(keyframes[k].cam_to_world) @ keyframes[j].cam_to_world
         motion, fitness = align_keyframes(keyframes[j].obs, keyframes[k].obs, init, self.cfg.registration)
-        if fitness < self.cfg.registration.min_fitness:
+        if fitness < self.cfg.registration.min_fitness or not self._plausible(init, motion, k - j):
             return False, fitness
         graph = PoseGraph(odometry_sigmas=self._odometry_sigmas(1), robust_kernel=self.cfg.robust_kernel)
         for i, kf in enumerate(keyframes):
@@ -181,17 +192,23 @@ class LoopClosure:
     # --- inter-submap loops -------------------------------------------------------------------------------------
     def _close_inter(self, candidate: LoopCandidate, by_id: dict) -> tuple[bool, float]:
         query, match = by_id[candidate.query_submap], by_id[candidate.match_submap]
+        ends = {candidate.query_submap: candidate.query_keyframe, candidate.match_submap: candidate.match_keyframe}
         target, source = (match, query) if len(match.keyframes) >= len(query.keyframes) else (query, match)
+        loop_pair = tuple([kf.frame_id for kf in s.keyframes].index(ends[s.submap_id]) for s in (source, target))
         registration = semantic_guided_registration(
             source.load_cloud(self.device), self._poses(source), self._descriptor_stack(source),
             target.load_cloud(self.device), self._poses(target), self._descriptor_stack(target),
             source.keyframes[0].obs.camera, self.cfg.registration, self.descriptor, self.backend,
-            self.cfg.max_descriptor_distance)
-        if registration.accepted:
+            self.cfg.max_descriptor_distance, loop_pair)
+        first, last = sorted((target.submap_id, source.submap_id))
+        between = sum(len(s.keyframes) for s in by_id.values() if first <= s.submap_id < last)
+        current = invert_pose(target.anchor) @ source.anchor
+        accepted = registration.accepted and self._plausible(current, registration.transform, between)
+        if accepted:
             self._inter_edges.append((target.submap_id, source.submap_id, registration.transform,
                                       registration.sigmas))
             self._optimise_anchors(list(by_id.values()))
-        return registration.accepted, registration.fine.fitness
+        return accepted, registration.fine.fitness
 
     def _poses(self, submap) -> torch.Tensor:
         return torch.stack([kf.cam_to_world.detach().double().cpu() for kf in submap.keyframes])

@@ -124,21 +124,46 @@ def gauss_newton_alignment(source_poses: torch.Tensor, target_poses: torch.Tenso
 def coarse_registration(source_descriptors: torch.Tensor, source_poses: torch.Tensor,
                         target_descriptors: torch.Tensor, target_poses: torch.Tensor, k: int = 10,
                         init: torch.Tensor | None = None, max_iterations: int = 20,
-                        max_distance: float | None = None) -> CoarseRegistration:
+                        max_distance: float | None = None, consensus: tuple[float, float] | None = None,
+                        seed: tuple[int, int] | None = None) -> CoarseRegistration:
     """SGR coarse step: match the k closest keyframe descriptor pairs, then solve Eq. 5 on their poses.
 
     Descriptors (S, D) / (T, D) and cam_to_world poses (S, 4, 4) / (T, 4, 4) of the keyframes of the source and
     target submaps, each pose in its own submap's frame. ``init`` defaults to the chordal mean of the matched pairs;
-    ``max_distance`` drops all but the closest pair at that descriptor distance or more (views of other places).
+    ``max_distance`` drops all but the closest pair at that descriptor distance or more (views of other places);
+    ``consensus`` (metres, radians) keeps only the pairs that agree on T within these tolerances
+    (:func:`consistent_pairs`), so that look-alike views of other places do not bias Eq. 5: those that agree with the
+    ``seed`` pair (source index, target index; e.g. the detected loop, always kept first), else the largest such set.
     """
     if source_descriptors.shape[0] != source_poses.shape[0] or target_descriptors.shape[0] != target_poses.shape[0]:
         raise ValueError(f"coarse_registration: descriptor and pose counts differ (source "
                          f"{source_descriptors.shape[0]} vs {source_poses.shape[0]}, target "
                          f"{target_descriptors.shape[0]} vs {target_poses.shape[0]})")
     pairs, _ = top_k_descriptor_pairs(source_descriptors, target_descriptors, k, max_distance)
+    if seed is not None:
+        seed_pair = torch.tensor([seed], dtype=pairs.dtype)
+        pairs = torch.cat([seed_pair, pairs[(pairs != seed_pair).any(1)]])
+    if consensus is not None:
+        keep = consistent_pairs(source_poses[pairs[:, 0]], target_poses[pairs[:, 1]], *consensus,
+                                reference=0 if seed is not None else None)
+        pairs = pairs[keep]
     transform, rms, iterations = gauss_newton_alignment(source_poses[pairs[:, 0]], target_poses[pairs[:, 1]], init,
                                                         max_iterations)
     return CoarseRegistration(transform, pairs, rms, iterations)
+
+
+def consistent_pairs(source_poses: torch.Tensor, target_poses: torch.Tensor, max_translation: float,
+                     max_rotation: float, reference: int | None = None) -> torch.Tensor:
+    """Indices (ascending) of the pose pairs whose single-pair estimates T_t^i (T_s^i)^-1 lie within
+    ``max_translation`` (m) and ``max_rotation`` (rad) of pair ``reference``'s; with no reference, of the pair that
+    gathers the most (ties go to the earlier, closer pair)."""
+    _check_pose_pairs(source_poses, target_poses, "consistent_pairs")
+    single = target_poses.to(torch.float64) @ invert_pose(source_poses.to(torch.float64))
+    relative = invert_pose(single)[:, None] @ single[None]  # (K, K, 4, 4): hypothesis i vs pair j
+    agree = ((relative[..., :3, 3].norm(dim=-1) <= max_translation)
+             & (se3_log(relative)[..., 3:].norm(dim=-1) <= max_rotation))
+    best = int(torch.argmax(agree.sum(1))) if reference is None else reference  # argmax: the first maximum
+    return torch.nonzero(agree[best]).squeeze(1)
 
 
 def _check_pose_pairs(source: torch.Tensor, target: torch.Tensor, where: str) -> None:
@@ -155,14 +180,16 @@ class FineRegistration:
 
     transform (4, 4) float64 source -> target; overlap: fraction of the source views' rendered pixels that the target
     renders too; fitness: fraction of those overlapping pixels where the depths agree within ``max_depth_residual``
-    and the semantic colours within ``max_semantic_residual``; loss: Eq. 6 averaged over the views; spread (rotation
-    rad, translation m): RMS disagreement of the per-view estimates with ``transform``; views: views that contributed.
+    and the semantic colours within ``max_semantic_residual``; loss, initial_loss: Eq. 6 averaged over the views at
+    the result and at the initial estimate; spread (rotation rad, translation m): RMS disagreement of the per-view
+    estimates with ``transform``; views: views that contributed.
     """
 
     transform: torch.Tensor
     overlap: float
     fitness: float
     loss: float
+    initial_loss: float
     spread: tuple[float, float]
     views: int
 
@@ -231,6 +258,7 @@ def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses
     weights = AlignmentWeights(1.0, cfg.lambda_sem, cfg.w_depth, max_depth_residual=cfg.max_depth_residual)
     with torch.no_grad():
         pyramids = _source_views(source, src, camera, cfg.pyramid_levels, cfg.silhouette_threshold, backend)
+        _, _, initial_loss = _evaluate(target, transform, src, pyramids, cfg, features, backend)
         used = torch.zeros(0, dtype=torch.long)
         corrected = src[:0]
         for level in [l for l in reversed(range(cfg.pyramid_levels)) for _ in range(cfg.renders_per_level)]:
@@ -252,7 +280,7 @@ def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses
             transform, _, _ = gauss_newton_alignment(src[used], corrected, init=transform, max_iterations=5)
         spread = _spread(src[used], corrected, transform) if len(used) else (math.inf, math.inf)
         overlap, fitness, loss = _evaluate(target, transform, src, pyramids, cfg, features, backend)
-    return FineRegistration(transform, overlap, fitness, loss, spread, len(used))
+    return FineRegistration(transform, overlap, fitness, loss, initial_loss, spread, len(used))
 
 
 def _evaluate(target: GaussianCloud, transform: torch.Tensor, source_poses: torch.Tensor,
@@ -302,16 +330,20 @@ def semantic_guided_registration(source_cloud: GaussianCloud, source_poses: torc
                                  target_poses: torch.Tensor, target_descriptors: torch.Tensor,
                                  camera: PinholeCamera, cfg: RegistrationConfig,
                                  features: DescriptorExtractor | None = None, backend: str = "auto",
-                                 max_pair_distance: float | None = None) -> Registration:
-    """Coarse (Eq. 5, top-k descriptor pairs closer than ``max_pair_distance``) then fine (Eq. 6) registration of
-    the source submap to the target.
+                                 max_pair_distance: float | None = None,
+                                 loop_pair: tuple[int, int] | None = None) -> Registration:
+    """Coarse (Eq. 5, top-k descriptor pairs closer than ``max_pair_distance`` that agree with each other, or with
+    ``loop_pair`` (source index, target index) when given) then fine (Eq. 6) registration of the source submap to
+    the target.
 
     Keyframe poses (S, 4, 4) / (T, 4, 4) are cam_to_world in their own submap's frame, descriptors (S, D) / (T, D).
     Accepted by :func:`is_acceptable`.
     """
     start = time.perf_counter()
     coarse = coarse_registration(source_descriptors, source_poses, target_descriptors, target_poses, cfg.top_k,
-                                 max_distance=max_pair_distance)
+                                 max_distance=max_pair_distance,
+                                 consensus=(cfg.consensus_translation, math.radians(cfg.consensus_rotation_deg)),
+                                 seed=loop_pair)
     middle = time.perf_counter()
     views = fine_views(coarse.pairs, source_poses, cfg.views)
     fine = fine_registration(source_cloud, target_cloud, source_poses[views], camera, coarse.transform, cfg,
@@ -323,9 +355,9 @@ def semantic_guided_registration(source_cloud: GaussianCloud, source_poses: torc
 
 def is_acceptable(fine: FineRegistration, cfg: RegistrationConfig) -> bool:
     """Accept a fine registration: overlap and fitness at least ``min_overlap`` and ``min_fitness``, per-view
-    estimates within the spread limits."""
+    estimates within the spread limits, and an Eq. 6 loss (with its feature term) no higher than at the start."""
     rotation, translation = fine.spread
-    return (fine.overlap >= cfg.min_overlap and fine.fitness >= cfg.min_fitness
+    return (fine.overlap >= cfg.min_overlap and fine.fitness >= cfg.min_fitness and fine.loss <= fine.initial_loss
             and translation <= cfg.max_spread_translation
             and rotation <= math.radians(cfg.max_spread_rotation_deg))
 

@@ -21,7 +21,9 @@ import torch
 from gausem_core.config import SlamConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, invert_pose
+from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
+from gausem_core.slam.loop_closure import LoopClosure
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.submap_store import SubmapStore
@@ -173,6 +175,9 @@ class GauSemSLAM:
         self._close = weakref.finalize(self, self.store.close)
         self.submaps: list[Submap] = []
         self.frames: list[FrameRecord] = []
+        self.loop_closure = LoopClosure(cfg.loop, self.mapper, make_descriptor(
+            cfg.semantics.descriptor, cfg.semantics.dinov2_weights, device=self.device), cfg.backend,
+            self.device) if cfg.loop.enabled else None
 
     @property
     def active(self) -> Submap:
@@ -184,6 +189,7 @@ class GauSemSLAM:
         frame_id = len(self.frames)
         if not self.submaps:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
+            self._close_loops()
             return self._result(None, True, loss, None)
         tracked = self._track(obs)
         pose = tracked.cam_to_world.detach()
@@ -199,7 +205,7 @@ class GauSemSLAM:
             loss = self._open_submap(obs, frame_id, anchor)
         else:
             loss = self._map_keyframe(obs, frame_id, pose)
-        # the keyframe is self.active.keyframes[-1]: keyframe-level modules (loop closure) hook in here
+        self._close_loops()
         return self._result(tracked, True, loss, decision)
 
     def _track(self, obs: Observation) -> TrackingResult:
@@ -248,6 +254,16 @@ class GauSemSLAM:
     def _local_pose(self, index: int) -> torch.Tensor:
         """A recent frame's pose in the active submap's frame."""
         return invert_pose(self.active.anchor) @ self.frames[index].cam_to_world
+
+    def _close_loops(self) -> None:
+        """Loop closure (Algorithm 1) for the newest keyframe, self.active.keyframes[-1]."""
+        if self.loop_closure is not None:
+            self.loop_closure.on_keyframe(self.submaps, self.active, self.active.keyframes[-1])
+
+    def finish(self) -> None:
+        """Call after the last frame: the two-stage global refinement (``loop.global_refinement``)."""
+        if self.loop_closure is not None:
+            self.loop_closure.finish(self.submaps)
 
     def trajectory(self) -> list[tuple[float, torch.Tensor]]:
         """(timestamp, cam_to_world) of every processed frame, with all corrections applied."""
