@@ -1,6 +1,7 @@
 """Lock-step ROS runs give the offline pipeline's trajectory (max pose difference <= 1 mm): all nodes in one process
-(``gausem-ros`` on a bag written by ``gausem-bag``, evaluated with ``--report``, as ``make demo`` runs it) and the nodes
-as separate processes (``gausem-launch``), seen by a plain rclpy subscriber."""
+(``gausem-ros`` on a ROS 2 bag written by ``gausem-bag``, evaluated with ``--report``, as ``make demo`` runs it) and the
+nodes as separate processes (``gausem-launch``) fed from a ROS 1 bag with the TUM topic names, seen by a plain rclpy
+subscriber."""
 import json
 import os
 import signal
@@ -35,6 +36,13 @@ NODES = {"tracking_mapping", "loop_detection", "pose_graph"}
 MAX_TRANSLATION, MAX_ROTATION = 1e-3, 1e-3  # metres, radians
 
 
+def _bag(path: Path, fmt: str) -> Path:
+    """The test sequence written by gausem-bag."""
+    size = "x".join(map(str, SIZE))
+    assert convert.main(["synthetic", str(path), "--size", size, "--max-frames", str(FRAMES), "--format", fmt]) == 0
+    return path
+
+
 def _env(domain_id: int) -> dict:
     return {**os.environ, "PYTHONPATH": str(REPO), "ROS_DOMAIN_ID": str(domain_id),
             "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
@@ -62,8 +70,7 @@ def _assert_same_trajectory(stamps, poses, offline) -> None:
 
 @pytest.mark.slow
 def test_all_nodes_in_one_process_on_a_bag_match_the_offline_pipeline(tmp_path, offline):
-    bag, out = tmp_path / "bag", tmp_path / "out"
-    assert convert.main(["synthetic", str(bag), "--size", "x".join(map(str, SIZE)), "--max-frames", str(FRAMES)]) == 0
+    bag, out = _bag(tmp_path / "bag", "sqlite3"), tmp_path / "out"
     cmd = [sys.executable, "-m", "gausem_ros.run_all", str(bag), "--rate", "0", "--lockstep", "--timeout", "60",
            "--report", str(out), "--reference", "synthetic", "--ros-args", "--params-file", str(PARAMS),
            *ros_param_args(SLAM)]
@@ -83,6 +90,7 @@ def test_all_nodes_in_one_process_on_a_bag_match_the_offline_pipeline(tmp_path, 
 
 @pytest.mark.slow
 def test_nodes_as_separate_processes_match_the_offline_pipeline_for_an_external_subscriber(tmp_path, offline):
+    bag = _bag(tmp_path / "tum.bag", "ros1")
     cmd = [sys.executable, "-m", "gausem_ros.launcher", "--params-file", str(PARAMS), "--", *ros_param_args(SLAM)]
     with (tmp_path / "launcher.log").open("w") as log:
         launcher = subprocess.Popen(cmd, env=_env(122), cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT)
@@ -94,8 +102,7 @@ def test_nodes_as_separate_processes_match_the_offline_pipeline_for_an_external_
             executor.add_node(recorder.node)
             assert spin_until(executor, lambda: NODES <= set(recorder.node.get_node_names()), 60.0), \
                 (tmp_path / "launcher.log").read_text()[-3000:]
-            player = Player(open_source("synthetic", size=SIZE, max_frames=FRAMES), rate=0.0, lockstep=True,
-                            timeout=60.0, context=ctx)
+            player = Player(open_source(str(bag)), rate=0.0, lockstep=True, timeout=60.0, context=ctx)
             executor.add_node(player)
             assert spin_until(executor, lambda: player.done, 100.0)
             got = recorder.messages
