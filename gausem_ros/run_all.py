@@ -22,6 +22,7 @@ from rclpy.utilities import remove_ros_args
 from tqdm import tqdm
 
 from gausem_core.data import open_dataset
+from gausem_core.report import format_summary
 
 from .evaluation import write_report
 from .nodes.loop_detection import LoopDetectionNode
@@ -78,8 +79,6 @@ def params_file(argv: list[str]) -> str | None:
 
 def report(tracking: TrackingMappingNode, ns: argparse.Namespace, argv: list[str]) -> None:
     """Evaluate the run against the reference dataset, write the outputs to ``ns.report`` and print the summary."""
-    from gausem_core.report import format_summary
-
     if not tracking.frames_processed:
         raise ValueError("--report: no frame was processed, there is nothing to evaluate")
     camera = tracking.camera
