@@ -2,8 +2,8 @@
 
 The tracker is replaced by odometry that integrates the true frame-to-frame motion with a constant bias (2 mm and
 0.08 degrees per frame), so the drift is known and deterministic; mapping keeps the poses it is given, so the run
-without loop closure is exactly that integration (checked on the first submap, which loop closure holds fixed). The camera walks the loop (every 3rd frame, 80x60) and then the
-first 48 frames again, revisiting where it started.
+without loop closure is exactly that integration (checked on the first submap, which loop closure holds fixed). The
+camera walks the loop (every 3rd frame, 80x60) and then its first 48 frames again, revisiting where it started.
 """
 import math
 
@@ -33,7 +33,7 @@ CONFIG = {"backend": "torch", "device": "cpu", "mapping.every": 2, "mapping.iter
           "loop.registration.downsample": 1, "loop.registration.pyramid_levels": 2, "loop.global_refinement": False}
 
 
-def _rigid(pose: torch.Tensor) -> torch.Tensor:
+def rigid(pose: torch.Tensor) -> torch.Tensor:
     u, _, vt = torch.linalg.svd(pose[:3, :3].double())
     out = pose.clone()
     out[:3, :3] = (u @ vt).to(pose.dtype)
@@ -49,42 +49,49 @@ class DriftingOdometry:
     def track(self, cloud, obs, init_cam_to_world) -> TrackingResult:
         n = len(self.slam.frames)
         world = self.slam.frames[-1].cam_to_world @ invert_pose(self.truth[n - 1]) @ self.truth[n] @ BIAS
-        return TrackingResult(_rigid(invert_pose(self.slam.active.anchor) @ world), 0.0, 0)
+        return TrackingResult(rigid(invert_pose(self.slam.active.anchor) @ world), 0.0, 0)
 
 
-def _integrated(truth: list[torch.Tensor]) -> list[torch.Tensor]:
+def integrate_odometry(truth: list[torch.Tensor]) -> list[torch.Tensor]:
     poses = [truth[0]]
     for before, after in zip(truth[:-1], truth[1:]):
-        poses.append(_rigid(poses[-1] @ invert_pose(before) @ after @ BIAS))
+        poses.append(rigid(poses[-1] @ invert_pose(before) @ after @ BIAS))
     return poses
 
 
-def _ate(poses, truth) -> float:
+def ate_rmse(poses, truth) -> float:
     stamps = np.arange(len(truth))
     return absolute_trajectory_error(Trajectory(stamps, np.stack([p.double().numpy() for p in poses])),
                                      Trajectory(stamps, np.stack([p.double().numpy() for p in truth]))).rmse
 
 
-@pytest.mark.slow
-def test_loop_closure_lowers_the_ate_of_a_drifting_run():
+def drifting_run(revisit: int = REVISIT, overrides: dict | None = None) -> tuple[GauSemSLAM, list[torch.Tensor]]:
+    """SLAM with drifting odometry over the loop (every STRIDE-th frame, 80x60) and the first ``revisit`` frames
+    again; returns the finished system and the ground-truth poses (first frame = identity)."""
     data = SyntheticDataset("loop", resolution=(80, 60), stride=STRIDE)
-    frames = [data[i % len(data)] for i in range(len(data) + REVISIT)]
+    frames = [data[i % len(data)] for i in range(len(data) + revisit)]
     first = torch.tensor(frames[0].gt_pose)
     truth = [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]
-    slam = GauSemSLAM(from_flat(CONFIG), "cpu", len(SYNTHETIC_CLASSES))
+    slam = GauSemSLAM(from_flat({**CONFIG, **(overrides or {})}), "cpu", len(SYNTHETIC_CLASSES))
     slam.tracker = DriftingOdometry(slam, truth)
     for n, f in enumerate(frames):
         slam.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette, n / 10))
     slam.finish()
+    return slam, truth
+
+
+@pytest.mark.slow
+def test_loop_closure_lowers_the_ate_of_a_drifting_run():
+    slam, truth = drifting_run()
     estimate = [pose for _, pose in slam.trajectory()]
     closed = slam.loop_closure.loops
     assert closed and all(not r.intra for r in closed)
-    drifted = _integrated(truth)
+    drifted = integrate_odometry(truth)
     in_first = [n for n, record in enumerate(slam.frames) if record.submap.submap_id == 0]
     assert len(in_first) > 5  # the first submap holds the world frame: loop closure leaves it where it was
     torch.testing.assert_close(torch.stack([estimate[n] for n in in_first]),
                                torch.stack([drifted[n] for n in in_first]), atol=1e-4, rtol=0)
-    ate_without, ate_with = _ate(drifted, truth), _ate(estimate, truth)
+    ate_without, ate_with = ate_rmse(drifted, truth), ate_rmse(estimate, truth)
     assert ate_with < 0.65 * ate_without
     # every closed loop joins two visits of one place (the paper's protocol: 10-frame intervals, here 1 m)
     positions = np.stack([p[:3, 3].numpy() for p in truth])

@@ -180,16 +180,14 @@ class FineRegistration:
 
     transform (4, 4) float64 source -> target; overlap: fraction of the source views' rendered pixels that the target
     renders too; fitness: fraction of those overlapping pixels where the depths agree within ``max_depth_residual``
-    and the semantic colours within ``max_semantic_residual``; loss, initial_loss: Eq. 6 averaged over the views at
-    the result and at the initial estimate; spread (rotation rad, translation m): RMS disagreement of the per-view
-    estimates with ``transform``; views: views that contributed.
+    and the semantic colours within ``max_semantic_residual``; loss: Eq. 6 averaged over the views; spread (rotation
+    rad, translation m): RMS disagreement of the per-view estimates with ``transform``; views: views that contributed.
     """
 
     transform: torch.Tensor
     overlap: float
     fitness: float
     loss: float
-    initial_loss: float
     spread: tuple[float, float]
     views: int
 
@@ -258,7 +256,6 @@ def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses
     weights = AlignmentWeights(1.0, cfg.lambda_sem, cfg.w_depth, max_depth_residual=cfg.max_depth_residual)
     with torch.no_grad():
         pyramids = _source_views(source, src, camera, cfg.pyramid_levels, cfg.silhouette_threshold, backend)
-        _, _, initial_loss = _evaluate(target, transform, src, pyramids, cfg, features, backend)
         used = torch.zeros(0, dtype=torch.long)
         corrected = src[:0]
         for level in [l for l in reversed(range(cfg.pyramid_levels)) for _ in range(cfg.renders_per_level)]:
@@ -280,7 +277,7 @@ def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses
             transform, _, _ = gauss_newton_alignment(src[used], corrected, init=transform, max_iterations=5)
         spread = _spread(src[used], corrected, transform) if len(used) else (math.inf, math.inf)
         overlap, fitness, loss = _evaluate(target, transform, src, pyramids, cfg, features, backend)
-    return FineRegistration(transform, overlap, fitness, loss, initial_loss, spread, len(used))
+    return FineRegistration(transform, overlap, fitness, loss, spread, len(used))
 
 
 def _evaluate(target: GaussianCloud, transform: torch.Tensor, source_poses: torch.Tensor,
@@ -355,9 +352,9 @@ def semantic_guided_registration(source_cloud: GaussianCloud, source_poses: torc
 
 def is_acceptable(fine: FineRegistration, cfg: RegistrationConfig) -> bool:
     """Accept a fine registration: overlap and fitness at least ``min_overlap`` and ``min_fitness``, per-view
-    estimates within the spread limits, and an Eq. 6 loss (with its feature term) no higher than at the start."""
+    estimates within the spread limits."""
     rotation, translation = fine.spread
-    return (fine.overlap >= cfg.min_overlap and fine.fitness >= cfg.min_fitness and fine.loss <= fine.initial_loss
+    return (fine.overlap >= cfg.min_overlap and fine.fitness >= cfg.min_fitness
             and translation <= cfg.max_spread_translation
             and rotation <= math.radians(cfg.max_spread_rotation_deg))
 
