@@ -50,6 +50,7 @@ class MappingConfig:
     init_samples_fraction: float = 1.0  # N_tot as a fraction of the image area
     sampling_gamma: float = 0.5  # n_c proportional to A_c ** gamma
     init_opacity: float = 0.5
+    init_radius_scale: float = 1.0  # new Gaussians get radius init_radius_scale * depth / focal (the paper: 1)
     w_color: float = 1.0
     w_depth: float = 1.0
     w_semantic: float = 0.5

@@ -108,6 +108,19 @@ def invert_pose(pose: torch.Tensor) -> torch.Tensor:
     return make_pose(rt, -(rt @ pose[..., :3, 3:])[..., 0])
 
 
+def project_to_se3(pose: torch.Tensor) -> torch.Tensor:
+    """The nearest rigid transform (rotation part projected onto SO(3) by SVD, computed in float64), in pose's dtype.
+
+    Chains of float32 pose products drift off SO(3); left alone, inverses by transposition amplify the drift.
+    """
+    m = pose.double().clone()
+    u, _, vt = torch.linalg.svd(m[:3, :3])
+    fix = torch.ones(3, dtype=m.dtype, device=m.device)
+    fix[2] = torch.det(u @ vt)
+    m[:3, :3] = u @ torch.diag(fix) @ vt
+    return m.to(pose.dtype)
+
+
 def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Apply a 4x4 transform to points (N, 3)."""
     return points @ pose[:3, :3].T + pose[:3, 3]

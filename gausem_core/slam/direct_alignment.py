@@ -73,45 +73,65 @@ class AlignmentWeights:
     max_depth_residual: float = 0.1  # metres: larger depth residuals are occlusions, not misalignment
 
 
+def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
+               points: torch.Tensor, ref: torch.Tensor):
+    """Residuals (7, N), Jacobians (7, N, 6), IRLS weights (7, N) and mean weighted L1 cost at ``motion``.
+
+    Returns None when fewer than 12 model pixels land on valid observed pixels.
+    """
+    cam = observed.camera
+    p = points @ motion[:3, :3].T + motion[:3, 3]
+    z = p[:, 2]
+    u, v = cam.fx * p[:, 0] / z + cam.cx, cam.fy * p[:, 1] / z + cam.cy
+    inside = (z > 1e-3) & (u > 0.5) & (u < cam.width - 0.5) & (v > 0.5) & (v < cam.height - 0.5)
+    obs = _sample(observed.stack, u, v)
+    depth_res = obs[6] - z
+    valid = inside & (obs[6] > 0) & (depth_res.abs() < weights.max_depth_residual)
+    if int(valid.sum()) < 12:
+        return None
+    p, z, obs, depth_res = p[valid], z[valid], obs[:, valid], depth_res[valid]
+    gu, gv = _sample(observed.grad_u, u[valid], v[valid]), _sample(observed.grad_v, u[valid], v[valid])
+    # d(u, v)/dp (N, 2, 3) and dp/dxi = [I | -[p]x] (N, 3, 6) for a left increment exp(xi) on the motion
+    zero = torch.zeros_like(z)
+    dproj = torch.stack([torch.stack([cam.fx / z, zero, -cam.fx * p[:, 0] / z**2], -1),
+                         torch.stack([zero, cam.fy / z, -cam.fy * p[:, 1] / z**2], -1)], 1)
+    eye = torch.eye(3, dtype=p.dtype, device=p.device).expand(len(p), 3, 3)
+    dp = torch.cat([eye, -skew(p)], 2)
+    jac = torch.einsum("cnk,nkj->cnj", torch.stack([gu, gv], -1), dproj @ dp)  # (7, N, 6)
+    jac = torch.cat([jac[:6], (jac[6] - dp[:, 2])[None]], 0)  # observed depth moves with the pixel, and so does z
+    res = torch.cat([obs[:6] - ref[:, valid], depth_res[None]], 0)
+    chan = torch.tensor([weights.color] * 3 + [weights.semantic] * 3 + [weights.depth], dtype=p.dtype,
+                        device=p.device)[:, None]
+    irls = chan / res.abs().clamp_min(weights.huber_delta)  # IRLS weights of the L1 norm
+    return res, jac, irls, float((chan * res.abs()).sum() / len(p))
+
+
+def _model_samples(model: ModelView) -> tuple[torch.Tensor, torch.Tensor]:
+    """Back-projected model pixels (N, 3) and their colour + semantic values (6, N)."""
+    rays = model.camera.pixel_rays(model.depth.dtype, model.depth.device)
+    points = (rays * model.depth[..., None])[model.mask]
+    return points, torch.cat([model.color[model.mask], model.semantic[model.mask]], 1).T
+
+
+def alignment_cost(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
+                   weights: AlignmentWeights) -> float:
+    """Mean weighted L1 residual of the model seen through ``motion`` (inf when the views do not overlap)."""
+    lin = _linearise(model, observed, motion, weights, *_model_samples(model))
+    return float("inf") if lin is None else lin[3]
+
+
 def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                 iterations: int, damping: float = 1e-4) -> tuple[torch.Tensor, float]:
-    """Refine ``motion`` (observed-camera-from-model-camera, 4x4) on one level; returns it and the final mean L1."""
-    cam = observed.camera
-    rays = model.camera.pixel_rays(model.depth.dtype, model.depth.device)
-    points = (rays * model.depth[..., None])[model.mask]  # (N, 3) in the model camera
-    ref = torch.cat([model.color[model.mask], model.semantic[model.mask]], 1).T  # (6, N)
-    channel_w = torch.tensor([weights.color] * 3 + [weights.semantic] * 3, dtype=points.dtype, device=points.device)
+    """Refine ``motion`` (observed-camera-from-model-camera, 4x4) on one level; returns it and the last mean L1."""
+    points, ref = _model_samples(model)
     cost = float("nan")
     for _ in range(iterations):
-        p = points @ motion[:3, :3].T + motion[:3, 3]
-        z = p[:, 2]
-        u, v = cam.fx * p[:, 0] / z + cam.cx, cam.fy * p[:, 1] / z + cam.cy
-        inside = (z > 1e-3) & (u > 0.5) & (u < cam.width - 0.5) & (v > 0.5) & (v < cam.height - 0.5)
-        obs = _sample(observed.stack, u, v)
-        gu, gv = _sample(observed.grad_u, u, v), _sample(observed.grad_v, u, v)
-        depth_res = obs[6] - z
-        valid = inside & (obs[6] > 0) & (depth_res.abs() < weights.max_depth_residual)
-        if int(valid.sum()) < 12:
+        lin = _linearise(model, observed, motion, weights, points, ref)
+        if lin is None:
             break
-        p, z, obs, gu, gv, depth_res = p[valid], z[valid], obs[:, valid], gu[:, valid], gv[:, valid], depth_res[valid]
-        # d(u, v)/dp (N, 2, 3) and dp/dxi = [I | -[p]x] (N, 3, 6) for a left increment exp(xi) on the motion
-        zero = torch.zeros_like(z)
-        dproj = torch.stack([torch.stack([cam.fx / z, zero, -cam.fx * p[:, 0] / z**2], -1),
-                             torch.stack([zero, cam.fy / z, -cam.fy * p[:, 1] / z**2], -1)], 1)
-        eye = torch.eye(3, dtype=p.dtype, device=p.device).expand(len(p), 3, 3)
-        dp = torch.cat([eye, -skew(p)], 2)
-        duv = dproj @ dp  # (N, 2, 6)
-        img_grad = torch.stack([gu, gv], -1)  # (C, N, 2)
-        jac = torch.einsum("cnk,nkj->cnj", img_grad, duv)  # (7, N, 6)
-        jac_depth = jac[6] - dp[:, 2]  # observed depth moves with the pixel; the point's own z moves too
-        res = torch.cat([obs[:6] - ref[:, valid], depth_res[None]], 0)  # (7, N)
-        jac = torch.cat([jac[:6], jac_depth[None]], 0)
-        chan = torch.cat([channel_w, torch.tensor([weights.depth], dtype=p.dtype, device=p.device)])[:, None]
-        w = chan / res.abs().clamp_min(weights.huber_delta)  # IRLS weights of the L1 norm
-        cost = float((chan * res.abs()).sum() / len(p))
-        jw = (jac * w[..., None]).reshape(-1, 6)
-        jf = jac.reshape(-1, 6)
-        h = jw.T @ jf
+        res, jac, irls, cost = lin
+        jw = (jac * irls[..., None]).reshape(-1, 6)
+        h = jw.T @ jac.reshape(-1, 6)
         g = jw.T @ res.reshape(-1)
         h = h + damping * torch.diag(h.diagonal()) + 1e-9 * torch.eye(6, dtype=h.dtype, device=h.device)
         xi = -torch.linalg.solve(h, g)
@@ -119,7 +139,3 @@ def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor
         if float(xi.norm()) < 1e-6:
             break
     return motion, cost
-
-
-def model_to_observed(cam_to_world_model: torch.Tensor, cam_to_world_obs: torch.Tensor) -> torch.Tensor:
-    return invert_pose(cam_to_world_obs) @ cam_to_world_model

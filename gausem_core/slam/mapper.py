@@ -39,13 +39,13 @@ def semantic_sample(labels: torch.Tensor, valid: torch.Tensor, n_total: int, gam
 
 
 def gaussians_from_pixels(obs: Observation, cam_to_world: torch.Tensor, pixels: torch.Tensor,
-                          opacity: float) -> GaussianCloud:
-    """Back-project flat pixel indices into Gaussians: colour and semantics from the pixel, radius d / f."""
+                          opacity: float, radius_scale: float = 1.0) -> GaussianCloud:
+    """Back-project flat pixel indices into Gaussians: colour and semantics from the pixel, radius scale * d / f."""
     depth = obs.depth.reshape(-1)[pixels]
     rays = obs.camera.pixel_rays(obs.depth.dtype, obs.depth.device).reshape(-1, 3)[pixels]
     means = transform_points(cam_to_world.to(depth.dtype), rays * depth[:, None])
     return GaussianCloud.from_points(means, obs.rgb.reshape(-1, 3)[pixels].clone(),
-                                     obs.semantic.reshape(-1, 3)[pixels].clone(), depth / obs.camera.focal, opacity)
+                                     obs.semantic.reshape(-1, 3)[pixels].clone(), radius_scale * depth / obs.camera.focal, opacity)
 
 
 class Mapper:
@@ -58,7 +58,7 @@ class Mapper:
         """A new submap's Gaussians from one frame by semantic sampling, before any optimisation."""
         n_total = int(self.cfg.init_samples_fraction * obs.depth.numel())
         pixels = semantic_sample(obs.labels, obs.valid_depth, n_total, self.cfg.sampling_gamma, self.generator)
-        return gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity)
+        return gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity, self.cfg.init_radius_scale)
 
     def densify(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor) -> GaussianCloud:
         """Add Gaussians where the map is transparent (silhouette < tau_sil) or a new surface lies in front of it."""
@@ -70,7 +70,8 @@ class Mapper:
         pixels = torch.nonzero(grow.reshape(-1)).squeeze(1)
         if len(pixels) == 0:
             return cloud
-        return GaussianCloud.cat([cloud, gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity)])
+        return GaussianCloud.cat([cloud, gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity,
+                                                       self.cfg.init_radius_scale)])
 
     def optimise(self, cloud: GaussianCloud, keyframes: list[Keyframe], iterations: int,
                  optimise_poses: bool | None = None) -> tuple[GaussianCloud, list[float]]:
@@ -101,7 +102,7 @@ class Mapper:
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
-            losses.append(float(loss))
+            losses.append(loss.item())
         with torch.no_grad():
             for kf in movable:
                 kf.cam_to_world = invert_pose(se3_exp(twists[id(kf)]) @ invert_pose(kf.cam_to_world.to(params.dtype)))

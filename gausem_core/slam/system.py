@@ -20,7 +20,7 @@ import torch
 
 from gausem_core.config import SlamConfig
 from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import PinholeCamera, invert_pose
+from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
 from gausem_core.slam.loop_closure import LoopClosure
@@ -35,12 +35,7 @@ _IMAGES = ("rgb", "depth", "semantic", "labels")
 def rigid_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """a @ b for 4x4 rigid transforms, computed in float64 with the rotation projected back onto SO(3) (SVD), in a's
     dtype: chains of anchors then stay rigid instead of accumulating rounding."""
-    m = a.double() @ b.double()
-    u, _, vt = torch.linalg.svd(m[:3, :3])
-    fix = torch.ones(3, dtype=m.dtype, device=m.device)
-    fix[2] = torch.det(u @ vt)
-    m[:3, :3] = u @ torch.diag(fix) @ vt
-    return m.to(a.dtype)
+    return project_to_se3(a.double() @ b.double()).to(a.dtype)
 
 
 @dataclass

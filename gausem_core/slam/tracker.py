@@ -7,9 +7,10 @@ import torch
 
 from gausem_core.config import TrackingConfig
 from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import invert_pose, se3_exp
+from gausem_core.geometry import invert_pose, project_to_se3, se3_exp
 from gausem_core.render import render
-from gausem_core.slam.direct_alignment import AlignmentWeights, ModelView, ObservedImages, align_level
+from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, align_level,
+                                                alignment_cost)
 from gausem_core.slam.losses import tracking_loss
 from gausem_core.slam.observation import Observation
 
@@ -27,7 +28,7 @@ def constant_velocity(previous: torch.Tensor, before_previous: torch.Tensor | No
     """Predict the next cam_to_world by repeating the last relative motion (identity motion with one pose)."""
     if before_previous is None:
         return previous.clone()
-    return previous @ (invert_pose(before_previous) @ previous)
+    return project_to_se3(previous @ (invert_pose(before_previous) @ previous))
 
 
 class Tracker:
@@ -52,25 +53,34 @@ class Tracker:
         return self._track_adam(cloud, obs, init_cam_to_world)
 
     def _track_gauss_newton(self, cloud: GaussianCloud, obs: Observation, pose: torch.Tensor) -> TrackingResult:
+        """Coarse-to-fine Gauss-Newton; keeps the initial pose if the result explains the full-resolution frame worse
+        (coarse levels can leave the basin of convergence when the map covers little of the view)."""
         cfg = self.cfg
         weights = AlignmentWeights(cfg.w_color, cfg.w_semantic, cfg.w_depth, cfg.huber_delta, cfg.max_depth_residual)
         pyramid = [ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera)]
         for _ in range(cfg.pyramid_levels - 1):
             pyramid.append(pyramid[-1].downsampled())
-        pose = pose.to(cloud.dtype)
-        cost, iterations = float("nan"), 0
+        initial = pose = pose.to(cloud.dtype)
+        eye = torch.eye(4, dtype=pose.dtype, device=pose.device)
+        iterations = 0
         with torch.no_grad():
             for level in reversed(pyramid):
                 for _ in range(cfg.renders_per_level):
-                    out = render(cloud, invert_pose(pose), level.camera, backend=self.backend)
-                    mask = out.alpha > cfg.silhouette_threshold
-                    model = ModelView(out.color, out.semantic, out.expected_depth, mask,
-                                      level.camera)
-                    eye = torch.eye(4, dtype=pose.dtype, device=pose.device)
-                    motion, cost = align_level(model, level, eye, weights, cfg.level_iterations)
+                    motion, _ = align_level(self._model_view(cloud, pose, level.camera), level, eye, weights,
+                                            cfg.level_iterations)
                     pose = pose @ invert_pose(motion)
                     iterations += 1
-        return TrackingResult(pose, cost, iterations)
+            full = pyramid[0]
+            cost = alignment_cost(self._model_view(cloud, pose, full.camera), full, eye, weights)
+            initial_cost = alignment_cost(self._model_view(cloud, initial, full.camera), full, eye, weights)
+        if initial_cost < cost:
+            return TrackingResult(initial, initial_cost, iterations)
+        return TrackingResult(project_to_se3(pose), cost, iterations)
+
+    def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
+        out = render(cloud, invert_pose(cam_to_world), camera, backend=self.backend)
+        return ModelView(out.color, out.semantic, out.expected_depth, out.alpha > self.cfg.silhouette_threshold,
+                         camera)
 
     def _track_adam(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor) -> TrackingResult:
         cfg = self.cfg
