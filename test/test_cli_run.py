@@ -6,7 +6,7 @@ from gausem_core.cli import main
 from gausem_core.eval.trajectory import read_tum_trajectory
 from gausem_core.io.ply import read_gaussian_ply
 
-FAST = ["--set", "mapping.init_iterations=20", "--set", "tracking.iterations=10", "--set", "mapping.iterations=5"]
+FAST = ["--set", "mapping.init_iterations=60", "--set", "tracking.iterations=10", "--set", "mapping.iterations=5"]
 
 
 def test_gausem_run_writes_the_outputs(tmp_path, capsys):

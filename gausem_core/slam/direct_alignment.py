@@ -75,9 +75,11 @@ class AlignmentWeights:
 
 def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                points: torch.Tensor, ref: torch.Tensor):
-    """Residuals (7, N), Jacobians (7, N, 6), IRLS weights (7, N) and mean weighted L1 cost at ``motion``.
+    """Residuals (7, N), Jacobians (7, N, 6), IRLS weights (7, N) and the cost at ``motion``.
 
-    Returns None when fewer than 12 model pixels land on valid observed pixels.
+    The cost is the weighted L1 per model pixel, truncated at the cost of a ``max_depth_residual`` depth error, which
+    is also what a model pixel without a valid observed counterpart costs: comparable across poses. Returns None when
+    fewer than 12 model pixels land on valid observed pixels.
     """
     cam = observed.camera
     p = points @ motion[:3, :3].T + motion[:3, 3]
@@ -103,7 +105,9 @@ def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
     chan = torch.tensor([weights.color] * 3 + [weights.semantic] * 3 + [weights.depth], dtype=p.dtype,
                         device=p.device)[:, None]
     irls = chan / res.abs().clamp_min(weights.huber_delta)  # IRLS weights of the L1 norm
-    return res, jac, irls, float((chan * res.abs()).sum() / len(p))
+    cap = weights.depth * weights.max_depth_residual
+    cost = (chan * res.abs()).sum(0).clamp_max(cap).sum() + cap * (len(points) - len(p))
+    return res, jac, irls, float(cost / len(points))
 
 
 def _model_samples(model: ModelView) -> tuple[torch.Tensor, torch.Tensor]:
