@@ -9,6 +9,7 @@ from gausem_core.config import SlamConfig
 from gausem_core.data import open_dataset
 from gausem_core.geometry import invert_pose, project_to_se3, se3_exp, so3_log
 from gausem_core.pipeline import Pipeline
+from gausem_core.render import render
 from gausem_core.slam.mapper import Keyframe, Mapper, semantic_sample
 from gausem_core.slam.tracker import Tracker, constant_velocity
 
@@ -38,7 +39,6 @@ def pose_error(estimate, truth):
 def test_mapping_lowers_the_loss_and_covers_the_view(scene):
     _, cloud, observations, _, losses = scene
     assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:5])
-    from gausem_core.render import render
     out = render(cloud, torch.eye(4), observations[0].camera, backend="torch")
     assert (out.alpha > 0.99).float().mean() > 0.95
     valid = observations[0].valid_depth
