@@ -63,8 +63,8 @@ class GroundTruthPoses:
         self.tracker, self.slam, self.dataset = tracker, slam, dataset
         self.first = torch.as_tensor(dataset[0].gt_pose)
 
-    def track(self, cloud, obs, init_cam_to_world) -> TrackingResult:
-        result = self.tracker.track(cloud, obs, init_cam_to_world)
+    def track(self, cloud, obs, init_cam_to_world, alternatives=()) -> TrackingResult:
+        result = self.tracker.track(cloud, obs, init_cam_to_world, alternatives)
         world = invert_pose(self.first) @ torch.as_tensor(self.dataset[len(self.slam.frames)].gt_pose)
         local = invert_pose(self.slam.active.anchor.double()) @ world.to(self.slam.device)
         return TrackingResult(local.to(result.cam_to_world.dtype), result.loss, result.iterations)

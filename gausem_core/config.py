@@ -25,6 +25,7 @@ class TrackingConfig:
     level_iterations: int = 8  # Gauss-Newton iterations per render
     huber_delta: float = 0.01  # Gauss-Newton: |r| below this is weighted quadratically (IRLS floor of the L1 weights)
     max_depth_residual: float = 0.1  # Gauss-Newton: metres; larger depth residuals are treated as occlusions
+    max_depth_slope: float = 3.0  # Gauss-Newton: observed depth slopes beyond this (~72 deg) are discontinuities
     iterations: int = 60  # Adam iterations
     lr_translation: float = 1e-2
     lr_rotation: float = 1e-2

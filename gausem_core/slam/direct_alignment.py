@@ -57,6 +57,9 @@ class ObservedImages:
         return ObservedImages.build(colour[:3].permute(1, 2, 0), colour[3:6].permute(1, 2, 0), depth[0], camera)
 
 
+_MAX_COLOR_RESIDUAL = 0.5  # per channel (colours in [0, 1]): an unexplained pixel's colour error in the cost cap
+
+
 def _sample(image: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Bilinear samples (C, N) of a (C, H, W) image at continuous pixel coordinates (centres at +0.5)."""
     h, w = image.shape[1:]
@@ -71,15 +74,18 @@ class AlignmentWeights:
     depth: float
     huber_delta: float = 0.01  # IRLS floor of |r| (L1 weights 1/|r| are capped at 1/delta)
     max_depth_residual: float = 0.1  # metres: larger depth residuals are occlusions, not misalignment
+    max_depth_slope: float = 3.0  # observed depth gradient (metres per metre across the view) beyond: a discontinuity
 
 
 def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                points: torch.Tensor, ref: torch.Tensor):
     """Residuals (7, N), Jacobians (7, N, 6), IRLS weights (7, N) and the cost at ``motion``.
 
-    The cost is the weighted L1 per model pixel, truncated at the cost of a ``max_depth_residual`` depth error, which
-    is also what a model pixel without a valid observed counterpart costs: comparable across poses. Returns None when
-    fewer than 12 model pixels land on valid observed pixels.
+    The cost is the weighted L1 per model pixel, truncated at the cost of a ``max_depth_residual`` depth error plus
+    colour and semantic errors of ``_MAX_COLOR_RESIDUAL``, which is also what a model pixel without a valid observed
+    counterpart costs: comparable across poses. Depth residuals where the observed depth is steeper than
+    ``max_depth_slope`` (discontinuities: sensor noise and mixed pixels, no surface derivative) get no IRLS weight.
+    Returns None when fewer than 12 model pixels land on valid observed pixels.
     """
     cam = observed.camera
     p = points @ motion[:3, :3].T + motion[:3, 3]
@@ -105,7 +111,10 @@ def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
     chan = torch.tensor([weights.color] * 3 + [weights.semantic] * 3 + [weights.depth], dtype=p.dtype,
                         device=p.device)[:, None]
     irls = chan / res.abs().clamp_min(weights.huber_delta)  # IRLS weights of the L1 norm
-    cap = weights.depth * weights.max_depth_residual
+    # depth discontinuities: the observed depth's gradient there is no derivative of the surface, leave them out
+    slope = (gu[6].abs() * cam.fx + gv[6].abs() * cam.fy) / z
+    irls[6] = irls[6] * (slope < weights.max_depth_slope)
+    cap = weights.depth * weights.max_depth_residual + 3 * (weights.color + weights.semantic) * _MAX_COLOR_RESIDUAL
     cost = (chan * res.abs()).sum(0).clamp_max(cap).sum() + cap * (len(points) - len(p))
     return res, jac, irls, float(cost / len(points))
 

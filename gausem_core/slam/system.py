@@ -206,7 +206,9 @@ class GauSemSLAM:
     def _track(self, obs: Observation) -> TrackingResult:
         previous = self._local_pose(-1)
         before = self._local_pose(-2) if len(self.frames) > 1 and self.cfg.tracking.constant_velocity else None
-        return self.tracker.track(self.active.cloud, obs, constant_velocity(previous, before))
+        if before is None:
+            return self.tracker.track(self.active.cloud, obs, previous)
+        return self.tracker.track(self.active.cloud, obs, constant_velocity(previous, before), [previous])
 
     def _map_keyframe(self, obs: Observation, frame_id: int, pose: torch.Tensor) -> float | None:
         """Add a keyframe to the active submap: densify, then BA over the recent keyframes."""

@@ -1,6 +1,7 @@
 """Frame-to-model tracking (paper Eq. 2): optimise the camera pose through the renderer with the Gaussians frozen."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -47,35 +48,49 @@ class Tracker:
         self.cfg = cfg
         self.backend = backend
 
-    def track(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor) -> TrackingResult:
+    def track(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor,
+              alternatives: Sequence[torch.Tensor] = ()) -> TrackingResult:
+        """Optimise the pose from ``init_cam_to_world``; Gauss-Newton also tries ``alternatives`` (e.g. the previous
+        pose when the motion model overshoots a sudden stop) on the coarsest level and goes on from the best."""
         if self.cfg.method == "gauss_newton":
-            return self._track_gauss_newton(cloud.detach(), obs, init_cam_to_world.detach())
+            return self._track_gauss_newton(cloud.detach(), obs, [init_cam_to_world.detach(), *alternatives])
         return self._track_adam(cloud, obs, init_cam_to_world)
 
-    def _track_gauss_newton(self, cloud: GaussianCloud, obs: Observation, pose: torch.Tensor) -> TrackingResult:
-        """Coarse-to-fine Gauss-Newton; keeps the initial pose if the result explains the full-resolution frame worse
-        (coarse levels can leave the basin of convergence when the map covers little of the view)."""
+    def _track_gauss_newton(self, cloud: GaussianCloud, obs: Observation,
+                            starts: list[torch.Tensor]) -> TrackingResult:
+        """Coarse-to-fine Gauss-Newton from the start whose coarsest-level alignment costs least; keeps that start if
+        the result explains the full-resolution frame worse (coarse levels can leave the basin of convergence when
+        the map covers little of the view)."""
         cfg = self.cfg
-        weights = AlignmentWeights(cfg.w_color, cfg.w_semantic, cfg.w_depth, cfg.huber_delta, cfg.max_depth_residual)
+        weights = AlignmentWeights(cfg.w_color, cfg.w_semantic, cfg.w_depth, cfg.huber_delta, cfg.max_depth_residual,
+                                   cfg.max_depth_slope)
         pyramid = [ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera)]
         for _ in range(cfg.pyramid_levels - 1):
             pyramid.append(pyramid[-1].downsampled())
-        initial = pose = pose.to(cloud.dtype)
-        eye = torch.eye(4, dtype=pose.dtype, device=pose.device)
-        iterations = 0
+        eye = torch.eye(4, dtype=cloud.dtype, device=cloud.means.device)
         with torch.no_grad():
-            for level in reversed(pyramid):
-                for _ in range(cfg.renders_per_level):
-                    motion, _ = align_level(self._model_view(cloud, pose, level.camera), level, eye, weights,
-                                            cfg.level_iterations)
-                    pose = pose @ invert_pose(motion)
-                    iterations += 1
+            coarse = [self._align(cloud, start.to(cloud.dtype), pyramid[-1], weights, eye) for start in starts]
+            best = min(range(len(starts)), key=lambda i: alignment_cost(
+                self._model_view(cloud, coarse[i], pyramid[-1].camera), pyramid[-1], eye, weights))
+            initial, pose = starts[best].to(cloud.dtype), coarse[best]
+            for level in reversed(pyramid[:-1]):
+                pose = self._align(cloud, pose, level, weights, eye)
+            iterations = cfg.renders_per_level * (cfg.pyramid_levels - 1 + len(starts))
             full = pyramid[0]
             cost = alignment_cost(self._model_view(cloud, pose, full.camera), full, eye, weights)
             initial_cost = alignment_cost(self._model_view(cloud, initial, full.camera), full, eye, weights)
         if initial_cost < cost:
             return TrackingResult(initial, initial_cost, iterations)
         return TrackingResult(project_to_se3(pose), cost, iterations)
+
+    def _align(self, cloud: GaussianCloud, pose: torch.Tensor, level: ObservedImages, weights: AlignmentWeights,
+               eye: torch.Tensor) -> torch.Tensor:
+        """``renders_per_level`` rounds of render-at-the-estimate + Gauss-Newton on one pyramid level."""
+        for _ in range(self.cfg.renders_per_level):
+            motion, _ = align_level(self._model_view(cloud, pose, level.camera), level, eye, weights,
+                                    self.cfg.level_iterations)
+            pose = pose @ invert_pose(motion)
+        return pose
 
     def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
         out = render(cloud, invert_pose(cam_to_world), camera, backend=self.backend)
