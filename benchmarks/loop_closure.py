@@ -21,14 +21,14 @@ from loop_scene import make_submap, pose_error  # noqa: E402
 from test_loop_e2e import ate_rmse, drifting_run, integrate_odometry  # noqa: E402
 
 from gausem_core.config import RegistrationConfig  # noqa: E402
-from gausem_core.eval.loops import loop_scores  # noqa: E402
+from gausem_core.eval.loops import DEFAULT_PROTOCOL, loop_scores  # noqa: E402
 from gausem_core.geometry import invert_pose  # noqa: E402
 from gausem_core.io.metrics import git_commit  # noqa: E402
 from gausem_core.semantics.descriptors import make_descriptor  # noqa: E402
 from gausem_core.slam.registration import semantic_guided_registration  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results"
-PROTOCOL = {"interval": 10, "min_frame_gap": 30, "tau_loop": 1.0}  # in processed frames (every 3rd source frame)
+PROTOCOL = DEFAULT_PROTOCOL  # in processed frames (every 3rd source frame)
 
 
 def sgr_timing(downsample: int, trials: int = 6) -> dict:

@@ -66,7 +66,7 @@ class Pipeline:
                                        frame.timestamp, self.device)
 
     def run(self) -> RunResult:
-        slam = GauSemSLAM(self.cfg, self.device)
+        slam = GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
         gt, ids, stats = [], [], []
         start = time.perf_counter()
         bar = tqdm(range(len(self.dataset)), desc="gausem", unit="frame", disable=not self.progress)
@@ -81,6 +81,7 @@ class Pipeline:
             elapsed = time.perf_counter() - start
             bar.set_postfix(fps=f"{(i + 1) / elapsed:.2f}", loss=f"{result.tracking_loss:.4f}",
                             gaussians=result.num_gaussians)
+        slam.finish()  # global refinement after the last frame (part of the system's time)
         seconds = time.perf_counter() - start
         trajectory = slam.trajectory()
         poses = np.stack([p.detach().cpu().double().numpy() for _, p in trajectory])

@@ -15,6 +15,7 @@ import torch
 
 from gausem_core.config import SlamConfig, flatten
 from gausem_core.eval.image import depth_l1, psnr, ssim
+from gausem_core.eval.loops import DEFAULT_PROTOCOL, loop_scores
 from gausem_core.eval.semantic import confusion_matrix, mean_iou, pixel_accuracy
 from gausem_core.eval.trajectory import (Trajectory, absolute_trajectory_error, associate_trajectories,
                                          write_tum_trajectory)
@@ -152,6 +153,19 @@ def performance_metrics(result: RunResult, device: torch.device) -> dict:
     return out
 
 
+def loop_metrics(result: RunResult) -> dict:
+    """Detected and accepted loops and, with ground truth for every frame, precision/recall/F1 of the detections
+    under :data:`DEFAULT_PROTOCOL` (paper §IV-C-2)."""
+    records = result.slam.loop_closure.records
+    out = {"detected": len(records), "accepted": sum(r.accepted for r in records),
+           "seconds": sum(r.seconds for r in records)}
+    if records and all(p is not None for p in result.gt_poses):
+        positions = np.stack([p[:3, 3] for p in result.gt_poses])
+        scores = loop_scores([(r.query_frame, r.match_frame) for r in records], positions, **DEFAULT_PROTOCOL)
+        out.update(scores.as_dict(), protocol=DEFAULT_PROTOCOL)
+    return out
+
+
 def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, *, eval_every: int = 5,
                   params_file: str | Path | None = None) -> dict:
     """Write a run's outputs into ``out`` and return its metrics.
@@ -187,6 +201,8 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
     if evaluation.rows:
         write_montage(out / "montage.png", evaluation.rows)
     metrics.update(performance_metrics(result, pipeline.device))
+    if result.slam.loop_closure is not None:
+        metrics["loops"] = loop_metrics(result)
 
     parameters = {**flatten(cfg), "params_file": params_file, "dataset": getattr(dataset, "name", None),
                   "eval_every": eval_every}

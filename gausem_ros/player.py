@@ -13,7 +13,9 @@ TUM trajectory for evaluation.
 Timing: frames follow their recorded stamps scaled by ``--rate`` (0 = as fast as possible). ``--lockstep`` publishes
 frame k+1 only after ``gausem/odometry`` for frame k arrived, or tracking_mapping's ``gausem/diagnostics`` said it
 dropped frame k (bad input, a diverged estimate), or ``--timeout`` seconds passed (which is logged).
-A frame is the messages from one rgb image up to the next; the player first waits (``--wait-subscribers`` s at most)
+``--finish`` calls tracking_mapping's ``gausem/finish`` service (the global refinement) after the last frame (in
+lock-step, after its answer) and waits for it (``--finish-timeout`` s at most), so that the path published then is
+the final trajectory. A frame is the messages from one rgb image up to the next; the player first waits (``--wait-subscribers`` s at most)
 until every topic it publishes has a subscriber, so that no frame is lost to discovery.
 A bag found corrupt or truncated (on opening or part-way) ends playback with a logged error (``Player.error``; the
 command exits with 1) after the frames read so far; the player never dies in a callback.
@@ -36,6 +38,7 @@ from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import Trigger
 
 import msg_adapters as ma
 from gausem_core.data import Dataset, open_dataset
@@ -113,15 +116,16 @@ def open_source(source: str, *, size=None, stride: int = 1, max_frames: int | No
 
 
 class Player(Node):
-    """Publishes ``frames`` on the input topics from a timer; ``done`` once all are out (and, in lock-step, the last
-    one was answered or timed out)."""
+    """Publishes ``frames`` on the input topics from a timer; ``done`` once all are out (in lock-step, the last one
+    answered or timed out; with ``finish``, the ``gausem/finish`` call answered or timed out)."""
 
     def __init__(self, frames: Iterable[PlayerFrame], *, rate: float = 1.0, lockstep: bool = False,
-                 timeout: float = 10.0, wait_subscribers: float = 5.0, period: float = 0.005, **kwargs):
+                 timeout: float = 10.0, wait_subscribers: float = 5.0, finish: bool = False,
+                 finish_timeout: float = 600.0, period: float = 0.005, **kwargs):
         super().__init__("player", **kwargs)
-        if rate < 0 or timeout <= 0 or wait_subscribers < 0:
-            raise ValueError(f"player: rate must be >= 0, timeout > 0 and wait_subscribers >= 0, got {rate}, "
-                             f"{timeout}, {wait_subscribers}")
+        if rate < 0 or timeout <= 0 or wait_subscribers < 0 or finish_timeout <= 0:
+            raise ValueError(f"player: rate must be >= 0, timeout and finish_timeout > 0 and wait_subscribers >= 0, "
+                             f"got {rate}, {timeout}, {finish_timeout}, {wait_subscribers}")
         self.rate, self.lockstep, self.timeout, self.wait_subscribers = rate, lockstep, timeout, wait_subscribers
         self.error: str | None = None  # why playback stopped early (a corrupt or truncated bag)
         self.published = 0
@@ -137,6 +141,10 @@ class Player(Node):
         self._awaiting: int | None = None  # stamp (ns) whose odometry lock-step waits for
         self._waiting_since = time.monotonic()
         self._start: tuple[float, int] | None = None  # (wall time, stamp ns) of the first frame
+        self._finish = self.create_client(Trigger, "gausem/finish") if finish else None
+        self._finish_timeout = finish_timeout
+        self._finish_call = None  # (future, wall time of the call)
+        self.finished: bool | None = None  # with finish: whether gausem/finish answered with success
         self._timer = self.create_timer(period, self._tick)
 
     def _read_next(self) -> PlayerFrame | None:
@@ -150,7 +158,7 @@ class Player(Node):
 
     @property
     def done(self) -> bool:
-        return self._next is None and self._awaiting is None
+        return self._next is None and self._awaiting is None and (self._finish is None or self.finished is not None)
 
     def _on_odometry(self, msg: Odometry) -> None:
         self.odometry_received += 1
@@ -176,7 +184,11 @@ class Player(Node):
             self.get_logger().warning(f"lock-step: no gausem/odometry for the frame stamped "
                                       f"{ma.ns_to_seconds(self._awaiting):.6f} s within {self.timeout} s; going on")
             self._awaiting = None
-        if self._next is None or not self._ready(now):
+        if self._next is None:
+            if self._finish is not None and self.finished is None:
+                self._call_finish(now)
+            return
+        if not self._ready(now):
             return
         frame = self._next
         if self._start is None:
@@ -190,6 +202,24 @@ class Player(Node):
         if self.lockstep:
             self._awaiting, self._waiting_since = frame.stamp_ns, now
         self._next = self._read_next()
+
+    def _call_finish(self, now: float) -> None:
+        """Call gausem/finish once the service is there (``timeout`` s at most), then wait for its answer."""
+        if self._finish_call is None:
+            if self._finish.service_is_ready():
+                self._finish_call = (self._finish.call_async(Trigger.Request()), now)
+            elif now - self._waiting_since >= self.timeout:
+                self.get_logger().warning(f"no gausem/finish service within {self.timeout} s; not finishing")
+                self.finished = False
+            return
+        future, called = self._finish_call
+        if future.done():
+            response = future.result()
+            self.finished = bool(response and response.success)
+            self.get_logger().info(f"gausem/finish: {response.message if response else 'no answer'}")
+        elif now - called >= self._finish_timeout:
+            self.get_logger().warning(f"gausem/finish did not answer within {self._finish_timeout} s")
+            self.finished = False
 
     def _ready(self, now: float) -> bool:
         if self._start is None:  # the first frame waits for subscribers on every topic it carries
@@ -226,12 +256,17 @@ def add_source_arguments(parser: argparse.ArgumentParser, required: bool = True)
     parser.add_argument("--depth-encoding", choices=("32FC1", "16UC1"), default="32FC1")
 
 
-def add_player_arguments(parser: argparse.ArgumentParser, required: bool = True) -> None:
+def add_player_arguments(parser: argparse.ArgumentParser, required: bool = True, finish: bool = True) -> None:
+    """The player's options; ``finish``: offer --finish (not where the caller finishes the tracking node itself)."""
     add_source_arguments(parser, required)
     parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor; 0 = as fast as possible")
     parser.add_argument("--lockstep", action="store_true", help="wait for gausem/odometry of each frame")
     parser.add_argument("--timeout", type=float, default=10.0, help="lock-step wait per frame (s)")
     parser.add_argument("--wait-subscribers", type=float, default=5.0, help="wait for subscribers at most (s)")
+    if finish:
+        parser.add_argument("--finish", action="store_true",
+                            help="after the last frame, call gausem/finish (global refinement) and wait for it")
+        parser.add_argument("--finish-timeout", type=float, default=600.0, help="wait for gausem/finish at most (s)")
     parser.add_argument("--gt-out", help="write the replayed frames' ground truth here (TUM format)")
 
 
@@ -239,7 +274,8 @@ def player_from_args(ns: argparse.Namespace, **node_kwargs) -> Player:
     frames = open_source(ns.source, size=ns.size, stride=ns.stride, max_frames=ns.max_frames, frame_id=ns.frame_id,
                          depth_encoding=ns.depth_encoding)
     return Player(frames, rate=ns.rate, lockstep=ns.lockstep, timeout=ns.timeout,
-                  wait_subscribers=ns.wait_subscribers, **node_kwargs)
+                  wait_subscribers=ns.wait_subscribers, finish=getattr(ns, "finish", False),
+                  finish_timeout=getattr(ns, "finish_timeout", 600.0), **node_kwargs)
 
 
 def main(args=None) -> int:

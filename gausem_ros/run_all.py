@@ -91,7 +91,7 @@ def report(tracking: TrackingMappingNode, ns: argparse.Namespace, argv: list[str
 
 def parse_arguments(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="gausem-ros", description=__doc__.split("\n")[0])
-    add_player_arguments(parser, required=False)
+    add_player_arguments(parser, required=False, finish=False)  # finished below, in-process
     parser.add_argument("--save", help="after playback, write map.ply and trajectory.txt to this folder")
     parser.add_argument("--report", type=Path, metavar="DIR",
                         help="after playback, evaluate the run like `gausem run` and write its outputs to DIR")
@@ -125,6 +125,7 @@ def main(args=None) -> int:
             tracking.get_logger().info(f"processed {tracking.frames_processed} of {player.published} frames "
                                        f"({player.timeouts} lock-step timeouts); dropped: "
                                        f"{dict(tracking.drops.counts) or 'none'}")
+            tracking.finish()  # the sequence is over: global refinement, as the offline pipeline does
         if ns.save:
             ply, trajectory = tracking.save_map(ns.save)
             tracking.get_logger().info(f"wrote {ply} and {trajectory}")

@@ -1,6 +1,7 @@
 """gausem_core.report: the outputs of an offline run, on hand-built run results (no SLAM is run)."""
 import json
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -8,11 +9,13 @@ import torch
 
 from gausem_core.config import SlamConfig
 from gausem_core.data import SyntheticDataset
+from gausem_core.eval.loops import DEFAULT_PROTOCOL
 from gausem_core.eval.trajectory import read_tum_trajectory
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.io.ply import read_gaussian_ply
 from gausem_core.pipeline import Pipeline, RunResult
-from gausem_core.report import format_summary, nearest_palette_class, write_outputs
+from gausem_core.report import format_summary, loop_metrics, nearest_palette_class, write_outputs
+from gausem_core.slam.loop_closure import LoopRecord
 from gausem_core.slam.mapper import Keyframe, gaussians_from_pixels
 from gausem_core.slam.system import GauSemSLAM, Submap
 
@@ -150,3 +153,22 @@ def test_summary_puts_headline_figures_first():
     assert lines[:5] == ["ATE RMSE  1.23 cm", "PSNR      31.5 dB", "SSIM      0.91", "mIoU      87.5 %",
                          "fps       2.5"]
     assert lines[-4].split() == ["rendering.psnr", "31.5"] and lines[-1].split() == ["fps", "2.5"]
+
+
+def test_loop_metrics_score_the_detections_against_ground_truth_loops():
+    # 60 frames: out along x to 3 m by frame 30 and back to the start by frame 50, then still: frames 0-9 and 50-59
+    # lie within 1 m of each other (a ground-truth loop), frame 40 (1.5 m out) is no loop with frame 5
+    x = np.interp(np.arange(60), [0, 10, 30, 50, 59], [0.0, 0.3, 3.0, 0.3, 0.0])
+    gt_poses = []
+    for value in x:
+        pose = np.eye(4)
+        pose[0, 3] = value
+        gt_poses.append(pose)
+    records = [LoopRecord(55, 3, 1, 0, False, True, 0.9, 0.5), LoopRecord(40, 5, 1, 0, False, False, 0.2, 0.25)]
+    slam = SimpleNamespace(loop_closure=SimpleNamespace(records=records))
+    result = RunResult(slam, list(range(60)), np.stack(gt_poses), gt_poses, list(range(60)), seconds=1.0)
+    metrics = loop_metrics(result)
+    assert metrics["detected"] == 2 and metrics["accepted"] == 1 and metrics["seconds"] == pytest.approx(0.75)
+    assert metrics["precision"] == pytest.approx(0.5)
+    assert metrics["ground_truth_loops"] >= 1 and metrics["true_positives"] == 1
+    assert metrics["protocol"] == DEFAULT_PROTOCOL

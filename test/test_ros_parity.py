@@ -26,7 +26,7 @@ from gausem_core.pipeline import Pipeline  # noqa: E402
 from gausem_ros import convert  # noqa: E402
 from gausem_ros.player import Player, open_source  # noqa: E402
 from gausem_ros.qos import EVENT_QOS, IMAGE_QOS, LATCHED_QOS  # noqa: E402
-from ros_harness import FAST_SLAM, Recorder, ros_param_args, ros_session, spin_until  # noqa: E402
+from ros_harness import FAST_SLAM, Recorder, ros_param_args, ros_session, spin_for, spin_until  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / "params" / "synthetic.yaml"
@@ -104,13 +104,15 @@ def test_nodes_as_separate_processes_match_the_offline_pipeline_for_an_external_
             executor.add_node(recorder.node)
             assert spin_until(executor, lambda: NODES <= set(recorder.node.get_node_names()), 60.0), \
                 (tmp_path / "launcher.log").read_text()[-3000:]
-            player = Player(open_source(str(bag)), rate=0.0, lockstep=True, timeout=60.0, context=ctx)
+            player = Player(open_source(str(bag)), rate=0.0, lockstep=True, timeout=60.0, finish=True, context=ctx)
             executor.add_node(player)
             assert spin_until(executor, lambda: player.done, 100.0)
             got = recorder.messages
             assert spin_until(executor, lambda: got["gausem/map"] and got["gausem/path"]
                               and len(got["gausem/path"][-1].poses) == FRAMES, 10.0)
             assert player.published == len(got["gausem/odometry"]) == FRAMES and player.timeouts == 0
+            assert player.finished  # the global refinement ran: the path it re-published is the final trajectory
+            spin_for(executor, 1.0)  # let that path arrive
     finally:
         launcher.send_signal(signal.SIGINT)
         returncode = launcher.wait(60)

@@ -10,8 +10,10 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
+import rclpy  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
 
 import msg_adapters as ma  # noqa: E402
 from gausem_core.geometry import PinholeCamera  # noqa: E402
@@ -133,3 +135,29 @@ def test_a_damaged_bag_ends_playback_with_an_error_and_the_player_survives(tmp_p
     assert player_main([str(tmp_path / "tum.bag"), "--rate", "0", "--wait-subscribers", "0"]) == 1
     error = f"playback stopped after 0 frames: bag {tmp_path / 'tum.bag'} is corrupt or truncated"
     assert error in capfd.readouterr().err
+
+
+def test_player_finishes_the_sequence_through_gausem_finish_and_survives_without_it():
+    calls = []
+
+    def on_finish(request, response):
+        calls.append(request)
+        response.success, response.message = True, "refined"
+        return response
+
+    with ros_session(116) as (ctx, executor):
+        service_node = rclpy.create_node("fake_tracking", context=ctx)
+        service_node.create_service(Trigger, "gausem/finish", on_finish)
+        player = Player(open_source("synthetic", size=(16, 12), max_frames=2), rate=0.0, finish=True,
+                        wait_subscribers=0.0, context=ctx)
+        executor.add_node(service_node)
+        executor.add_node(player)
+        assert spin_until(executor, lambda: player.done, 10.0)
+        assert player.published == 2 and player.finished is True and len(calls) == 1
+
+    with ros_session(117) as (ctx, executor):  # nobody offers gausem/finish: the player gives up after its timeout
+        player = Player(open_source("synthetic", size=(16, 12), max_frames=1), rate=0.0, finish=True, timeout=0.5,
+                        wait_subscribers=0.0, context=ctx)
+        executor.add_node(player)
+        assert spin_until(executor, lambda: player.done, 10.0)
+        assert player.published == 1 and player.finished is False

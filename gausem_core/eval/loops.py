@@ -17,6 +17,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 
+# the paper gives no values for Δt_min and τ_loop; these are ours (frames of the processed sequence, metres)
+DEFAULT_PROTOCOL = {"interval": 10, "min_frame_gap": 30, "tau_loop": 1.0}
+
+
 def _check_positions(gt_positions) -> np.ndarray:
     positions = np.asarray(gt_positions, np.float64)
     if positions.ndim != 2 or positions.shape[1] != 3 or not np.isfinite(positions).all():

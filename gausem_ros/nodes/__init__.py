@@ -4,7 +4,7 @@
   image alone (``semantics.segmenter: dinov2``). With ``labels`` the class ids come with the data: the player (or
   another robot stack) publishes semantic/labels and this node is not run.
 - ``tracking_mapping``: owns the SLAM system and the map; odometry, path, TF, map, keyframe and submap records,
-  services gausem/save_map and gausem/reset.
+  services gausem/save_map, gausem/finish and gausem/reset.
 - ``loop_detection``: keyframe records + semantic labels -> loop candidates (paper Algorithm 1).
 - ``pose_graph``: keyframe and submap records + loop constraints -> corrected keyframe and anchor poses (GTSAM).
 """

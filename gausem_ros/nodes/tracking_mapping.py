@@ -10,6 +10,7 @@ Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_f
 ``gausem/submaps`` (SubmapEvent) and ``gausem/diagnostics`` (dropped inputs by reason, frames processed, the stamp of
 the last frame handled). ``seconds``: the processing time so far, for fps.
 Services (std_srvs/Trigger): ``gausem/save_map`` writes ``map.ply`` and ``trajectory.txt`` (TUM) to ``output_dir``;
+``gausem/finish`` ends the sequence with the global refinement (as the offline pipeline does after the last frame);
 ``gausem/reset`` starts a new map.
 
 Frames are processed one at a time, the newest synchronised one first (``NewestFrameQueue``); superseded frames and
@@ -103,10 +104,11 @@ class TrackingMappingNode(Node):
         self.create_timer(p.map_publish_period, self._publish_map)
         self.create_service(Trigger, "gausem/save_map", self._on_save_map)
         self.create_service(Trigger, "gausem/reset", self._on_reset)
+        self.create_service(Trigger, "gausem/finish", self._on_finish)
 
     def _reset_state(self) -> None:
         torch.manual_seed(self.cfg.seed)
-        self.slam = GauSemSLAM(self.cfg, self.device)
+        self.slam = GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
         self.frames_processed = 0
         self._busy: tuple[float, float] | None = None  # perf_counter at the first processed frame's start, last end
         self._last_stamp = -math.inf
@@ -270,6 +272,16 @@ class TrackingMappingNode(Node):
                                                         device=keyframe.cam_to_world.device)
         return bool(targets)
 
+    def finish(self) -> None:
+        """End of the sequence: the global refinement (``loop.global_refinement``), counted in ``seconds``; the
+        corrected path and map are re-published."""
+        start = time.perf_counter()
+        self.slam.finish()
+        if self._busy:
+            self._busy = (self._busy[0], self._busy[1] + time.perf_counter() - start)
+        self._publish_path()
+        self._map_dirty = True
+
     # --- services -----------------------------------------------------------------------------------------------
     def save_map(self, folder: str | Path) -> tuple[Path, Path]:
         """Write the map (3DGS-style PLY with class ids) and the trajectory (TUM) to ``folder``."""
@@ -291,6 +303,12 @@ class TrackingMappingNode(Node):
             response.success, response.message = False, f"could not write to {self.params.output_dir}: {err}"
         else:
             response.success, response.message = True, f"wrote {ply} and {trajectory}"
+        return response
+
+    def _on_finish(self, request, response):
+        del request
+        self.finish()
+        response.success, response.message = True, f"global refinement done over {len(self.slam.submaps)} submaps"
         return response
 
     def _on_reset(self, request, response):
