@@ -199,3 +199,14 @@ def test_observed_gaussians_in_view_and_unoccluded():
     moved = torch.eye(4)
     moved[2, 3] = -1.0  # the camera steps back 1 m: the first point is now 2 m away, still in front
     assert observed_gaussians(means, moved, camera, depth, margin=0.1).tolist()[:3] == [True, False, False]
+
+
+def test_database_leaves_the_thread_count_of_torch_alone():
+    # FAISS and torch share the OpenMP runtime: a FAISS thread setting would silently slow every later render
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        DescriptorDatabase(8, "auto").add(0, torch.ones(8))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -39,7 +39,6 @@ class DescriptorDatabase:
         self._buffer = np.zeros((16, dim), dtype=np.float32)  # rows [0, len) are used; doubled when full
         self._index = None
         if faiss is not None:
-            faiss.omp_set_num_threads(1)
             self._faiss = faiss
             self._index = faiss.IndexFlatL2(dim)
 
