@@ -15,8 +15,9 @@ frame k+1 only after ``gausem/odometry`` for frame k arrived, or tracking_mappin
 dropped frame k (bad input, a diverged estimate), or ``--timeout`` seconds passed (which is logged).
 ``--finish`` calls tracking_mapping's ``gausem/finish`` service (the global refinement) after the last frame (in
 lock-step, after its answer) and waits for it (``--finish-timeout`` s at most), so that the path published then is
-the final trajectory. A frame is the messages from one rgb image up to the next; the player first waits (``--wait-subscribers`` s at most)
-until every topic it publishes has a subscriber, so that no frame is lost to discovery.
+the final trajectory. A frame is the messages from one rgb image up to the next; the player first waits
+(``--wait-subscribers`` s at most) until every topic it publishes has a subscriber, so that no frame is lost to
+discovery.
 A bag found corrupt or truncated (on opening or part-way) ends playback with a logged error (``Player.error``; the
 command exits with 1) after the frames read so far; the player never dies in a callback.
 """

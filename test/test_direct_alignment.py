@@ -19,7 +19,9 @@ def ray_cast(cam_to_world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     for plane_z, half_size in [(1.2, None), (1.12, 0.2)]:
         t = (plane_z - origin[2]) / dirs[..., 2]
         hit = origin + t[..., None] * dirs
-        inside = (t > 0) if half_size is None else (t > 0) & (hit[..., 0].abs() < half_size) & (hit[..., 1].abs() < half_size)
+        inside = t > 0
+        if half_size is not None:
+            inside = inside & (hit[..., 0].abs() < half_size) & (hit[..., 1].abs() < half_size)
         depth_along = torch.where(inside & (t < depth_along), t, depth_along)
     hit = origin + depth_along[..., None] * dirs
     x, y = hit[..., 0], hit[..., 1]

@@ -44,8 +44,9 @@ def gaussians_from_pixels(obs: Observation, cam_to_world: torch.Tensor, pixels: 
     depth = obs.depth.reshape(-1)[pixels]
     rays = obs.camera.pixel_rays(obs.depth.dtype, obs.depth.device).reshape(-1, 3)[pixels]
     means = transform_points(cam_to_world.to(depth.dtype), rays * depth[:, None])
+    radii = radius_scale * depth / obs.camera.focal
     return GaussianCloud.from_points(means, obs.rgb.reshape(-1, 3)[pixels].clone(),
-                                     obs.semantic.reshape(-1, 3)[pixels].clone(), radius_scale * depth / obs.camera.focal, opacity)
+                                     obs.semantic.reshape(-1, 3)[pixels].clone(), radii, opacity)
 
 
 class Mapper:
@@ -70,8 +71,8 @@ class Mapper:
         pixels = torch.nonzero(grow.reshape(-1)).squeeze(1)
         if len(pixels) == 0:
             return cloud
-        return GaussianCloud.cat([cloud, gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity,
-                                                       self.cfg.init_radius_scale)])
+        grown = gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity, self.cfg.init_radius_scale)
+        return GaussianCloud.cat([cloud, grown])
 
     def optimise(self, cloud: GaussianCloud, keyframes: list[Keyframe], iterations: int,
                  optimise_poses: bool | None = None) -> tuple[GaussianCloud, list[float]]:
