@@ -2,7 +2,8 @@
 player: ``gausem-ros [SOURCE --lockstep ...] [--save DIR] [--report DIR] --ros-args --params-file FILE``.
 
 Which nodes: tracking_mapping always; segmentation unless ``semantics.segmenter`` is ``labels`` (then the labels come
-with the data); loop_detection (needs labels) and pose_graph when ``loop.enabled``. The ROS arguments (params file,
+with the data); loop_detection (needs labels) and pose_graph when ``loop.enabled`` and tracking_mapping's
+``loop_closure`` is ``nodes`` (the default; with ``core`` the tracking node closes loops itself). The ROS arguments (params file,
 ``-p``, remappings) apply to every node. With a SOURCE the process ends when the player is done (after ``--save`` and
 ``--report``); without, it runs until Ctrl-C. ``--report DIR`` evaluates the run like ``gausem run`` (ATE, PSNR, SSIM,
 mIoU, fps; trajectories, map, metrics JSON, montage in DIR) against a reference dataset: SOURCE when it is a dataset,
@@ -38,7 +39,7 @@ def build_nodes(**node_kwargs) -> list:
     nodes = [tracking]
     if tracking.cfg.semantics.segmenter != "labels":
         nodes.append(SegmentationNode(**node_kwargs))
-    if tracking.cfg.loop.enabled:
+    if tracking.loop_nodes:
         if tracking.params.use_labels:
             nodes.append(LoopDetectionNode(**node_kwargs))
         nodes.append(PoseGraphNode(**node_kwargs))

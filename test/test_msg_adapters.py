@@ -340,3 +340,29 @@ def test_record_validation_and_decoding_errors():
     with pytest.raises(ValueError, match="empty batch"):
         ma.records_to_pointcloud2([], HEADER)
     assert not kf.pose.flags.writeable
+
+
+def test_loop_candidates_and_constraints_to_and_from_the_core_types():
+    from gausem_core.slam.loop import LoopCandidate
+    from gausem_core.slam.loop_closure import LoopConstraint
+    candidate = LoopCandidate(40, 5, 2, 0, 0.12, 0.3)
+    record = ma.loop_candidate_to_record(candidate)
+    assert record.intra_submap is False and ma.record_to_loop_candidate(record) == candidate
+    with pytest.raises(ValueError, match="intra_submap"):
+        ma.record_to_loop_candidate(ma.LoopCandidateRecord(40, 5, 2, 0, 0.12, 0.3, True))
+
+    information = ma.sigmas_to_information((0.005, 0.02))
+    np.testing.assert_allclose(np.diag(information), [2500.0] * 3 + [40000.0] * 3)  # (rho, omega) order
+    assert ma.information_to_sigmas(information) == pytest.approx((0.005, 0.02))
+    relative = torch.from_numpy(random_pose(np.random.default_rng(3)))
+    constraint = LoopConstraint(5, 40, 0, 2, relative, (0.005, 0.02), 0.9, False)
+    back = ma.record_to_loop_constraint(ma.loop_constraint_to_record(constraint))
+    assert (back.keyframe_a, back.keyframe_b, back.submap_a, back.submap_b, back.intra, back.fitness) == \
+        (5, 40, 0, 2, False, 0.9)
+    assert back.sigmas == pytest.approx((0.005, 0.02)) and torch.equal(back.relative, relative)
+    assert back.edge[:2] == (0, 2)  # an inter-submap edge joins the anchors
+    for bad in (np.zeros((6, 6)), np.diag([1.0] * 5 + [np.nan])):
+        with pytest.raises(ValueError, match="information"):
+            ma.information_to_sigmas(bad)
+    with pytest.raises(ValueError, match="intra_submap"):
+        ma.record_to_loop_constraint(ma.LoopConstraintRecord(5, 40, 0, 2, relative.numpy(), 0.9, information, True))

@@ -285,8 +285,9 @@ def test_pose_graph_node_closes_an_intra_submap_loop():
         kf_pub.publish(ma.records_to_pointcloud2(records, ma.make_header(0.3, "map")))
         assert spin_until(executor, lambda: len(graph.keyframes) == 4, 5.0)
         header = ma.make_header(0.3, "map")
-        unknown = ma.LoopConstraintRecord(0, 99, 0, 0, _translation(0.2), 1.0, np.eye(6), True)
-        loop = ma.LoopConstraintRecord(0, 15, 0, 0, _translation(0.2), 1.0, np.eye(6), True)  # ... the loop 0.2 m
+        information = ma.sigmas_to_information((0.005, 0.01))  # as certain as one odometry step
+        unknown = ma.LoopConstraintRecord(0, 99, 0, 0, _translation(0.2), 1.0, information, True)
+        loop = ma.LoopConstraintRecord(0, 15, 0, 0, _translation(0.2), 1.0, information, True)  # ... the loop 0.2 m
         loop_pub.publish(ma.records_to_pointcloud2([unknown, loop], header))
         assert spin_until(executor, lambda: recorder.messages["gausem/pose_graph"], 10.0)
         update = ma.pointcloud2_to_pose_graph_update(recorder.messages["gausem/pose_graph"][0])
@@ -306,19 +307,22 @@ def test_run_all_builds_the_node_set_the_parameters_ask_for():
         without_loops = build_nodes(context=ctx, parameter_overrides=overrides({"device": "cpu",
                                                                                 "loop.enabled": False}))
         names_without = [n.get_name() for n in without_loops]
-        for node in nodes + without_loops:
+        in_core = build_nodes(context=ctx, parameter_overrides=overrides({"device": "cpu", "loop_closure": "core"}))
+        names_in_core = [n.get_name() for n in in_core]
+        for node in nodes + without_loops + in_core:
             node.destroy_node()
     assert names == ["tracking_mapping", "loop_detection", "pose_graph"]
-    assert names_without == ["tracking_mapping"]
+    assert names_without == names_in_core == ["tracking_mapping"]
 
 
 def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
     """Frames 0-3 with every node up, 4-5 with loop_detection and pose_graph down, 6-9 after fresh instances start."""
     slam = {**FAST_SLAM, "mapping.every": 2}  # keyframes 0, 2, 4, 6, 8
-    loops = {"loop.check_every": 1, "loop.exclude_recent": 0, "loop.max_descriptor_distance": 2.0}  # a loop per check
+    loops = {"loop.check_every": 1, "loop.exclude_recent": 0, "loop.max_descriptor_distance": 2.0,  # a loop per check
+             "loop.registration.min_fitness": 2.0}  # none accepted: the constraint below stands in for registration
     frames = list(open_source("synthetic", size=(80, 60), max_frames=10))
     with ros_session(108) as (ctx, executor):
-        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(slam))
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides({**slam, **loops}))
         recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS)])
         constraint_pub = recorder.node.create_publisher(PointCloud2, "gausem/loop_constraints", EVENT_QOS)
         executor.add_node(tracking)
@@ -333,9 +337,9 @@ def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
             return helpers
 
         def play(first: int, last: int) -> None:
-            player = Player(frames[first:last], rate=0.0, lockstep=True, timeout=30.0, context=ctx)
+            player = Player(frames[first:last], rate=0.0, lockstep=True, timeout=60.0, context=ctx)
             executor.add_node(player)
-            assert spin_until(executor, lambda: player.done, 30.0)
+            assert spin_until(executor, lambda: player.done, 90.0)
             assert player.timeouts == 0 and tracking.frames_processed == last
             executor.remove_node(player)
             player.destroy_node()
@@ -358,7 +362,8 @@ def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
         before = {k.frame_id: k.cam_to_world.clone() for s in tracking.slam.submaps for k in s.keyframes}
         (_, pose_6), (_, pose_8) = pose_graph.keyframes[6], pose_graph.keyframes[8]  # as the records carried them
         relative = np.linalg.inv(pose_6) @ pose_8 @ _translation(0.05)
-        constraint = ma.LoopConstraintRecord(6, 8, 0, 0, relative, 1.0, np.eye(6), True)  # stands in for registration
+        constraint = ma.LoopConstraintRecord(6, 8, 0, 0, relative, 1.0, ma.sigmas_to_information((0.005, 0.01)),
+                                             True)  # stands in for registration
         constraint_pub.publish(ma.records_to_pointcloud2([constraint], ma.make_header(1.0, "map")))
         assert spin_until(executor, lambda: tracking.pose_graph_updates, 10.0)
         after = {k.frame_id: k.cam_to_world for s in tracking.slam.submaps for k in s.keyframes}
@@ -370,6 +375,46 @@ def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
     assert not np.allclose(after[8].numpy(), before[8].numpy(), atol=1e-4)
     np.testing.assert_allclose(after[0].numpy(), before[0].numpy())  # keyframes the new pose graph never saw stay
     assert tracking.frames_processed == 10 and not tracking.drops.counts
+    assert [r.accepted for r in tracking.slam.loop_closure.records] == [False, False]  # both candidates registered
+
+
+def test_a_loop_candidate_is_registered_optimised_by_pose_graph_and_applied_with_re_mapping():
+    """loop_closure: nodes. A candidate (standing in for loop_detection) for keyframes 2 -> 0 of one submap: the
+    tracker registers it, re-publishes the submap's keyframes and publishes the constraint; pose_graph answers; the
+    tracker moves the keyframes and re-maps the submap."""
+    slam = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 30, "device": "cpu",
+            "backend": "torch", "loop.keyframe_every": 1000, "submaps.min_keyframes": 100}  # one submap
+    frames = list(open_source("synthetic", size=(80, 60), max_frames=5))
+    with ros_session(110) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(slam))
+        graph = PoseGraphNode(context=ctx, parameter_overrides=overrides(slam))
+        recorder = Recorder(ctx, [(PointCloud2, "gausem/loop_constraints", EVENT_QOS),
+                                  (PointCloud2, "gausem/pose_graph", EVENT_QOS)])
+        candidate_pub = recorder.node.create_publisher(PointCloud2, "gausem/loop_candidates", EVENT_QOS)
+        player = Player(frames, rate=0.0, lockstep=True, timeout=60.0, context=ctx)
+        for node in (tracking, graph, recorder.node, player):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: player.done, 120.0) and tracking.frames_processed == 5
+        assert spin_until(executor, lambda: sorted(graph.keyframes) == [0, 2, 4], 5.0)
+        cloud_before = tracking.slam.active.cloud.means.detach().clone()
+        candidate = ma.LoopCandidateRecord(2, 0, 0, 0, 0.1, 0.0, True)
+        candidate_pub.publish(ma.records_to_pointcloud2([candidate], ma.make_header(2.0, "map")))
+        assert spin_until(executor, lambda: tracking.pose_graph_updates, 60.0)
+        keyframes = {k.frame_id: k.cam_to_world.double().numpy() for k in tracking.slam.active.keyframes}
+        cloud_after = tracking.slam.active.cloud.means.detach()
+    record = tracking.slam.loop_closure.records[-1]
+    assert (record.query_frame, record.match_frame, record.intra, record.accepted) == (2, 0, True, True)
+    constraint = ma.pointcloud2_to_records(recorder.messages["gausem/loop_constraints"][0],
+                                           ma.LoopConstraintRecord)[0]
+    assert (constraint.keyframe_a, constraint.keyframe_b, constraint.intra_submap) == (0, 2, True)
+    truth = np.linalg.inv(frames[0].gt_pose) @ frames[2].gt_pose
+    assert np.linalg.norm(constraint.relative_pose[:3, 3] - truth[:3, 3]) < 0.01  # registration measured the motion
+    update = {n.node_id: n.pose for n in tracking.pose_graph_updates[0].nodes}
+    assert sorted(update) == [0, 2, 4]
+    for frame_id, pose in update.items():
+        np.testing.assert_allclose(keyframes[frame_id], pose, atol=1e-5)  # applied
+    assert cloud_after.shape != cloud_before.shape or not torch.equal(cloud_after, cloud_before)  # re-mapped
+    assert not tracking.drops.counts and not graph.drops.counts
 
 
 def test_lockstep_goes_on_past_a_frame_the_tracker_drops():

@@ -22,6 +22,7 @@ beyond the drift). Every detection is recorded, accepted or not.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -35,7 +36,7 @@ from gausem_core.geometry import invert_pose, se3_log
 from gausem_core.semantics.descriptors import DescriptorExtractor, make_descriptor
 from gausem_core.slam.loop import LoopCandidate, LoopDetector, gaussian_idf, landmark_scores, observed_gaussians
 from gausem_core.slam.mapper import Keyframe, Mapper
-from gausem_core.slam.pose_graph import PoseGraph
+from gausem_core.slam.pose_graph import optimise_chain
 from gausem_core.slam.refinement import global_refinement
 from gausem_core.slam.registration import align_keyframes, semantic_guided_registration
 
@@ -52,6 +53,29 @@ class LoopRecord:
     accepted: bool
     fitness: float
     seconds: float  # registration, pose graph and (intra) re-mapping
+
+
+@dataclass(frozen=True)
+class LoopConstraint:
+    """An accepted loop as a pose-graph edge a -> b measuring ``relative`` = a^-1 b (float64 4x4). Intra-submap: a, b
+    are the match and query keyframes (poses in their submap's frame); inter-submap: the target and source submaps'
+    anchors, with keyframe_a / keyframe_b the loop's keyframes in them. ``sigmas``: (rotation, translation)."""
+
+    keyframe_a: int
+    keyframe_b: int
+    submap_a: int
+    submap_b: int
+    relative: torch.Tensor
+    sigmas: tuple[float, float]
+    fitness: float
+    intra: bool
+
+    @property
+    def edge(self) -> tuple[int, int, torch.Tensor, tuple[float, float]]:
+        """(a, b, relative, sigmas) with the node keys of its level (frame ids, or submap ids)."""
+        if self.intra:
+            return self.keyframe_a, self.keyframe_b, self.relative, self.sigmas
+        return self.submap_a, self.submap_b, self.relative, self.sigmas
 
 
 class SemanticPalette:
@@ -82,6 +106,11 @@ class LoopClosure:
     """Loop detection and correction over the SLAM system's submaps (:class:`~gausem_core.slam.system.Submap`:
     anchor world-from-submap, Gaussians and keyframes in the submap frame, possibly offloaded), edited in place.
 
+    Three steps, also usable one by one when detection and pose graphs run elsewhere (the ROS nodes):
+    :meth:`on_keyframe` describes a keyframe and detects a loop, :meth:`register` measures a candidate as a
+    :class:`LoopConstraint`, :meth:`correct` optimises the pose graph of its level and moves the map
+    (:meth:`move_keyframes`, :meth:`move_anchors`).
+
     ``mapper`` re-maps submaps after intra-submap loops; ``descriptor`` gives the global descriptors and the dense
     features of the SGR and refinement feature terms (default: the colour-layout fallback); ``device``: where
     submaps are loaded for registration and refinement.
@@ -97,35 +126,33 @@ class LoopClosure:
         self.detector = LoopDetector.from_config(cfg, descriptor_dim=self.descriptor.dim, backend=database_backend)
         self.palette = SemanticPalette()
         self.records: list[LoopRecord] = []
+        self.constraints: list[LoopConstraint] = []  # accepted loops corrected here, both levels
         self._descriptors: dict[int, torch.Tensor] = {}  # keyframe frame id -> global descriptor
-        self._inter_edges: list[tuple[int, int, torch.Tensor, tuple[float, float]]] = []  # target, source, T, sigmas
 
     @property
     def loops(self) -> list[LoopRecord]:
         """The accepted (closed) loops."""
         return [r for r in self.records if r.accepted]
 
-    def on_keyframe(self, submaps: Sequence, submap, keyframe: Keyframe) -> LoopRecord | None:
-        """Algorithm 1 for a new keyframe of ``submap`` (one of ``submaps``); closes a detected loop."""
+    def on_keyframe(self, submaps: Sequence, submap, keyframe: Keyframe, detect: bool = True) -> LoopRecord | None:
+        """Algorithm 1 for a new keyframe of ``submap`` (one of ``submaps``): describe it and, with ``detect``,
+        query the loop database and close a detected loop (register, then correct when accepted)."""
         if not self.cfg.enabled:
             return None
         self.palette.update(keyframe.obs.semantic)
         descriptor = self._descriptor(submap, keyframe)
-        if not self.detector.is_keyframe(keyframe.frame_id):
+        if not detect or not self.detector.is_keyframe(keyframe.frame_id):
             return None
         candidate = self.detector.add_keyframe(keyframe.frame_id, submap.submap_id, descriptor,
                                                self._landmark_scores(submap, keyframe))
         if candidate is None:
             return None
         start = time.perf_counter()
-        by_id = {s.submap_id: s for s in submaps}
-        if candidate.intra:
-            accepted, fitness = self._close_intra(candidate, submap)
-        else:
-            accepted, fitness = self._close_inter(candidate, by_id)
-        record = LoopRecord(candidate.query_keyframe, candidate.match_keyframe, candidate.query_submap,
-                            candidate.match_submap, candidate.intra, accepted, fitness, time.perf_counter() - start)
-        self.records.append(record)
+        constraint = self.register(submaps, candidate)
+        if constraint is not None:
+            self.correct(submaps, constraint)
+        record = dataclasses.replace(self.records[-1], seconds=time.perf_counter() - start)
+        self.records[-1] = record
         return record
 
     def finish(self, submaps: Sequence) -> None:
@@ -150,47 +177,50 @@ class LoopClosure:
                                   keyframe.obs.depth).cpu()
         return landmark_scores(ids, seen, gaussian_idf(ids, len(self.palette)))
 
-    def _odometry_sigmas(self, keyframes: int) -> tuple[float, float]:
-        """Odometry standard deviations over ``keyframes`` keyframe steps (random-walk growth)."""
-        scale = max(keyframes, 1) ** 0.5
-        return self.cfg.odometry_sigma_rotation * scale, self.cfg.odometry_sigma_translation * scale
-
     def _plausible(self, current: torch.Tensor, measured: torch.Tensor, keyframes: int) -> bool:
         """Whether a measured relative pose differs from the current estimate by at most ``max_correction_sigmas``
         odometry standard deviations over ``keyframes`` steps, in rotation and in translation."""
         error = invert_pose(current.detach().cpu().double()) @ measured.detach().cpu().double()
-        rotation, translation = self._odometry_sigmas(keyframes)
+        rotation, translation = odometry_sigmas(self.cfg, keyframes)
         bound = self.cfg.max_correction_sigmas
         return (float(se3_log(error)[3:].norm()) <= bound * rotation
                 and float(error[:3, 3].norm()) <= bound * translation)
 
-    # --- intra-submap loops -------------------------------------------------------------------------------------
-    def _close_intra(self, candidate: LoopCandidate, submap) -> tuple[bool, float]:
-        keyframes = submap.keyframes
+    # --- registration -------------------------------------------------------------------------------------------
+    def register(self, submaps: Sequence, candidate: LoopCandidate) -> LoopConstraint | None:
+        """Measure a detected loop (intra: keyframe alignment; inter: SGR) and decide whether to accept it; the
+        decision is recorded in :attr:`records`. Returns the constraint when accepted, else None. Raises ValueError
+        when a keyframe or submap of the candidate is unknown."""
+        start = time.perf_counter()
+        by_id = {s.submap_id: s for s in submaps}
+        for submap_id, frame_id in ((candidate.query_submap, candidate.query_keyframe),
+                                    (candidate.match_submap, candidate.match_keyframe)):
+            if frame_id not in [kf.frame_id for kf in getattr(by_id.get(submap_id), "keyframes", [])]:
+                raise ValueError(f"loop candidate {candidate.query_keyframe}->{candidate.match_keyframe}: no keyframe "
+                                 f"{frame_id} in submap {submap_id}")
+        measure = self._register_intra if candidate.intra else self._register_inter
+        constraint, accepted = measure(candidate, by_id)
+        self.records.append(LoopRecord(candidate.query_keyframe, candidate.match_keyframe, candidate.query_submap,
+                                       candidate.match_submap, candidate.intra, accepted, constraint.fitness,
+                                       time.perf_counter() - start))
+        return constraint if accepted else None
+
+    def _register_intra(self, candidate: LoopCandidate, by_id: dict) -> tuple[LoopConstraint, bool]:
+        keyframes = by_id[candidate.query_submap].keyframes
         index = {kf.frame_id: i for i, kf in enumerate(keyframes)}
         j, k = index[candidate.match_keyframe], index[candidate.query_keyframe]
         init = invert_pose(keyframes[k].cam_to_world) @ keyframes[j].cam_to_world
-        motion, fitness = align_keyframes(keyframes[j].obs, keyframes[k].obs, init, self.cfg.registration)
-        if fitness < self.cfg.registration.min_fitness or not self._plausible(init, motion, k - j):
-            return False, fitness
-        graph = PoseGraph(odometry_sigmas=self._odometry_sigmas(1), robust_kernel=self.cfg.robust_kernel)
-        for i, kf in enumerate(keyframes):
-            graph.add_node(i, kf.cam_to_world)
-            if i:
-                graph.add_odometry(i - 1, i)
+        submap = by_id[candidate.query_submap]
+        motion, fitness = align_keyframes(submap.observation(keyframes[j], self.device),
+                                          submap.observation(keyframes[k], self.device), init,
+                                          self.cfg.registration)
         reg = self.cfg.registration
-        graph.add_loop(j, k, invert_pose(motion), (reg.sigma_rotation, reg.sigma_translation))
-        poses = graph.optimize().poses
-        for i, kf in enumerate(keyframes):
-            if not kf.fixed:
-                kf.cam_to_world = torch.as_tensor(poses[i], dtype=kf.cam_to_world.dtype,
-                                                  device=kf.cam_to_world.device)
-        iterations = self.cfg.remap_iterations_per_keyframe * len(keyframes)
-        submap.cloud, _ = self.mapper.optimise(submap.cloud, keyframes, iterations, optimise_poses=False)
-        return True, fitness
+        constraint = LoopConstraint(candidate.match_keyframe, candidate.query_keyframe, candidate.match_submap,
+                                    candidate.query_submap, invert_pose(motion.detach().cpu().double()),
+                                    (reg.sigma_rotation, reg.sigma_translation), fitness, True)
+        return constraint, fitness >= reg.min_fitness and self._plausible(init, motion, abs(k - j))
 
-    # --- inter-submap loops -------------------------------------------------------------------------------------
-    def _close_inter(self, candidate: LoopCandidate, by_id: dict) -> tuple[bool, float]:
+    def _register_inter(self, candidate: LoopCandidate, by_id: dict) -> tuple[LoopConstraint, bool]:
         query, match = by_id[candidate.query_submap], by_id[candidate.match_submap]
         ends = {candidate.query_submap: candidate.query_keyframe, candidate.match_submap: candidate.match_keyframe}
         target, source = (match, query) if len(match.keyframes) >= len(query.keyframes) else (query, match)
@@ -203,12 +233,10 @@ class LoopClosure:
         first, last = sorted((target.submap_id, source.submap_id))
         between = sum(len(s.keyframes) for s in by_id.values() if first <= s.submap_id < last)
         current = invert_pose(target.anchor) @ source.anchor
-        accepted = registration.accepted and self._plausible(current, registration.transform, between)
-        if accepted:
-            self._inter_edges.append((target.submap_id, source.submap_id, registration.transform,
-                                      registration.sigmas))
-            self._optimise_anchors(list(by_id.values()))
-        return accepted, registration.fine.fitness
+        constraint = LoopConstraint(ends[target.submap_id], ends[source.submap_id], target.submap_id,
+                                    source.submap_id, registration.transform.detach().cpu().double(),
+                                    registration.sigmas, registration.fine.fitness, False)
+        return constraint, registration.accepted and self._plausible(current, registration.transform, between)
 
     def _poses(self, submap) -> torch.Tensor:
         return torch.stack([kf.cam_to_world.detach().double().cpu() for kf in submap.keyframes])
@@ -216,19 +244,55 @@ class LoopClosure:
     def _descriptor_stack(self, submap) -> torch.Tensor:
         return torch.stack([self._descriptor(submap, kf) for kf in submap.keyframes])
 
-    def _optimise_anchors(self, submaps: list) -> None:
-        """Anchor pose graph: odometry between consecutive submaps, every accepted inter-submap loop edge."""
-        ordered = sorted(submaps, key=lambda s: s.submap_id)
-        graph = PoseGraph(robust_kernel=self.cfg.robust_kernel)
-        for i, submap in enumerate(ordered):
-            graph.add_node(submap.submap_id, submap.anchor)
-            if i:
-                previous = ordered[i - 1]
-                graph.add_odometry(previous.submap_id, submap.submap_id,
-                                   self._odometry_sigmas(len(previous.keyframes)))
-        for target, source, transform, sigmas in self._inter_edges:
-            graph.add_loop(target, source, transform, sigmas)
-        poses = graph.optimize().poses
-        for submap in ordered:
-            submap.anchor = torch.as_tensor(poses[submap.submap_id], dtype=submap.anchor.dtype,
+    # --- correction ---------------------------------------------------------------------------------------------
+    def correct(self, submaps: Sequence, constraint: LoopConstraint) -> None:
+        """Add an accepted loop to the pose graph of its level, optimise it with every loop of that level so far
+        and move the map (intra: the submap's keyframes, then re-mapping; inter: the anchors)."""
+        self.constraints.append(constraint)
+        same_level = [c for c in self.constraints if c.intra == constraint.intra
+                      and (not c.intra or c.submap_a == constraint.submap_a)]
+        if constraint.intra:
+            submap = next(s for s in submaps if s.submap_id == constraint.submap_a)
+            poses = {kf.frame_id: kf.cam_to_world for kf in submap.keyframes}
+            result = optimise_chain(poses, [c.edge for c in same_level], lambda _: odometry_sigmas(self.cfg, 1),
+                                    self.cfg.robust_kernel)
+            self.move_keyframes(submap, result.poses)
+        else:
+            counts = {s.submap_id: len(s.keyframes) for s in submaps}
+            result = optimise_chain({s.submap_id: s.anchor for s in submaps}, [c.edge for c in same_level],
+                                    lambda key: odometry_sigmas(self.cfg, counts[key]), self.cfg.robust_kernel)
+            self.move_anchors(submaps, result.poses)
+
+    def move_keyframes(self, submap, poses: dict[int, object]) -> int:
+        """Set the poses (submap frame, by frame id) of ``submap``'s non-fixed keyframes, then re-map the submap for
+        ``remap_iterations_per_keyframe`` iterations per keyframe with the poses held. Returns how many moved."""
+        moved = 0
+        for kf in submap.keyframes:
+            if kf.frame_id in poses and not kf.fixed:
+                kf.cam_to_world = torch.as_tensor(np.array(poses[kf.frame_id]), dtype=kf.cam_to_world.dtype,
+                                                  device=kf.cam_to_world.device)
+                moved += 1
+        if moved:
+            keyframes = [Keyframe(kf.frame_id, submap.observation(kf, self.device), kf.cam_to_world.to(self.device),
+                                  True) for kf in submap.keyframes]
+            iterations = self.cfg.remap_iterations_per_keyframe * len(keyframes)
+            submap.cloud, _ = self.mapper.optimise(submap.load_cloud(self.device), keyframes, iterations,
+                                                   optimise_poses=False)
+        return moved
+
+    @staticmethod
+    def move_anchors(submaps: Sequence, poses: dict[int, object]) -> int:
+        """Set the anchors (world-from-submap, by submap id) of ``submaps``; their keyframes, frames and Gaussians
+        follow, being stored in the submap frame. Returns how many moved."""
+        moved = [s for s in submaps if s.submap_id in poses]
+        for submap in moved:
+            submap.anchor = torch.as_tensor(np.array(poses[submap.submap_id]), dtype=submap.anchor.dtype,
                                             device=submap.anchor.device)
+        return len(moved)
+
+
+def odometry_sigmas(cfg: LoopConfig, keyframes: int) -> tuple[float, float]:
+    """Pose-graph odometry standard deviations (rotation, translation) over ``keyframes`` keyframe steps (random-walk
+    growth from ``odometry_sigma_rotation`` / ``odometry_sigma_translation`` per step)."""
+    scale = max(keyframes, 1) ** 0.5
+    return cfg.odometry_sigma_rotation * scale, cfg.odometry_sigma_translation * scale

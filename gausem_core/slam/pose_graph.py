@@ -6,6 +6,7 @@ target-submap coordinates) equals A_t^-1 A_s for the anchors A_s, A_t, so it is 
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,3 +137,20 @@ class PoseGraph:
         if not np.allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-5) or not np.allclose(m[3], [0, 0, 0, 1]):
             raise ValueError(f"PoseGraph: {what} is not a rigid transform")
         return self._gtsam.Pose3(m)
+
+
+def optimise_chain(poses: Mapping[int, object], loops: Iterable[tuple[int, int, object, tuple[float, float]]],
+                   odometry_sigmas: Callable[[int], tuple[float, float]], robust_kernel: str = "huber",
+                   max_iterations: int = 100) -> PoseGraphResult:
+    """The graph of both loop-closure levels (keyframes of one submap, or submap anchors): ``poses`` (world-from-node
+    by key) in key order, an odometry edge from each node to the next with ``odometry_sigmas(key of the first)``, the
+    first node fixed, and the ``loops`` (a, b, measured a^-1 b, (rotation, translation) sigmas) as robust edges."""
+    graph = PoseGraph(robust_kernel=robust_kernel)
+    keys = sorted(poses)
+    for key in keys:
+        graph.add_node(key, poses[key])
+    for a, b in zip(keys, keys[1:]):
+        graph.add_odometry(a, b, odometry_sigmas(a))
+    for a, b, relative, sigmas in loops:
+        graph.add_loop(a, b, relative, sigmas)
+    return graph.optimize(max_iterations)

@@ -23,7 +23,8 @@ from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
-from gausem_core.slam.loop_closure import LoopClosure
+from gausem_core.slam.loop import LoopCandidate
+from gausem_core.slam.loop_closure import LoopClosure, LoopConstraint
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.submap_store import SubmapStore
@@ -152,11 +153,14 @@ class GauSemSLAM:
     """Tracking, mapping and submap allocation over a stream of observations.
 
     ``num_classes``: length of the class histograms (the class table's size); they grow to the largest class id seen,
-    so 1 is fine when the table is unknown. Call :meth:`close` (or use ``with``) to delete spilled submaps at once;
-    otherwise that happens when the object is collected.
+    so 1 is fine when the table is unknown. ``detect_loops``: False when loops are detected elsewhere (the ROS
+    loop_detection node) and handed in through :meth:`register_loop`; keyframes are still described for registration.
+    Call :meth:`close` (or use ``with``) to delete spilled submaps at once; otherwise that happens when the object is
+    collected.
     """
 
-    def __init__(self, cfg: SlamConfig, device: torch.device | str = "cpu", num_classes: int = 1):
+    def __init__(self, cfg: SlamConfig, device: torch.device | str = "cpu", num_classes: int = 1,
+                 detect_loops: bool = True):
         if cfg.submaps.boundary_window < 1 or cfg.submaps.boundary_iterations < 0:
             raise ValueError("submaps.boundary_window must be >= 1 and submaps.boundary_iterations >= 0, got "
                              f"{cfg.submaps.boundary_window} and {cfg.submaps.boundary_iterations}")
@@ -170,6 +174,7 @@ class GauSemSLAM:
         self._close = weakref.finalize(self, self.store.close)
         self.submaps: list[Submap] = []
         self.frames: list[FrameRecord] = []
+        self.detect_loops = detect_loops
         self.loop_closure = LoopClosure(cfg.loop, self.mapper, make_descriptor(
             cfg.semantics.descriptor, cfg.semantics.dinov2_weights, device=self.device), cfg.backend,
             self.device) if cfg.loop.enabled else None
@@ -255,7 +260,29 @@ class GauSemSLAM:
     def _close_loops(self) -> None:
         """Loop closure (Algorithm 1) for the newest keyframe, self.active.keyframes[-1]."""
         if self.loop_closure is not None:
-            self.loop_closure.on_keyframe(self.submaps, self.active, self.active.keyframes[-1])
+            self.loop_closure.on_keyframe(self.submaps, self.active, self.active.keyframes[-1], self.detect_loops)
+
+    def register_loop(self, candidate: LoopCandidate) -> LoopConstraint | None:
+        """Register a loop detected elsewhere (keyframe alignment or SGR); the accepted constraint, else None. The
+        map is not corrected: that is the pose graph's answer (:meth:`move_keyframes`, :meth:`move_anchors`). Raises
+        ValueError when loop closure is disabled or the candidate names unknown keyframes."""
+        if self.loop_closure is None:
+            raise ValueError("loop closure is disabled (loop.enabled: false)")
+        return self.loop_closure.register(self.submaps, candidate)
+
+    def move_keyframes(self, submap_id: int, poses: dict[int, object]) -> int:
+        """Corrected keyframe poses (submap frame, by frame id) for one submap, which is then re-mapped with them
+        held; the number of keyframes moved (0 for an unknown submap)."""
+        submap = next((s for s in self.submaps if s.submap_id == submap_id), None)
+        if submap is None:
+            return 0
+        if self.loop_closure is None:
+            raise ValueError("loop closure is disabled (loop.enabled: false)")
+        return self.loop_closure.move_keyframes(submap, poses)
+
+    def move_anchors(self, poses: dict[int, object]) -> int:
+        """Corrected anchors (world-from-submap, by submap id); the number of submaps moved."""
+        return LoopClosure.move_anchors(self.submaps, poses)
 
     def finish(self) -> None:
         """Call after the last frame: the two-stage global refinement (``loop.global_refinement``)."""

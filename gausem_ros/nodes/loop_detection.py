@@ -5,7 +5,8 @@ Each keyframe record is paired with the label image of its stamp (within ``stamp
 first waits, at most ``cache_size`` of each). The keyframe's global descriptor is computed here from its semantic
 colour image (the class table's colours of the labels) with ``semantics.descriptor`` (DINOv2 CLS with
 ``semantics.dinov2_weights``, else the colour-layout fallback), so labels are needed. Every keyframe the tracker
-publishes is a loop keyframe (the tracker already keeps one every ``mapping.every`` frames); ``loop.check_every``,
+publishes is a loop keyframe (the tracker already keeps one every ``mapping.every`` frames; a keyframe id seen before
+is a re-publication and ignored); ``loop.check_every``,
 ``loop.max_descriptor_distance`` and ``loop.exclude_recent`` configure the detector.
 
 Landmark scores (Eq. 7) need the class of every Gaussian of a submap and which ones a frame observes; this node does
@@ -49,6 +50,7 @@ class LoopDetectionNode(Node):
         self.keyframes_checked = 0
         self._labels: OrderedDict[float, object] = OrderedDict()  # stamp -> label image message
         self._keyframes: OrderedDict[float, ma.KeyframeRecord] = OrderedDict()  # waiting for their labels
+        self._seen: set[int] = set()  # keyframe ids received
         self._submap_pixels: dict[int, list[torch.Tensor]] = defaultdict(list)
         self._pub = self.create_publisher(PointCloud2, "gausem/loop_candidates", EVENT_QOS)
         self.create_subscription(PointCloud2, "gausem/keyframes", self._on_keyframes, EVENT_QOS)
@@ -69,7 +71,9 @@ class LoopDetectionNode(Node):
             self.drops.drop("bad_keyframes", str(err))
             return
         for record in records:
-            self._remember(self._keyframes, record.stamp, record, "keyframe")
+            if record.keyframe_id not in self._seen:  # re-published keyframes (corrected poses) are not new
+                self._seen.add(record.keyframe_id)
+                self._remember(self._keyframes, record.stamp, record, "keyframe")
         self._pair()
 
     def _remember(self, cache: OrderedDict, stamp: float, item, what: str) -> None:
@@ -106,9 +110,7 @@ class LoopDetectionNode(Node):
         self.keyframes_checked += 1
         if loop is None:
             return
-        candidate = ma.LoopCandidateRecord(loop.query_keyframe, loop.match_keyframe, loop.query_submap,
-                                           loop.match_submap, loop.descriptor_distance, loop.landmark_distance,
-                                           loop.intra)
+        candidate = ma.loop_candidate_to_record(loop)
         self.candidates.append(candidate)
         self.get_logger().info(f"loop candidate: keyframe {loop.query_keyframe} -> {loop.match_keyframe} "
                                f"(descriptor distance {loop.descriptor_distance:.3f})")

@@ -1,26 +1,31 @@
 """The pose-graph node (GTSAM): ``gausem/keyframes``, ``gausem/submaps``, ``gausem/loop_constraints`` ->
 ``gausem/pose_graph`` (a PoseGraphUpdate: corrected poses, one record per node).
 
-It keeps every keyframe's pose in its submap frame and every submap's anchor pose in the map. Each loop constraint
-re-optimises one level (paper §III-C): an intra-submap loop the keyframes of that submap (nodes in submap coordinates,
-odometry edges between consecutive keyframes, the first keyframe fixed), an inter-submap loop the anchors (odometry
-edges between consecutive submaps, the first anchor fixed). All loops received so far on that level take part; the
-optimised poses replace the stored ones and are published (KEYFRAME or ANCHOR nodes). Constraints naming unknown
-keyframes or submaps are dropped and counted. ``loop.robust_kernel`` selects the loop-edge kernel.
+It keeps every keyframe's pose in its submap frame (the latest record of it wins: tracking_mapping re-publishes a
+submap's keyframes before an intra-submap constraint, as bundle adjustment moves them) and every submap's anchor
+pose in the map. Each loop constraint re-optimises one level (paper §III-C) with the core's graph
+(:func:`~gausem_core.slam.pose_graph.optimise_chain`, as ``gausem run`` does): an intra-submap loop the keyframes of
+that submap, an inter-submap loop the anchors, each with odometry edges between consecutive nodes (sigmas from
+``loop.odometry_sigma_*``, grown with the keyframes in between), the first node fixed, and every loop of that level so
+far under ``loop.robust_kernel`` with the sigmas of its information matrix. The optimised poses replace the stored
+ones and are published (KEYFRAME or ANCHOR nodes). Constraints naming unknown keyframes or submaps are dropped and
+counted.
 """
 from __future__ import annotations
+
+from collections import Counter
 
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 import msg_adapters as ma
-from gausem_core.slam.pose_graph import PoseGraph
+from gausem_core.slam.loop_closure import LoopConstraint, odometry_sigmas
+from gausem_core.slam.pose_graph import PoseGraph, optimise_chain
 
 from ..qos import EVENT_QOS
 from .common import DropReport, declare_parameters, declare_slam_config, run_node
 
-NODE_DEFAULTS = {"map_frame": "map", "odometry_sigmas": [0.005, 0.02], "loop_sigmas": [0.01, 0.05],
-                 "max_iterations": 100}
+NODE_DEFAULTS = {"map_frame": "map", "max_iterations": 100}
 
 
 class PoseGraphNode(Node):
@@ -28,20 +33,17 @@ class PoseGraphNode(Node):
         super().__init__("pose_graph", **kwargs)
         self.cfg = declare_slam_config(self)
         self.params = declare_parameters(self, NODE_DEFAULTS)
-        PoseGraph(**self._graph_options())  # fails now, not at the first loop, on bad sigmas or kernel
+        # fails now, not at the first loop, on bad odometry sigmas or kernel:
+        PoseGraph(odometry_sigmas=odometry_sigmas(self.cfg.loop, 1), robust_kernel=self.cfg.loop.robust_kernel)
         self.drops = DropReport(self)
         self.keyframes: dict[int, tuple[int, object]] = {}  # keyframe id -> (submap id, pose in the submap frame)
         self.anchors: dict[int, object] = {}  # submap id -> anchor pose in the map
-        self.loops: list[ma.LoopConstraintRecord] = []
+        self.loops: list[LoopConstraint] = []
         self.updates_published = 0
         self._pub = self.create_publisher(PointCloud2, "gausem/pose_graph", EVENT_QOS)
         self.create_subscription(PointCloud2, "gausem/keyframes", self._on_keyframes, EVENT_QOS)
         self.create_subscription(PointCloud2, "gausem/submaps", self._on_submaps, EVENT_QOS)
         self.create_subscription(PointCloud2, "gausem/loop_constraints", self._on_loops, EVENT_QOS)
-
-    def _graph_options(self) -> dict:
-        return {"odometry_sigmas": tuple(self.params.odometry_sigmas), "loop_sigmas": tuple(self.params.loop_sigmas),
-                "robust_kernel": self.cfg.loop.robust_kernel}
 
     def _records(self, msg: PointCloud2, record_type):
         try:
@@ -60,54 +62,50 @@ class PoseGraphNode(Node):
             self.anchors.setdefault(r.submap_id, r.anchor_pose)
 
     def _on_loops(self, msg: PointCloud2) -> None:
-        for loop in self._records(msg, ma.LoopConstraintRecord):
+        for record in self._records(msg, ma.LoopConstraintRecord):
+            name = f"loop constraint {record.keyframe_a}-{record.keyframe_b}"
+            try:
+                loop = ma.record_to_loop_constraint(record)
+            except ValueError as err:
+                self.drops.drop("bad_constraint", f"{name}: {err}")
+                continue
             missing = self._missing(loop)
             if missing:
-                self.drops.drop("unknown_nodes", f"loop constraint {loop.keyframe_a}-{loop.keyframe_b}: unknown "
-                                                 f"{missing}")
+                self.drops.drop("unknown_nodes", f"{name}: unknown {missing}")
                 continue
             self.loops.append(loop)
             try:
-                nodes = self._optimise_keyframes(loop.submap_a) if loop.intra_submap else self._optimise_anchors()
+                nodes = self._optimise_keyframes(loop.submap_a) if loop.intra else self._optimise_anchors()
             except ValueError as err:  # e.g. a loop between a node and itself
                 self.loops.pop()
-                self.drops.drop("bad_constraint", f"loop constraint {loop.keyframe_a}-{loop.keyframe_b}: {err}")
+                self.drops.drop("bad_constraint", f"{name}: {err}")
                 continue
             header = ma.make_header(max(ma.header_seconds(msg.header), 0.0), self.params.map_frame)
             self._pub.publish(ma.pose_graph_update_to_pointcloud2(ma.PoseGraphUpdate(nodes), header))
             self.updates_published += 1
 
-    def _missing(self, loop: ma.LoopConstraintRecord) -> list[str]:
-        if loop.intra_submap:
+    def _missing(self, loop: LoopConstraint) -> list[str]:
+        if loop.intra:
             return [f"keyframe {k}" for k in (loop.keyframe_a, loop.keyframe_b)
                     if self.keyframes.get(k, (None,))[0] != loop.submap_a]
         return [f"submap {s}" for s in (loop.submap_a, loop.submap_b) if s not in self.anchors]
 
-    def _optimise(self, poses: dict[int, object], loops: list[tuple[int, int, object]]) -> dict[int, object]:
-        graph = PoseGraph(**self._graph_options())
-        keys = sorted(poses)
-        for key in keys:
-            graph.add_node(key, poses[key])
-        for a, b in zip(keys, keys[1:]):
-            graph.add_odometry(a, b)
-        for a, b, relative in loops:
-            graph.add_loop(a, b, relative)
-        result = graph.optimize(self.params.max_iterations)
-        self.get_logger().info(f"pose graph: {len(keys)} nodes, {len(loops)} loops, error "
+    def _optimise(self, poses: dict[int, object], intra: bool, sigmas) -> dict[int, object]:
+        loops = [c.edge for c in self.loops if c.intra == intra and c.edge[0] in poses]
+        result = optimise_chain(poses, loops, sigmas, self.cfg.loop.robust_kernel, self.params.max_iterations)
+        self.get_logger().info(f"pose graph: {len(poses)} nodes, {len(loops)} loops, error "
                                f"{result.error_before:.4g} -> {result.error_after:.4g}")
         return result.poses
 
     def _optimise_keyframes(self, submap_id: int) -> list[ma.PoseGraphNode]:
         poses = {k: pose for k, (s, pose) in self.keyframes.items() if s == submap_id}
-        loops = [(lp.keyframe_a, lp.keyframe_b, lp.relative_pose) for lp in self.loops
-                 if lp.intra_submap and lp.submap_a == submap_id]
-        optimised = self._optimise(poses, loops)
+        optimised = self._optimise(poses, True, lambda _: odometry_sigmas(self.cfg.loop, 1))
         self.keyframes.update({k: (submap_id, pose) for k, pose in optimised.items()})
         return [ma.PoseGraphNode(ma.PoseGraphNodeKind.KEYFRAME, k, pose) for k, pose in optimised.items()]
 
     def _optimise_anchors(self) -> list[ma.PoseGraphNode]:
-        loops = [(lp.submap_a, lp.submap_b, lp.relative_pose) for lp in self.loops if not lp.intra_submap]
-        optimised = self._optimise(self.anchors, loops)
+        counts = Counter(s for s, _ in self.keyframes.values())
+        optimised = self._optimise(self.anchors, False, lambda s: odometry_sigmas(self.cfg.loop, counts[s]))
         self.anchors.update(optimised)
         return [ma.PoseGraphNode(ma.PoseGraphNodeKind.ANCHOR, s, pose) for s, pose in optimised.items()]
 

@@ -2,12 +2,14 @@
 
 Subscribes (relative names, remappable): ``rgb/image`` (rgb8/bgr8/rgba8/bgra8), ``depth/image`` (16UC1 mm or 32FC1 m),
 ``rgb/camera_info``, ``semantic/labels`` (mono8/mono16 class ids; not with ``use_labels: false``), approximately
-synchronised; ``gausem/loop_candidates`` and ``gausem/pose_graph`` (records, ``msg_adapters.records``).
+synchronised; with ``loop_closure: nodes``, ``gausem/loop_candidates`` and ``gausem/pose_graph`` (records,
+``msg_adapters.records``).
 Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_frame``, stamped like the rgb image),
 ``gausem/path`` (latched, re-published after every frame and every correction), TF ``map_frame`` -> camera frame,
 ``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/keyframes``
 (KeyframeRecord, pose in its submap frame, empty descriptor: loop_detection describes the keyframe's semantic labels),
-``gausem/submaps`` (SubmapEvent) and ``gausem/diagnostics`` (dropped inputs by reason, frames processed, the stamp of
+``gausem/submaps`` (SubmapEvent), ``gausem/loop_constraints`` (LoopConstraintRecord, every accepted loop) and
+``gausem/diagnostics`` (dropped inputs by reason, frames processed, the stamp of
 the last frame handled). ``seconds``: the processing time so far, for fps.
 Services (std_srvs/Trigger): ``gausem/save_map`` writes ``map.ply`` and ``trajectory.txt`` (TUM) to ``output_dir``;
 ``gausem/finish`` ends the sequence with the global refinement (as the offline pipeline does after the last frame);
@@ -18,8 +20,18 @@ bad input (wrong encodings, size mismatches, too little valid depth, no camera_i
 processed one, labels outside the class table) are dropped with a warning and counted, never raised; so are the
 outputs of a frame whose pose estimate is not finite (``tracking_diverged``). Published poses are projected onto
 SE(3) in float64.
-Pose-graph updates are applied when they arrive: an ANCHOR node moves the submap with that id (its Gaussians and
-keyframes follow, being stored in the submap frame), a KEYFRAME node sets the pose of the keyframe with that frame id.
+Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
+
+- ``nodes`` (default; DESIGN.md §3): loop_detection detects (``gausem/loop_candidates``); this node registers each
+  candidate (keyframe alignment or SGR: it holds the Gaussians) and publishes the accepted ones on
+  ``gausem/loop_constraints`` (an intra-submap one after re-publishing that submap's keyframes with their current
+  poses); pose_graph optimises and answers on ``gausem/pose_graph``, applied here when it arrives: ANCHOR nodes move
+  their submaps (Gaussians, keyframes and frames follow, being stored in the submap frame), KEYFRAME nodes set
+  keyframe poses, and their submap is re-mapped with the poses held. Corrections arrive asynchronously, so a run
+  whose loops are accepted depends on timing.
+- ``core``: the node's core closes loops itself, exactly as ``gausem run`` (deterministic); the accepted loops are
+  still published on ``gausem/loop_constraints`` for observers, and loop candidates and pose-graph updates are not
+  subscribed to, so loop_detection and pose_graph need not run.
 """
 from __future__ import annotations
 
@@ -58,7 +70,9 @@ NODE_DEFAULTS = {
     "map_publish_period": 2.0,   # seconds
     "min_valid_depth": 0.05,     # fraction of pixels with a valid depth below which a frame is dropped
     "output_dir": "gausem_output",
+    "loop_closure": "nodes",     # or "core": see the module docstring
 }
+LOOP_CLOSURE_MODES = ("nodes", "core")
 
 
 def _numpy_pose(pose: torch.Tensor) -> np.ndarray:
@@ -76,6 +90,9 @@ class TrackingMappingNode(Node):
         super().__init__("tracking_mapping", **kwargs)
         self.cfg = declare_slam_config(self)
         self.params = p = declare_parameters(self, NODE_DEFAULTS)
+        if p.loop_closure not in LOOP_CLOSURE_MODES:
+            raise ValueError(f"tracking_mapping: loop_closure must be one of {', '.join(LOOP_CLOSURE_MODES)}, got "
+                             f"{p.loop_closure!r}")
         self.palette = class_table(p.classes).palette if p.use_labels else UNLABELLED_PALETTE
         self.device = resolve_device(self.cfg.device)
         self.drops = DropReport(self, status=self._status)
@@ -93,8 +110,10 @@ class TrackingMappingNode(Node):
         self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
             "superseded", "a newer synchronised frame arrived before this one was processed"))
         self.create_subscription(CameraInfo, "rgb/camera_info", self._on_camera_info, qos)
-        self.create_subscription(PointCloud2, "gausem/loop_candidates", self._on_loop_candidates, EVENT_QOS)
-        self.create_subscription(PointCloud2, "gausem/pose_graph", self._on_pose_graph, EVENT_QOS)
+        if self.loop_nodes:
+            self.create_subscription(PointCloud2, "gausem/loop_candidates", self._on_loop_candidates, EVENT_QOS)
+            self.create_subscription(PointCloud2, "gausem/pose_graph", self._on_pose_graph, EVENT_QOS)
+        self._constraint_pub = self.create_publisher(PointCloud2, "gausem/loop_constraints", EVENT_QOS)
         self._odometry_pub = self.create_publisher(Odometry, "gausem/odometry", EVENT_QOS)
         self._path_pub = self.create_publisher(PathMsg, "gausem/path", LATCHED_QOS)
         self._map_pub = self.create_publisher(PointCloud2, "gausem/map", LATCHED_QOS)
@@ -106,9 +125,15 @@ class TrackingMappingNode(Node):
         self.create_service(Trigger, "gausem/reset", self._on_reset)
         self.create_service(Trigger, "gausem/finish", self._on_finish)
 
+    @property
+    def loop_nodes(self) -> bool:
+        """Whether loops come from the loop_detection and pose_graph nodes (``loop_closure: nodes``)."""
+        return self.cfg.loop.enabled and self.params.loop_closure == "nodes"
+
     def _reset_state(self) -> None:
         torch.manual_seed(self.cfg.seed)
-        self.slam = GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
+        self.slam = GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette), detect_loops=not self.loop_nodes)
+        self._constraints_published = 0  # of the core's own constraints (loop_closure: core)
         self.frames_processed = 0
         self._busy: tuple[float, float] | None = None  # perf_counter at the first processed frame's start, last end
         self._last_stamp = -math.inf
@@ -192,7 +217,8 @@ class TrackingMappingNode(Node):
         self._publish_path()
         self._publish_submap_events(submaps_before, header)
         if result.is_keyframe:
-            self._publish_keyframe(result.frame_id, obs.timestamp, header)
+            self._publish_keyframes(self.slam.active, [result.frame_id], header)
+        self._publish_core_constraints(header)
         self._map_dirty = True
         self.drops.publish()
 
@@ -218,12 +244,20 @@ class TrackingMappingNode(Node):
         if events:
             self._submap_pub.publish(ma.records_to_pointcloud2(events, header))
 
-    def _publish_keyframe(self, frame_id: int, stamp: float, header) -> None:
-        submap = next(s for s in reversed(self.slam.submaps) if any(k.frame_id == frame_id for k in s.keyframes))
-        keyframe = next(k for k in submap.keyframes if k.frame_id == frame_id)
-        record = ma.KeyframeRecord(frame_id, stamp, submap.submap_id, _numpy_pose(keyframe.cam_to_world),
-                                   _numpy_pose(submap.anchor), np.zeros(0, np.float32))
-        self._keyframe_pub.publish(ma.records_to_pointcloud2([record], header))
+    def _publish_keyframes(self, submap, frame_ids: list[int] | None, header) -> None:
+        """KeyframeRecords of ``submap``'s keyframes (those in ``frame_ids``, or all) with their current poses."""
+        records = [ma.KeyframeRecord(k.frame_id, k.obs.timestamp, submap.submap_id, _numpy_pose(k.cam_to_world),
+                                     _numpy_pose(submap.anchor), np.zeros(0, np.float32))
+                   for k in submap.keyframes if frame_ids is None or k.frame_id in frame_ids]
+        self._keyframe_pub.publish(ma.records_to_pointcloud2(records, header))
+
+    def _publish_core_constraints(self, header) -> None:
+        """The loops the core closed since the last call (``loop_closure: core``)."""
+        constraints = self.slam.loop_closure.constraints if self.slam.loop_closure else []
+        for constraint in constraints[self._constraints_published:]:
+            self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(constraint)],
+                                                                   header))
+        self._constraints_published = len(constraints)
 
     def _publish_map(self) -> None:
         if not self._map_dirty:
@@ -242,9 +276,24 @@ class TrackingMappingNode(Node):
             return
         self.loop_candidates += candidates
         for c in candidates:
-            self.get_logger().info(f"loop candidate: keyframe {c.query_keyframe_id} (submap {c.query_submap_id}) "
-                                   f"revisits keyframe {c.match_keyframe_id} (submap {c.match_submap_id}), "
-                                   f"descriptor distance {c.descriptor_distance:.3f}")
+            name = f"loop candidate {c.query_keyframe_id}->{c.match_keyframe_id}"
+            try:
+                constraint = self.slam.register_loop(ma.record_to_loop_candidate(c))
+            except ValueError as err:  # unknown keyframes (e.g. from before a reset), inconsistent record
+                self.drops.drop("bad_loop_candidate", f"{name}: {err}")
+                continue
+            record = self.slam.loop_closure.records[-1]
+            self.get_logger().info(f"{name} (submaps {c.query_submap_id}, {c.match_submap_id}, descriptor distance "
+                                   f"{c.descriptor_distance:.3f}): {'accepted' if constraint else 'rejected'}, "
+                                   f"fitness {record.fitness:.3f}, {record.seconds:.2f} s")
+            if constraint is None:
+                continue
+            header = ma.make_header(max(self._last_stamp, 0.0), self.params.map_frame)
+            if constraint.intra:  # the pose graph needs the keyframe poses bundle adjustment has refined since
+                self._publish_keyframes(next(s for s in self.slam.submaps if s.submap_id == constraint.submap_a),
+                                        None, header)
+            self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(constraint)],
+                                                                   header))
 
     def _on_pose_graph(self, msg: PointCloud2) -> None:
         try:
@@ -253,24 +302,19 @@ class TrackingMappingNode(Node):
             self.drops.drop("bad_pose_graph", str(err))
             return
         self.pose_graph_updates.append(update)
-        applied = sum(self._apply(node) for node in update.nodes)
-        self.get_logger().info(f"pose graph update: applied {applied} of {len(update.nodes)} corrected poses")
-        if applied:
+        anchors = self.slam.move_anchors({n.node_id: n.pose for n in update.nodes
+                                          if n.kind == ma.PoseGraphNodeKind.ANCHOR})
+        owner = {k.frame_id: s.submap_id for s in self.slam.submaps for k in s.keyframes}
+        by_submap: dict[int, dict[int, np.ndarray]] = {}
+        for n in update.nodes:
+            if n.kind == ma.PoseGraphNodeKind.KEYFRAME and n.node_id in owner:
+                by_submap.setdefault(owner[n.node_id], {})[n.node_id] = n.pose
+        keyframes = sum(self.slam.move_keyframes(submap_id, poses) for submap_id, poses in by_submap.items())
+        self.get_logger().info(f"pose graph update of {len(update.nodes)} poses: moved {anchors} submaps and "
+                               f"{keyframes} keyframes (re-mapped {len(by_submap)} submaps)")
+        if anchors or keyframes:
             self._publish_path()
             self._map_dirty = True
-
-    def _apply(self, node: ma.PoseGraphNode) -> bool:
-        """Apply one corrected pose; False when no submap / keyframe has its id."""
-        if node.kind == ma.PoseGraphNodeKind.ANCHOR:
-            targets = [s for s in self.slam.submaps if s.submap_id == node.node_id]
-            for submap in targets:
-                submap.anchor = torch.tensor(node.pose, dtype=submap.anchor.dtype, device=submap.anchor.device)
-        else:
-            targets = [k for s in self.slam.submaps for k in s.keyframes if k.frame_id == node.node_id]
-            for keyframe in targets:
-                keyframe.cam_to_world = torch.tensor(node.pose, dtype=keyframe.cam_to_world.dtype,
-                                                        device=keyframe.cam_to_world.device)
-        return bool(targets)
 
     def finish(self) -> None:
         """End of the sequence: the global refinement (``loop.global_refinement``), counted in ``seconds``; the
