@@ -37,7 +37,6 @@ from gausem_core.semantics.descriptors import DescriptorExtractor, make_descript
 from gausem_core.slam.loop import LoopCandidate, LoopDetector, gaussian_idf, landmark_scores, observed_gaussians
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.pose_graph import optimise_chain
-from gausem_core.slam.refinement import global_refinement
 from gausem_core.slam.registration import align_keyframes, semantic_guided_registration
 
 
@@ -112,8 +111,8 @@ class LoopClosure:
     (:meth:`move_keyframes`, :meth:`move_anchors`).
 
     ``mapper`` re-maps submaps after intra-submap loops; ``descriptor`` gives the global descriptors and the dense
-    features of the SGR and refinement feature terms (default: the colour-layout fallback); ``device``: where
-    submaps are loaded for registration and refinement.
+    features of the SGR feature term (default: the colour-layout fallback); ``device``: where submaps are loaded for
+    registration and re-mapping.
     """
 
     def __init__(self, cfg: LoopConfig, mapper: Mapper, descriptor: DescriptorExtractor | None = None,
@@ -154,11 +153,6 @@ class LoopClosure:
         record = dataclasses.replace(self.records[-1], seconds=time.perf_counter() - start)
         self.records[-1] = record
         return record
-
-    def finish(self, submaps: Sequence) -> None:
-        """After the last frame: the two-stage global refinement, when enabled."""
-        if self.cfg.enabled and self.cfg.global_refinement:
-            global_refinement(submaps, self.mapper, self.cfg, self.descriptor, self.backend, self.device)
 
     # --- detection inputs ---------------------------------------------------------------------------------------
     def _descriptor(self, submap, keyframe: Keyframe) -> torch.Tensor:

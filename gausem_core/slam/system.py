@@ -26,6 +26,7 @@ from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
 from gausem_core.slam.loop import LoopCandidate
 from gausem_core.slam.loop_closure import LoopClosure, LoopConstraint
 from gausem_core.slam.mapper import Keyframe, Mapper
+from gausem_core.slam.refinement import global_refinement
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.submap_store import SubmapStore
 from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity
@@ -175,9 +176,10 @@ class GauSemSLAM:
         self.submaps: list[Submap] = []
         self.frames: list[FrameRecord] = []
         self.detect_loops = detect_loops
-        self.loop_closure = LoopClosure(cfg.loop, self.mapper, make_descriptor(
-            cfg.semantics.descriptor, cfg.semantics.dinov2_weights, device=self.device), cfg.backend,
-            self.device) if cfg.loop.enabled else None
+        self.descriptor = make_descriptor(cfg.semantics.descriptor, cfg.semantics.dinov2_weights,
+                                          device=self.device) if cfg.loop.enabled or cfg.loop.global_refinement else None
+        self.loop_closure = LoopClosure(cfg.loop, self.mapper, self.descriptor, cfg.backend,
+                                        self.device) if cfg.loop.enabled else None
 
     @property
     def active(self) -> Submap:
@@ -285,9 +287,10 @@ class GauSemSLAM:
         return LoopClosure.move_anchors(self.submaps, poses)
 
     def finish(self) -> None:
-        """Call after the last frame: the two-stage global refinement (``loop.global_refinement``)."""
-        if self.loop_closure is not None:
-            self.loop_closure.finish(self.submaps)
+        """Call after the last frame: the two-stage global refinement when ``loop.global_refinement`` (with or
+        without loop closure: they are separate ablations, paper Tab. VIII)."""
+        if self.cfg.loop.global_refinement and self.submaps:
+            global_refinement(self.submaps, self.mapper, self.cfg.loop, self.descriptor, self.cfg.backend, self.device)
 
     def trajectory(self) -> list[tuple[float, torch.Tensor]]:
         """(timestamp, cam_to_world) of every processed frame, with all corrections applied."""
