@@ -417,6 +417,29 @@ def test_a_loop_candidate_is_registered_optimised_by_pose_graph_and_applied_with
     assert not tracking.drops.counts and not graph.drops.counts
 
 
+def test_in_core_mode_the_tracker_closes_loops_itself_and_publishes_them():
+    """loop_closure: core: no loop_detection / pose_graph; the core's accepted loop (keyframe 2 -> 0) is published."""
+    slam = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 30, "device": "cpu",
+            "backend": "torch", "submaps.min_keyframes": 100, "loop.keyframe_every": 2, "loop.check_every": 1,
+            "loop.exclude_recent": 0, "loop.max_descriptor_distance": 2.0, "loop_closure": "core"}
+    with ros_session(111) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(slam))
+        recorder = Recorder(ctx, [(PointCloud2, "gausem/loop_constraints", EVENT_QOS)])
+        player = Player(open_source("synthetic", size=(80, 60), max_frames=3), rate=0.0, lockstep=True,
+                        timeout=60.0, context=ctx)
+        for node in (tracking, recorder.node, player):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: player.done, 120.0)
+        assert spin_until(executor, lambda: recorder.messages["gausem/loop_constraints"], 5.0)
+        subscribed = {name for name, _ in tracking.get_subscriber_names_and_types_by_node("tracking_mapping", "/")}
+    assert not {"/gausem/loop_candidates", "/gausem/pose_graph"} & subscribed
+    assert [(r.query_frame, r.match_frame, r.accepted) for r in tracking.slam.loop_closure.records] == [(2, 0, True)]
+    constraint = ma.pointcloud2_to_records(recorder.messages["gausem/loop_constraints"][0], ma.LoopConstraintRecord)
+    core = tracking.slam.loop_closure.constraints[0]
+    assert [(c.keyframe_a, c.keyframe_b, c.intra_submap) for c in constraint] == [(0, 2, True)]
+    np.testing.assert_allclose(constraint[0].relative_pose, core.relative.numpy(), atol=1e-12)
+
+
 def test_lockstep_goes_on_past_a_frame_the_tracker_drops():
     frames = list(open_source("synthetic", size=(80, 60), max_frames=4))
     bad = frames[1]
