@@ -103,6 +103,7 @@ class RegistrationConfig:
     views: int = 4  # fine step: at most this many distinct source keyframes of the top pairs
     lambda_sem: float = 1.0
     lambda_feat: float = 0.5
+    feature_channels: int = 8  # fine step: Eq. 6's dense features on this many principal directions (0: none)
     w_depth: float = 0.5  # depth residual weight in the Gauss-Newton fine step (Eq. 6 has none; 0 drops it)
     downsample: int = 2  # the fine step renders at the keyframe resolution divided by this
     pyramid_levels: int = 3

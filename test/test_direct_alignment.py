@@ -2,6 +2,7 @@
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 
 from gausem_core.geometry import PinholeCamera, invert_pose, se3_exp, so3_log
@@ -39,12 +40,17 @@ def jitter_edges(depth: torch.Tensor) -> torch.Tensor:
     return torch.where(flip, neighbour, depth)
 
 
-def align(motion_truth: torch.Tensor, weights: AlignmentWeights) -> torch.Tensor:
+def align(motion_truth: torch.Tensor, weights: AlignmentWeights, features: bool = False) -> torch.Tensor:
+    """Align the view at identity to the view at ``motion_truth``; with ``features``, a 2-channel feature image (a
+    smooth function of the colour, like upsampled patch features) rides along as feature channels."""
     model_color, model_depth = ray_cast(torch.eye(4, dtype=torch.float64))
     observed_color, observed_depth = ray_cast(invert_pose(motion_truth))
     observed_depth = jitter_edges(observed_depth)
-    model = ModelView(model_color, model_color, model_depth, torch.ones_like(model_depth, dtype=torch.bool), CAMERA)
-    observed = ObservedImages.build(observed_color, observed_color, observed_depth, CAMERA)
+    model_features, observed_features = ((torch.stack([c[..., 0] - c[..., 1], c[..., 2]], -1) for c in
+                                          (model_color, observed_color)) if features else (None, None))
+    model = ModelView(model_color, model_color, model_depth, torch.ones_like(model_depth, dtype=torch.bool), CAMERA,
+                      model_features)
+    observed = ObservedImages.build(observed_color, observed_color, observed_depth, CAMERA, observed_features)
     motion, _ = align_level(model, observed, torch.eye(4, dtype=torch.float64), weights, 30)
     return motion
 
@@ -63,3 +69,25 @@ def test_the_depth_step_mask_is_what_keeps_the_alignment_unbiased():
     unmasked = dataclasses.replace(WEIGHTS, max_depth_slope=float("inf"))
     errors = [float((invert_pose(MOTION) @ align(MOTION, w))[:3, 3].norm()) for w in (WEIGHTS, unmasked)]
     assert errors[0] < 0.5 * errors[1]
+
+
+def test_feature_channels_alone_recover_the_motion():
+    """Colour, semantics and depth weighted zero: the feature residuals carry the whole solve."""
+    features_only = AlignmentWeights(0.0, 0.0, 0.0, huber_delta=0.002, feature=1.0)
+    error = invert_pose(MOTION) @ align(MOTION, features_only, features=True)
+    assert error[:3, 3].norm() < 1e-3
+    assert np.degrees(float(so3_log(error[:3, :3]).norm())) < 0.1
+    unaligned = invert_pose(MOTION)
+    assert error[:3, 3].norm() < 0.2 * unaligned[:3, 3].norm()
+
+
+def test_feature_channels_survive_the_pyramid_and_must_match_the_model():
+    color, depth = ray_cast(torch.eye(4, dtype=torch.float64))
+    observed = ObservedImages.build(color, color, depth, CAMERA, color[..., :2])
+    half = observed.downsampled()
+    assert observed.feature_channels == half.feature_channels == 2 and half.stack.shape[1:] == (60, 80)
+    assert torch.allclose(half.stack[7:], torch.nn.functional.avg_pool2d(color[None, ..., :2].permute(0, 3, 1, 2),
+                                                                         2)[0])
+    model = ModelView(color, color, depth, depth > 0, CAMERA)  # no features
+    with pytest.raises(ValueError, match="0 feature channels, the observation 2"):
+        align_level(model, observed, torch.eye(4, dtype=torch.float64), AlignmentWeights(1.0, 0.0, 1.0), 1)

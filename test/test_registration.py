@@ -8,9 +8,10 @@ import torch
 from gausem_core.config import RegistrationConfig
 from gausem_core.geometry import invert_pose, make_pose, se3_exp, se3_log, so3_exp
 from gausem_core.semantics.descriptors import make_descriptor
-from gausem_core.slam.registration import (align_keyframes, chordal_mean_alignment, coarse_registration,
-                                           consistent_pairs, fine_registration, gauss_newton_alignment,
-                                           is_acceptable, semantic_guided_registration, top_k_descriptor_pairs)
+from gausem_core.slam.registration import (FeatureProjection, align_keyframes, chordal_mean_alignment,
+                                           coarse_registration, consistent_pairs, fine_registration,
+                                           gauss_newton_alignment, is_acceptable, semantic_guided_registration,
+                                           top_k_descriptor_pairs)
 from loop_scene import frame, make_submap, perturbation, pose_error
 
 
@@ -127,6 +128,34 @@ def test_fine_step_recovers_a_perturbed_submap_transform(seed):
     at_init = fine_registration(source.cloud, target.cloud, poses, source.keyframes[0].obs.camera, init,
                                 RegistrationConfig(iterations=0), make_descriptor("fallback"), backend="torch")
     assert at_init.fitness < fine.fitness and at_init.loss > fine.loss  # Eq. 6 (with the feature term) went down
+
+
+def test_feature_projection_keeps_distances_inside_the_reference_span():
+    """Six distinct 16-d features (scaled arbitrarily: they are L2-normalised) span 5 centred directions: projected on
+    5 channels, distances between normalised features are kept; the maps come out at the requested size."""
+    g = torch.Generator().manual_seed(0)
+    codes = torch.randn(6, 16, generator=g, dtype=torch.float64)
+    reference = codes[torch.randint(0, 6, (2, 4, 5), generator=g)] * torch.rand(2, 4, 5, 1, generator=g) * 50
+    projection = FeatureProjection(reference, channels=5)
+    projected = projection(reference[0], (4, 5))
+    assert projected.shape == (4, 5, 5)
+    unit = torch.nn.functional.normalize(reference[0], dim=-1).reshape(-1, 16)
+    assert torch.allclose(torch.cdist(projected.reshape(-1, 5), projected.reshape(-1, 5)), torch.cdist(unit, unit),
+                          atol=1e-9)
+    assert projection(reference[1], (8, 10)).shape == (8, 10, 5)
+
+
+def test_the_feature_term_is_in_the_fine_step_solve():
+    """Same start, feature term on or off (lambda_feat 0): different Gauss-Newton paths, both converge."""
+    source, target, truth, poses = _overlapping_submaps()
+    init = perturbation(0.04, 3.0, 0) @ truth
+    results = [fine_registration(source.cloud, target.cloud, poses[:2], source.keyframes[0].obs.camera, init,
+                                 RegistrationConfig(lambda_feat=weight), make_descriptor("fallback"), backend="torch")
+               for weight in (0.5, 0.0)]
+    assert not torch.allclose(results[0].transform, results[1].transform, atol=1e-6)
+    for fine in results:
+        translation, rotation = pose_error(fine.transform, truth)
+        assert translation < 0.025 and rotation < 1.0
 
 
 def test_fine_step_rejects_a_far_initial_guess():

@@ -5,7 +5,8 @@ pixels with silhouette > threshold are back-projected, moved by the relative mot
 frame and compared with the observed colour, semantics and depth there: the residuals of paper Eq. 2 with the model
 and the observation swapped in role. The L1 norm of Eq. 2 is minimised by iteratively re-weighted least squares
 (weights 1 / max(|r|, delta)); the Jacobian comes from the observed images' gradients, so no back-propagation through
-the rasteriser is needed, and a coarse-to-fine image pyramid widens the basin of convergence.
+the rasteriser is needed, and a coarse-to-fine image pyramid widens the basin of convergence. Optional dense feature
+channels (the feature term of SGR's Eq. 6) enter exactly like colour: per-pixel residuals with their own weight.
 """
 from __future__ import annotations
 
@@ -19,18 +20,21 @@ from gausem_core.geometry import PinholeCamera, invert_pose, se3_exp, skew
 
 @dataclass
 class ModelView:
-    """A rendered model view: colour and semantic colour (H,W,3), expected depth (H,W), valid mask (H,W)."""
+    """A rendered model view: colour and semantic colour (H,W,3), expected depth (H,W), valid mask (H,W), and
+    optional dense features (H,W,F) matching the observation's feature channels."""
 
     color: torch.Tensor
     semantic: torch.Tensor
     depth: torch.Tensor
     mask: torch.Tensor
     camera: PinholeCamera
+    features: torch.Tensor | None = None
 
 
 @dataclass
 class ObservedImages:
-    """One pyramid level of the observation, channels first for sampling: (C, H, W) with C = 3 + 3 + 1."""
+    """One pyramid level of the observation, channels first for sampling: (C, H, W), colour 3 + semantic colour 3 +
+    depth 1, then F feature channels (F = 0 without features)."""
 
     stack: torch.Tensor
     grad_u: torch.Tensor
@@ -38,8 +42,10 @@ class ObservedImages:
     camera: PinholeCamera
 
     @classmethod
-    def build(cls, rgb: torch.Tensor, semantic: torch.Tensor, depth: torch.Tensor, camera: PinholeCamera):
-        stack = torch.cat([rgb.permute(2, 0, 1), semantic.permute(2, 0, 1), depth[None]], 0)
+    def build(cls, rgb: torch.Tensor, semantic: torch.Tensor, depth: torch.Tensor, camera: PinholeCamera,
+              features: torch.Tensor | None = None):
+        parts = [rgb.permute(2, 0, 1), semantic.permute(2, 0, 1), depth[None]]
+        stack = torch.cat(parts + ([features.permute(2, 0, 1)] if features is not None else []), 0)
         padded = F.pad(stack[None], (1, 1, 1, 1), mode="replicate")[0]
         grad_u = 0.5 * (padded[:, 1:-1, 2:] - padded[:, 1:-1, :-2])
         grad_v = 0.5 * (padded[:, 2:, 1:-1] - padded[:, :-2, 1:-1])
@@ -49,12 +55,23 @@ class ObservedImages:
         """Half resolution: colour and semantics averaged, depth averaged over valid pixels only."""
         h, w = self.stack.shape[1] // 2 * 2, self.stack.shape[2] // 2 * 2
         s = self.stack[:, :h, :w]
-        colour = F.avg_pool2d(s[None, :6], 2)[0]
+        pooled = F.avg_pool2d(s[None], 2)[0]  # colour, semantics and features
         depth, valid = s[6:7], (s[6:7] > 0).float()
         depth_sum, count = F.avg_pool2d((depth * valid)[None], 2)[0], F.avg_pool2d(valid[None], 2)[0]
         depth = torch.where(count > 0.99, depth_sum / count.clamp_min(1e-6), torch.zeros_like(depth_sum))
         camera = self.camera.scaled(w // 2, h // 2)
-        return ObservedImages.build(colour[:3].permute(1, 2, 0), colour[3:6].permute(1, 2, 0), depth[0], camera)
+        features = pooled[7:].permute(1, 2, 0) if self.feature_channels else None
+        return ObservedImages.build(pooled[:3].permute(1, 2, 0), pooled[3:6].permute(1, 2, 0), depth[0], camera,
+                                    features)
+
+    def with_features(self, features: torch.Tensor | None) -> "ObservedImages":
+        """The same images with these (H, W, F) feature channels instead of the present ones."""
+        s = self.stack
+        return ObservedImages.build(s[:3].permute(1, 2, 0), s[3:6].permute(1, 2, 0), s[6], self.camera, features)
+
+    @property
+    def feature_channels(self) -> int:
+        return self.stack.shape[0] - 7
 
 
 _MAX_COLOR_RESIDUAL = 0.5  # per channel (colours in [0, 1]): an unexplained pixel's colour error in the cost cap
@@ -75,15 +92,17 @@ class AlignmentWeights:
     huber_delta: float = 0.01  # IRLS floor of |r| (L1 weights 1/|r| are capped at 1/delta)
     max_depth_residual: float = 0.1  # metres: larger depth residuals are occlusions, not misalignment
     max_depth_slope: float = 3.0  # observed depth gradient (metres per metre across the view) beyond: a discontinuity
+    feature: float = 0.0  # weight of each dense feature channel (when the images carry any)
 
 
 def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                points: torch.Tensor, ref: torch.Tensor):
-    """Residuals (7, N), Jacobians (7, N, 6), IRLS weights (7, N) and the cost at ``motion``.
+    """Residuals (C, N), Jacobians (C, N, 6), IRLS weights (C, N) and the cost at ``motion``; C = 7 + F channels
+    (colour, semantics, depth, features).
 
     The cost is the weighted L1 per model pixel, truncated at the cost of a ``max_depth_residual`` depth error plus
-    colour and semantic errors of ``_MAX_COLOR_RESIDUAL``, which is also what a model pixel without a valid observed
-    counterpart costs: comparable across poses. Depth residuals where the observed depth is steeper than
+    colour, semantic and feature errors of ``_MAX_COLOR_RESIDUAL``, which is also what a model pixel without a valid
+    observed counterpart costs: comparable across poses. Depth residuals where the observed depth is steeper than
     ``max_depth_slope`` (discontinuities: sensor noise and mixed pixels, no surface derivative) get no IRLS weight.
     Returns None when fewer than 12 model pixels land on valid observed pixels.
     """
@@ -105,38 +124,46 @@ def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
                          torch.stack([zero, cam.fy / z, -cam.fy * p[:, 1] / z**2], -1)], 1)
     eye = torch.eye(3, dtype=p.dtype, device=p.device).expand(len(p), 3, 3)
     dp = torch.cat([eye, -skew(p)], 2)
-    jac = torch.einsum("cnk,nkj->cnj", torch.stack([gu, gv], -1), dproj @ dp)  # (7, N, 6)
-    jac = torch.cat([jac[:6], (jac[6] - dp[:, 2])[None]], 0)  # observed depth moves with the pixel, and so does z
-    res = torch.cat([obs[:6] - ref[:, valid], depth_res[None]], 0)
-    chan = torch.tensor([weights.color] * 3 + [weights.semantic] * 3 + [weights.depth], dtype=p.dtype,
-                        device=p.device)[:, None]
+    jac = torch.einsum("cnk,nkj->cnj", torch.stack([gu, gv], -1), dproj @ dp)  # (C, N, 6)
+    jac = torch.cat([jac[:6], (jac[6] - dp[:, 2])[None], jac[7:]], 0)  # observed depth moves with the pixel, so does z
+    ref = ref[:, valid]
+    res = torch.cat([obs[:6] - ref[:6], depth_res[None], obs[7:] - ref[6:]], 0)
+    features = observed.feature_channels
+    chan = torch.tensor([weights.color] * 3 + [weights.semantic] * 3 + [weights.depth] + [weights.feature] * features,
+                        dtype=p.dtype, device=p.device)[:, None]
     irls = chan / res.abs().clamp_min(weights.huber_delta)  # IRLS weights of the L1 norm
     # depth discontinuities: the observed depth's gradient there is no derivative of the surface, leave them out
     slope = (gu[6].abs() * cam.fx + gv[6].abs() * cam.fy) / z
     irls[6] = irls[6] * (slope < weights.max_depth_slope)
-    cap = weights.depth * weights.max_depth_residual + 3 * (weights.color + weights.semantic) * _MAX_COLOR_RESIDUAL
+    cap = (weights.depth * weights.max_depth_residual
+           + (3 * weights.color + 3 * weights.semantic + features * weights.feature) * _MAX_COLOR_RESIDUAL)
     cost = (chan * res.abs()).sum(0).clamp_max(cap).sum() + cap * (len(points) - len(p))
     return res, jac, irls, float(cost / len(points))
 
 
-def _model_samples(model: ModelView) -> tuple[torch.Tensor, torch.Tensor]:
-    """Back-projected model pixels (N, 3) and their colour + semantic values (6, N)."""
+def _model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Tensor, torch.Tensor]:
+    """Back-projected model pixels (N, 3) and their colour + semantic (+ feature) values (6 + F, N)."""
+    channels = 0 if model.features is None else model.features.shape[-1]
+    if channels != observed.feature_channels:
+        raise ValueError(f"the model view has {channels} feature channels, the observation "
+                         f"{observed.feature_channels}")
     rays = model.camera.pixel_rays(model.depth.dtype, model.depth.device)
     points = (rays * model.depth[..., None])[model.mask]
-    return points, torch.cat([model.color[model.mask], model.semantic[model.mask]], 1).T
+    values = [model.color, model.semantic] + ([model.features] if channels else [])
+    return points, torch.cat([v[model.mask] for v in values], 1).T
 
 
 def alignment_cost(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
                    weights: AlignmentWeights) -> float:
     """Mean weighted L1 residual of the model seen through ``motion`` (inf when the views do not overlap)."""
-    lin = _linearise(model, observed, motion, weights, *_model_samples(model))
+    lin = _linearise(model, observed, motion, weights, *_model_samples(model, observed))
     return float("inf") if lin is None else lin[3]
 
 
 def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                 iterations: int, damping: float = 1e-4) -> tuple[torch.Tensor, float]:
     """Refine ``motion`` (observed-camera-from-model-camera, 4x4) on one level; returns it and the last mean L1."""
-    points, ref = _model_samples(model)
+    points, ref = _model_samples(model, observed)
     cost = float("nan")
     for _ in range(iterations):
         lin = _linearise(model, observed, motion, weights, points, ref)

@@ -6,13 +6,14 @@ same viewpoint satisfy ``T_t ≈ T @ T_s``. (With world-from-anchor poses A_s, A
 
 Fine step (unidirectional, Gaussians frozen), at the keyframe resolution divided by ``downsample``: each selected
 source keyframe pose T_s^i is rendered once in the SOURCE submap (colour, semantics, depth: the reference of Eq. 6)
-and the TARGET submap is rendered at T T_s^i. The colour + lambda_sem * semantic (+ w_depth * depth) residuals
-between the two are minimised by the tracker's coarse-to-fine IRLS Gauss-Newton
+and the TARGET submap is rendered at T T_s^i. The colour + lambda_sem * semantic + lambda_feat * feature
+(+ w_depth * depth) residuals between the two are minimised by the tracker's coarse-to-fine IRLS Gauss-Newton
 (:func:`~gausem_core.slam.direct_alignment.align_level`), one view at a time; the per-view corrected poses are fused
 into one T by Eq. 5's Gauss-Newton on SE(3), and the target is re-rendered at the fused T for the next pyramid level.
-The dense-feature term of Eq. 6 (lambda_feat times the squared distance of the semantic images' patch features) is
-not in the Gauss-Newton system, whose residuals are per-pixel image channels; it enters the Eq. 6 loss reported at
-the result. There too the overlap (the fraction of source-view pixels the target renders as well) and the fitness
+The feature residuals are per-pixel channels like colour: the dense features of each rendered semantic image
+(DINOv2 patch tokens, or the fallback's), L2-normalised, projected onto the ``feature_channels`` principal directions
+of the source views' features and upsampled to the render. The Eq. 6 loss reported at the result uses the full
+features. There too the overlap (the fraction of source-view pixels the target renders as well) and the fitness
 (the fraction of those where the two agree in depth and class) are measured. The spread of the per-view estimates
 around the fused T is the registration's uncertainty: with overlap and fitness it decides acceptance, and it sets
 the loop edge's standard deviations.
@@ -24,6 +25,7 @@ import time
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from gausem_core.config import RegistrationConfig
 from gausem_core.gaussians import GaussianCloud
@@ -217,15 +219,51 @@ def _pyramid(images: ObservedImages, levels: int) -> list[ObservedImages]:
     return pyramid
 
 
-def _source_views(cloud: GaussianCloud, poses: torch.Tensor, camera: PinholeCamera, levels: int, threshold: float,
-                  backend: str) -> list[list[ObservedImages]]:
-    """Render the source submap at its keyframe poses: one image pyramid (finest first) per view."""
+class FeatureProjection:
+    """Dense features (h, w, D) -> pixel-resolution feature channels (H, W, F): L2-normalised, centred and projected
+    onto the top F principal directions of the reference features it was built from, then upsampled bilinearly."""
+
+    def __init__(self, reference: torch.Tensor, channels: int):
+        flat = F.normalize(reference.reshape(-1, reference.shape[-1]), dim=1)
+        self.mean = flat.mean(0)
+        self.basis = torch.linalg.svd(flat - self.mean, full_matrices=False)[2][:channels].T
+
+    def __call__(self, dense: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+        projected = (F.normalize(dense, dim=-1) - self.mean) @ self.basis
+        return F.interpolate(projected.permute(2, 0, 1)[None], size=size, mode="bilinear",
+                             align_corners=False)[0].permute(1, 2, 0)
+
+
+def _source_views(cloud: GaussianCloud, poses: torch.Tensor, camera: PinholeCamera, cfg: RegistrationConfig,
+                  features: DescriptorExtractor | None,
+                  backend: str) -> tuple[list[list[ObservedImages]], FeatureProjection | None]:
+    """Render the source submap at its keyframe poses: one image pyramid (finest first) per view. With ``features``
+    and the feature term on, the levels whose pixels are no finer than the feature patch grid carry the features of
+    their own semantic image (as the target's renders at those levels will), projected on the principal directions
+    of those features; at finer levels the features would move with the grid, not with the content, and bias the fit.
+    """
     pyramids = []
     for pose in poses:
         out = render(cloud, _world_to_cam(pose, cloud), camera, backend=backend)
-        depth = torch.where(out.alpha > threshold, out.expected_depth, torch.zeros_like(out.depth))
-        pyramids.append(_pyramid(ObservedImages.build(out.color, out.semantic, depth, camera), levels))
-    return pyramids
+        depth = torch.where(out.alpha > cfg.silhouette_threshold, out.expected_depth, torch.zeros_like(out.depth))
+        pyramids.append(_pyramid(ObservedImages.build(out.color, out.semantic, depth, camera), cfg.pyramid_levels))
+    if features is None or cfg.lambda_feat <= 0 or cfg.feature_channels <= 0:
+        return pyramids, None
+    dense = {}  # (view, level) -> patch features, coarsest level first, while the grid is as fine as the pixels
+    for view, pyramid in enumerate(pyramids):
+        for level in reversed(range(len(pyramid))):
+            patches = features.dense_features(pyramid[level].stack[3:6].permute(1, 2, 0))
+            if patches.shape[0] < pyramid[level].stack.shape[1]:
+                break
+            dense[view, level] = patches
+    if not dense:
+        return pyramids, None
+    projection = FeatureProjection(torch.cat([d.reshape(-1, d.shape[-1]) for d in dense.values()]),
+                                   cfg.feature_channels)
+    for (view, level), patches in dense.items():
+        images = pyramids[view][level]
+        pyramids[view][level] = images.with_features(projection(patches, images.stack.shape[1:]))
+    return pyramids, projection
 
 
 def _world_to_cam(cam_to_world: torch.Tensor, cloud: GaussianCloud) -> torch.Tensor:
@@ -253,9 +291,10 @@ def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses
     src = source_poses.to("cpu", torch.float64)
     transform = init.to("cpu", torch.float64)
     camera = camera.scaled(camera.width // cfg.downsample, camera.height // cfg.downsample)
-    weights = AlignmentWeights(1.0, cfg.lambda_sem, cfg.w_depth, max_depth_residual=cfg.max_depth_residual)
+    weights = AlignmentWeights(1.0, cfg.lambda_sem, cfg.w_depth, max_depth_residual=cfg.max_depth_residual,
+                               feature=cfg.lambda_feat)
     with torch.no_grad():
-        pyramids = _source_views(source, src, camera, cfg.pyramid_levels, cfg.silhouette_threshold, backend)
+        pyramids, projection = _source_views(source, src, camera, cfg, features, backend)
         used = torch.zeros(0, dtype=torch.long)
         corrected = src[:0]
         for level in [l for l in reversed(range(cfg.pyramid_levels)) for _ in range(cfg.renders_per_level)]:
@@ -264,8 +303,10 @@ def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses
                 observed = pyramid[level]
                 model_pose = transform @ src[i]
                 out = render(target, _world_to_cam(model_pose, target), observed.camera, backend=backend)
+                channels = (projection(features.dense_features(out.semantic), out.depth.shape)
+                            if observed.feature_channels else None)
                 model = ModelView(out.color, out.semantic, out.expected_depth, out.alpha > cfg.silhouette_threshold,
-                                  observed.camera)
+                                  observed.camera, channels)
                 eye = torch.eye(4, dtype=out.color.dtype, device=out.color.device)
                 motion, cost = align_level(model, observed, eye, weights, cfg.iterations)
                 if math.isfinite(cost):
