@@ -52,7 +52,7 @@ class ObservedImages:
         return cls(stack, grad_u, grad_v, camera)
 
     def downsampled(self) -> "ObservedImages":
-        """Half resolution: colour and semantics averaged, depth averaged over valid pixels only."""
+        """Half resolution: colour, semantics and features averaged, depth averaged over valid pixels only."""
         h, w = self.stack.shape[1] // 2 * 2, self.stack.shape[2] // 2 * 2
         s = self.stack[:, :h, :w]
         pooled = F.avg_pool2d(s[None], 2)[0]  # colour, semantics and features
