@@ -12,7 +12,8 @@ and the TARGET submap is rendered at T T_s^i. The colour + lambda_sem * semantic
 into one T by Eq. 5's Gauss-Newton on SE(3), and the target is re-rendered at the fused T for the next pyramid level.
 The feature residuals are per-pixel channels like colour: the dense features of each rendered semantic image
 (DINOv2 patch tokens, or the fallback's), L2-normalised, projected onto the ``feature_channels`` principal directions
-of the source views' features and upsampled to the render. The Eq. 6 loss reported at the result uses the full
+of the source views' features and upsampled to the render, at the pyramid levels no finer than the patch grid (finer,
+they would move with the grid rather than the content). The Eq. 6 loss reported at the result uses the full
 features. There too the overlap (the fraction of source-view pixels the target renders as well) and the fitness
 (the fraction of those where the two agree in depth and class) are measured. The spread of the per-view estimates
 around the fused T is the registration's uncertainty: with overlap and fitness it decides acceptance, and it sets
