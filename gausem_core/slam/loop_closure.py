@@ -200,11 +200,11 @@ class LoopClosure:
         return constraint if accepted else None
 
     def _register_intra(self, candidate: LoopCandidate, by_id: dict) -> tuple[LoopConstraint, bool]:
-        keyframes = by_id[candidate.query_submap].keyframes
+        submap = by_id[candidate.query_submap]
+        keyframes = submap.keyframes
         index = {kf.frame_id: i for i, kf in enumerate(keyframes)}
         j, k = index[candidate.match_keyframe], index[candidate.query_keyframe]
         init = invert_pose(keyframes[k].cam_to_world) @ keyframes[j].cam_to_world
-        submap = by_id[candidate.query_submap]
         motion, fitness = align_keyframes(submap.observation(keyframes[j], self.device),
                                           submap.observation(keyframes[k], self.device), init,
                                           self.cfg.registration)

@@ -250,11 +250,15 @@ def _source_views(cloud: GaussianCloud, poses: torch.Tensor, camera: PinholeCame
         pyramids.append(_pyramid(ObservedImages.build(out.color, out.semantic, depth, camera), cfg.pyramid_levels))
     if features is None or cfg.lambda_feat <= 0 or cfg.feature_channels <= 0:
         return pyramids, None
-    dense = {}  # (view, level) -> patch features, coarsest level first, while the grid is as fine as the pixels
-    for view, pyramid in enumerate(pyramids):
+    dense, grid_rows = {}, None  # (view, level) -> patch features, coarsest level first, while the grid is as fine
+    for view, pyramid in enumerate(pyramids):  # as the pixels (its rows do not depend on the input size)
         for level in reversed(range(len(pyramid))):
+            rows = pyramid[level].stack.shape[1]
+            if grid_rows is not None and grid_rows < rows:
+                break
             patches = features.dense_features(pyramid[level].stack[3:6].permute(1, 2, 0))
-            if patches.shape[0] < pyramid[level].stack.shape[1]:
+            grid_rows = patches.shape[0]
+            if grid_rows < rows:
                 break
             dense[view, level] = patches
     if not dense:
