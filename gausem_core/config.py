@@ -127,7 +127,8 @@ class LoopConfig:
     enabled: bool = True  # ablation "w/o loop closure" when false
     keyframe_every: int = 5  # d_k: mapping keyframes whose frame index is a multiple of this enter the database
     check_every: int = 6
-    max_descriptor_distance: float = 0.2
+    max_descriptor_distance: float = 0.2  # loop candidates: DINOv2 CLS distance below this (paper)
+    max_fallback_descriptor_distance: float = 0.35  # ... colour-layout fallback distance below this (its own scale)
     exclude_recent: int = 6
     robust_kernel: str = "huber"
     odometry_sigma_translation: float = 0.01  # pose-graph odometry edges per keyframe step (metres, radians)
@@ -137,6 +138,12 @@ class LoopConfig:
     global_refinement: bool = True  # ablation "w/o global refinement" when false
     refine_iterations_per_keyframe: int = 10  # both refinement stages
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+
+    def descriptor_threshold(self, kind: str) -> float:
+        """The loop-candidate distance threshold for descriptors of this kind ("dinov2" or "fallback")."""
+        if kind not in ("dinov2", "fallback"):
+            raise ValueError(f"unknown descriptor kind {kind!r}; expected 'dinov2' or 'fallback'")
+        return self.max_descriptor_distance if kind == "dinov2" else self.max_fallback_descriptor_distance
 
 
 @dataclass

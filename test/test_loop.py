@@ -167,10 +167,14 @@ def test_detector_min_submap_gap_and_errors():
         detector.add_keyframe(2, 8, place, torch.zeros(3, 1))
     with pytest.raises(ValueError, match="check_every"):
         LoopDetector(check_every=0)
-    cfg = LoopConfig(keyframe_every=3, check_every=4, max_descriptor_distance=0.1, exclude_recent=2)
-    from_cfg = LoopDetector.from_config(cfg, backend="torch")
+    cfg = LoopConfig(keyframe_every=3, check_every=4, max_descriptor_distance=0.1,
+                     max_fallback_descriptor_distance=0.3, exclude_recent=2)
+    from_cfg = LoopDetector.from_config(cfg, "dinov2", backend="torch")
     assert (from_cfg.keyframe_every, from_cfg.check_every, from_cfg.max_descriptor_distance,
             from_cfg.exclude_recent) == (3, 4, 0.1, 2)
+    assert LoopDetector.from_config(cfg, "fallback", backend="torch").max_descriptor_distance == 0.3
+    with pytest.raises(ValueError, match="descriptor kind"):
+        LoopDetector.from_config(cfg, "netvlad")
 
 
 def test_detector_compares_grown_landmark_vectors_zero_padded():

@@ -14,7 +14,7 @@ from gausem_core.slam.loop_closure import LoopClosure, SemanticPalette  # noqa: 
 
 
 def _closure(**overrides) -> LoopClosure:
-    cfg = LoopConfig(**{"check_every": 1, "max_descriptor_distance": 0.45, "global_refinement": False, **overrides})
+    cfg = LoopConfig(**{"check_every": 1, "max_fallback_descriptor_distance": 0.45, "global_refinement": False, **overrides})
     return LoopClosure(cfg, Mapper(MappingConfig()), backend="torch", database_backend="torch")
 
 
@@ -59,7 +59,7 @@ def test_intra_submap_loop_pulls_drifted_keyframes_back():
         drift = drift @ perturbation(0.01, 0.6, kf.frame_id).float()
         kf.cam_to_world = kf.cam_to_world @ drift
     before = [pose_error(kf.cam_to_world, t) for kf, t in zip(submap.keyframes, truth)]
-    closure = _closure(check_every=6, max_descriptor_distance=0.2, remap_iterations_per_keyframe=1)
+    closure = _closure(check_every=6, max_fallback_descriptor_distance=0.2, remap_iterations_per_keyframe=1)
     gaussians = len(submap.cloud)
     _feed(closure, [submap])
     assert [(r.query_frame, r.match_frame, r.intra, r.accepted) for r in closure.records] == [(55, 5, True, True)]

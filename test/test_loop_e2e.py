@@ -28,7 +28,6 @@ CONFIG = {"backend": "torch", "device": "cpu", "mapping.every": 2, "mapping.iter
           "mapping.init_iterations": 20, "mapping.init_samples_fraction": 0.5, "mapping.optimise_poses": False,
           "submaps.policy": "motion", "submaps.motion_translation": 0.8, "submaps.motion_rotation_deg": 60.0,
           "submaps.boundary_iterations": 5, "loop.keyframe_every": 2, "loop.check_every": 3,
-          "loop.max_descriptor_distance": 0.35,  # the colour-layout descriptor's scale (no DINOv2 weights here)
           "loop.odometry_sigma_rotation": 0.01,  # per keyframe: the injected drift is 0.16 degrees (0.003 rad)
           "loop.registration.downsample": 1, "loop.registration.pyramid_levels": 2, "loop.global_refinement": False}
 

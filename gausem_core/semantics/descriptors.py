@@ -42,6 +42,7 @@ class DescriptorExtractor(ABC):
     """
 
     dim = DESCRIPTOR_DIM
+    kind: str  # "dinov2" or "fallback": distances of different kinds are on different scales
 
     @abstractmethod
     def describe(self, semantic_rgb) -> np.ndarray:
@@ -55,6 +56,8 @@ class DescriptorExtractor(ABC):
 class Dinov2Descriptor(DescriptorExtractor):
     """DINOv2 CLS token (global) and patch tokens (dense) of the semantic image; ``short_side``: backbone input short
     side (rounded to a multiple of 14)."""
+
+    kind = "dinov2"
 
     def __init__(self, dinov2_weights: str, short_side: int = 224, device: torch.device | str = "cpu"):
         self.backbone = load_dinov2(dinov2_weights, device)
@@ -80,6 +83,7 @@ class Dinov2Descriptor(DescriptorExtractor):
 class ColourLayoutDescriptor(DescriptorExtractor):
     """Deterministic, weight-free fallback (see the module docstring for what it is and what it loses)."""
 
+    kind = "fallback"
     GRID = (2, 3)
     LEVELS = 4
     BANDWIDTH = 0.2

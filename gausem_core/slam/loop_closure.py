@@ -122,7 +122,8 @@ class LoopClosure:
         self.backend = backend
         self.device = torch.device(device)
         self.descriptor = descriptor if descriptor is not None else make_descriptor("fallback")
-        self.detector = LoopDetector.from_config(cfg, descriptor_dim=self.descriptor.dim, backend=database_backend)
+        self.detector = LoopDetector.from_config(cfg, self.descriptor.kind, descriptor_dim=self.descriptor.dim,
+                                                 backend=database_backend)
         self.palette = SemanticPalette()
         self.records: list[LoopRecord] = []
         self.constraints: list[LoopConstraint] = []  # accepted loops corrected here, both levels
@@ -223,7 +224,7 @@ class LoopClosure:
             source.load_cloud(self.device), self._poses(source), self._descriptor_stack(source),
             target.load_cloud(self.device), self._poses(target), self._descriptor_stack(target),
             source.keyframes[0].obs.camera, self.cfg.registration, self.descriptor, self.backend,
-            self.cfg.max_descriptor_distance, loop_pair)
+            self.detector.max_descriptor_distance, loop_pair)
         first, last = sorted((target.submap_id, source.submap_id))
         between = sum(len(s.keyframes) for s in by_id.values() if first <= s.submap_id < last)
         current = invert_pose(target.anchor) @ source.anchor

@@ -7,7 +7,8 @@ colour image (the class table's colours of the labels) with ``semantics.descript
 ``semantics.dinov2_weights``, else the colour-layout fallback), so labels are needed. Every keyframe the tracker
 publishes is a loop keyframe (the tracker already keeps one every ``mapping.every`` frames; a keyframe id seen before
 is a re-publication and ignored); ``loop.check_every``,
-``loop.max_descriptor_distance`` and ``loop.exclude_recent`` configure the detector.
+``loop.max_descriptor_distance`` (DINOv2) or ``loop.max_fallback_descriptor_distance`` (the fallback descriptor) and
+``loop.exclude_recent`` configure the detector.
 
 Landmark scores (Eq. 7) need the class of every Gaussian of a submap and which ones a frame observes; this node does
 not hold the map, so the keyframes' label pixels (every ``label_stride``-th row and column) stand in for the Gaussians:
@@ -44,7 +45,7 @@ class LoopDetectionNode(Node):
         self.table = class_table(p.classes)
         self.extractor = make_descriptor(cfg.semantics.descriptor, cfg.semantics.dinov2_weights or None,
                                          device=resolve_device(cfg.device))
-        self.detector = LoopDetector.from_config(cfg.loop, descriptor_dim=self.extractor.dim)
+        self.detector = LoopDetector.from_config(cfg.loop, self.extractor.kind, descriptor_dim=self.extractor.dim)
         self.drops = DropReport(self)
         self.candidates: list[ma.LoopCandidateRecord] = []
         self.keyframes_checked = 0

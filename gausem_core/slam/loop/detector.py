@@ -56,9 +56,11 @@ class LoopDetector:
         self._keyframes: dict[int, tuple[int, torch.Tensor]] = {}  # keyframe id -> (submap id, landmark scores)
 
     @classmethod
-    def from_config(cls, cfg: LoopConfig, **kwargs) -> "LoopDetector":
+    def from_config(cls, cfg: LoopConfig, descriptor_kind: str, **kwargs) -> "LoopDetector":
+        """The detector of ``cfg`` for descriptors of ``descriptor_kind`` (which picks the distance threshold)."""
         return cls(keyframe_every=cfg.keyframe_every, check_every=cfg.check_every,
-                   max_descriptor_distance=cfg.max_descriptor_distance, exclude_recent=cfg.exclude_recent, **kwargs)
+                   max_descriptor_distance=cfg.descriptor_threshold(descriptor_kind),
+                   exclude_recent=cfg.exclude_recent, **kwargs)
 
     def is_keyframe(self, frame_index: int) -> bool:
         """Algorithm 1, line 1: a keyframe every ``keyframe_every`` frames (frame 0 is one)."""
