@@ -29,7 +29,7 @@ OUT = Path(__file__).resolve().parent / "results"
 
 
 def oracle_affine(rendered: torch.Tensor, image: torch.Tensor) -> tuple[torch.Tensor, list[list[float]]]:
-    """The render (H, W, 3) after the per-channel gain and bias that best fit ``image``; also (gain, bias) per channel."""
+    """The render (H, W, 3) after the per-channel gain and bias that best fit ``image``, and those (gain, bias)."""
     corrected, coefficients = torch.empty_like(rendered), []
     for channel in range(3):
         x = rendered[..., channel].reshape(-1)
@@ -68,7 +68,8 @@ def main() -> None:
     OUT.mkdir(exist_ok=True)
     (OUT / f"exposure_oracle_{args.name}.json").write_text(json.dumps(document, indent=2) + "\n")
     gains = [c[0] for f in frames for c in f["gain_bias_rgb"]]
-    summary = (f"# Exposure oracle: {args.dataset} at {args.size[0]}x{args.size[1]} (commit {(document['commit'] or 'unknown')[:10]})"
+    commit = (document["commit"] or "unknown")[:10]
+    summary = (f"# Exposure oracle: {args.dataset} at {args.size[0]}x{args.size[1]} (commit {commit})"
                f"\n\nMean PSNR over {len(frames)} frames: {document['psnr']:.2f} dB as rendered, "
                f"{document['psnr_oracle_exposure']:.2f} dB after the per-frame oracle gain and bias "
                f"(gains {min(gains):.3f}-{max(gains):.3f}).\n")
