@@ -56,8 +56,8 @@ def main() -> None:
     for k in range(0, len(result.frame_ids), args.eval_every):
         obs = pipeline.observation(dataset[k])
         with torch.no_grad():
-            out = render(cloud, invert_pose(torch.as_tensor(result.poses[k], dtype=cloud.dtype)), obs.camera,
-                         backend=cfg.backend)
+            pose = torch.as_tensor(result.poses[k], dtype=cloud.dtype, device=cloud.device)
+            out = render(cloud, invert_pose(pose), obs.camera, backend=cfg.backend)
         corrected, coefficients = oracle_affine(out.color, obs.rgb)
         frames.append({"frame": result.frame_ids[k], "psnr": psnr(out.color, obs.rgb),
                        "psnr_oracle_exposure": psnr(corrected, obs.rgb), "gain_bias_rgb": coefficients})
