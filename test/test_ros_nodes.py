@@ -318,7 +318,8 @@ def test_run_all_builds_the_node_set_the_parameters_ask_for():
 def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
     """Frames 0-3 with every node up, 4-5 with loop_detection and pose_graph down, 6-9 after fresh instances start."""
     slam = {**FAST_SLAM, "mapping.every": 2}  # keyframes 0, 2, 4, 6, 8
-    loops = {"loop.check_every": 1, "loop.exclude_recent": 0, "loop.max_fallback_descriptor_distance": 2.0,  # a loop per check
+    # a loop per check
+    loops = {"loop.check_every": 1, "loop.exclude_recent": 0, "loop.max_fallback_descriptor_distance": 2.0,
              "loop.registration.min_fitness": 2.0}  # none accepted: the constraint below stands in for registration
     frames = list(open_source("synthetic", size=(80, 60), max_frames=10))
     with ros_session(108) as (ctx, executor):
