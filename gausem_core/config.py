@@ -148,7 +148,7 @@ class LoopConfig:
 
 @dataclass
 class SlamConfig:
-    backend: str = "auto"  # renderer back-end: "auto", "torch" or "gsplat"
+    backend: str = "auto"  # renderer back-end: "auto", "torch", "cpu" or "gsplat"
     device: str = "auto"  # "auto" (CUDA when available), "cpu" or "cuda"
     seed: int = 0
     tracking: TrackingConfig = field(default_factory=TrackingConfig)

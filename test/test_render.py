@@ -1,17 +1,21 @@
 """The differentiable Gaussian renderer: analytic footprints, compositing order, depth, a naive reference loop,
-gradients (gradcheck), culling and empty views, band processing, back-end selection."""
+gradients (gradcheck), culling and empty views, band processing, the compiled CPU kernel, back-end selection."""
 import math
+import shutil
 
 import pytest
 import torch
 
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, se3_exp
-from gausem_core.render import RenderOutput, render, select_backend
+from gausem_core.render import RenderOutput, cpu_backend, render, select_backend
+from gausem_core.render.cpu_backend import cpu_kernel_available, cpu_kernel_error, rasterize_cpu
 from gausem_core.render.projection import project
 from gausem_core.render.torch_backend import rasterize_torch
 
 CAM = PinholeCamera(fx=20.0, fy=22.0, cx=8.0, cy=6.0, width=16, height=12)
+CPU_BACKENDS = ["torch", pytest.param("cpu", marks=pytest.mark.skipif(
+    not cpu_kernel_available(), reason=f"compiled CPU kernel unavailable: {cpu_kernel_error()}"))]
 
 
 def cloud_of(means, radii, opacities, colors=None, semantics=None, dtype=torch.float64):
@@ -100,31 +104,36 @@ def test_depth_of_a_fronto_parallel_plane():
     assert torch.allclose(out.depth / out.alpha, torch.full_like(out.depth, z), atol=1e-9)
 
 
-def test_agrees_with_a_naive_per_pixel_loop():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_agrees_with_a_naive_per_pixel_loop(backend):
     cloud = random_cloud(25)
     pose = se3_exp(torch.tensor([0.05, -0.03, 0.1, 0.02, -0.04, 0.03], dtype=torch.float64))
-    assert torch.allclose(stacked(render(cloud, pose, CAM)), naive_render(cloud, pose, CAM), atol=1e-9)
+    assert torch.allclose(stacked(render(cloud, pose, CAM, backend=backend)), naive_render(cloud, pose, CAM),
+                          atol=1e-9)
     cloud32, pose32 = cloud.to(dtype=torch.float32), pose.float()
     expected = naive_render(cloud32.to(dtype=torch.float64), pose32.double(), CAM).float()
-    assert torch.allclose(stacked(render(cloud32, pose32, CAM)), expected, atol=2e-6)
+    assert torch.allclose(stacked(render(cloud32, pose32, CAM, backend=backend)), expected, atol=2e-6)
 
 
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
 @pytest.mark.parametrize("name", ["means", "log_radii", "opacity_logits", "colors", "semantics"])
-def test_gradcheck_every_gaussian_parameter(name):
+def test_gradcheck_every_gaussian_parameter(name, backend):
     cloud = random_cloud(4)
     pose = torch.eye(4, dtype=torch.float64)
 
     def fn(tensor):
-        return stacked(render(GaussianCloud(**{**cloud.tensors(), name: tensor}), pose, CAM))
+        return stacked(render(GaussianCloud(**{**cloud.tensors(), name: tensor}), pose, CAM, backend=backend))
 
     assert torch.autograd.gradcheck(fn, (getattr(cloud, name).clone().requires_grad_(),), atol=1e-6)
 
 
-def test_gradcheck_pose_increment():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_gradcheck_pose_increment(backend):
     cloud = random_cloud(4)
     base = se3_exp(torch.tensor([0.02, 0.01, -0.05, 0.01, 0.02, -0.01], dtype=torch.float64))
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda x: stacked(render(cloud, se3_exp(x) @ base, CAM)), (xi,), atol=1e-6)
+    assert torch.autograd.gradcheck(lambda x: stacked(render(cloud, se3_exp(x) @ base, CAM, backend=backend)),
+                                    (xi,), atol=1e-6)
 
 
 def test_culls_gaussians_behind_the_camera_and_before_the_near_plane():
@@ -136,10 +145,10 @@ def test_culls_gaussians_behind_the_camera_and_before_the_near_plane():
     assert not torch.equal(stacked(render(both, eye, CAM, near=0.01)), stacked(render(front, eye, CAM)))
 
 
-def assert_zero_images_with_zero_gradients(cloud, pose):
+def assert_zero_images_with_zero_gradients(cloud, pose, backend):
     cloud.requires_grad_()
     pose = pose.clone().requires_grad_()
-    out = render(cloud, pose, CAM)
+    out = render(cloud, pose, CAM, backend=backend)
     assert out.color.shape == (12, 16, 3) and out.semantic.shape == (12, 16, 3)
     assert out.depth.shape == (12, 16) and out.alpha.shape == (12, 16)
     assert out.color.dtype == cloud.dtype and out.color.device == cloud.device
@@ -149,13 +158,15 @@ def assert_zero_images_with_zero_gradients(cloud, pose):
         assert tensor.grad is not None and tensor.grad.abs().sum().item() == 0
 
 
-def test_empty_cloud_renders_zeros_with_zero_gradients():
-    assert_zero_images_with_zero_gradients(GaussianCloud.empty(dtype=torch.float32), torch.eye(4))
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_empty_cloud_renders_zeros_with_zero_gradients(backend):
+    assert_zero_images_with_zero_gradients(GaussianCloud.empty(dtype=torch.float32), torch.eye(4), backend)
 
 
-def test_view_without_gaussians_renders_zeros_with_zero_gradients():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_view_without_gaussians_renders_zeros_with_zero_gradients(backend):
     behind_and_aside = cloud_of([[0.0, 0.0, -1.0], [30.0, 0.0, 2.0]], [0.1, 0.1], [0.8, 0.8], dtype=torch.float32)
-    assert_zero_images_with_zero_gradients(behind_and_aside, torch.eye(4))
+    assert_zero_images_with_zero_gradients(behind_and_aside, torch.eye(4), backend)
 
 
 def test_row_bands_give_the_single_band_result_and_gradients():
@@ -174,9 +185,56 @@ def test_row_bands_give_the_single_band_result_and_gradients():
             assert torch.allclose(grad, reference, atol=1e-10)
 
 
-def test_auto_backend_is_torch_on_cpu_and_bad_arguments_raise():
+def test_the_compiled_cpu_kernel_builds_where_a_compiler_exists():
+    if not (shutil.which("c++") or shutil.which("g++")):
+        pytest.skip("no C++ compiler on this machine")
+    assert cpu_kernel_available(), cpu_kernel_error()
+    assert cpu_kernel_error() is None
+
+
+@pytest.mark.skipif(not cpu_kernel_available(), reason="compiled CPU kernel unavailable")
+@pytest.mark.parametrize("dtype, atol", [(torch.float64, 1e-10), (torch.float32, 1e-4)])
+def test_compiled_kernel_matches_the_torch_backend_on_a_dense_scene_with_two_threads(dtype, atol):
+    """Hundreds of Gaussians, many overlapping per pixel and clamped alphas; two threads share the gradient work."""
+    torch.manual_seed(3)
+    cam = PinholeCamera(fx=60.0, fy=60.0, cx=24.0, cy=18.0, width=48, height=36)
+    xy = (torch.rand(400, 2, dtype=dtype) - 0.5) * 1.2
+    z = 1.0 + torch.rand(400, 1, dtype=dtype)
+    opacities = torch.where(torch.rand(400, dtype=dtype) < 0.2, 0.995, 0.1 + 0.8 * torch.rand(400, dtype=dtype))
+    cloud = cloud_of(torch.cat([xy * z, z], 1), 0.02 + 0.1 * torch.rand(400, dtype=dtype), opacities, dtype=dtype)
+    pose = torch.eye(4, dtype=dtype)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        results = []
+        for rasterize in (rasterize_torch, rasterize_cpu):
+            tensors = {k: t.detach().clone().requires_grad_() for k, t in cloud.tensors().items()}
+            image = rasterize(project(GaussianCloud(**tensors), pose, cam, 0.01), cam.width, cam.height)
+            weights = torch.linspace(-1, 1, image.numel(), dtype=dtype).reshape(image.shape)
+            (image * weights).sum().backward()
+            results.append((image.detach(), [t.grad for t in tensors.values()]))
+    finally:
+        torch.set_num_threads(threads)
+    (reference, reference_grads), (image, grads) = results
+    assert reference.shape == (36, 48, 8) and reference[..., 7].max() > 0.99  # opaque pixels exist
+    assert torch.allclose(image, reference, atol=atol)
+    for grad, expected in zip(grads, reference_grads):
+        assert expected.abs().max() > 0
+        assert torch.allclose(grad, expected, atol=atol * expected.abs().max().item())
+
+
+def test_an_unavailable_kernel_is_a_clear_error_and_auto_falls_back_to_torch(monkeypatch):
+    monkeypatch.setattr(cpu_backend, "_kernel", None)
+    monkeypatch.setattr(cpu_backend, "_error", "RuntimeError: no C++ compiler")
     cloud = random_cloud(2)
     assert select_backend("auto", cloud) == "torch"
+    with pytest.raises(ValueError, match="'cpu' is unavailable.*no C\\+\\+ compiler.*backend='torch'"):
+        render(cloud, torch.eye(4, dtype=torch.float64), CAM, backend="cpu")
+
+
+def test_auto_backend_on_cpu_is_the_compiled_kernel_when_it_builds_and_bad_arguments_raise():
+    cloud = random_cloud(2)
+    assert select_backend("auto", cloud) == ("cpu" if cpu_kernel_available() else "torch")
     with pytest.raises(ValueError, match="unknown backend"):
         render(cloud, torch.eye(4, dtype=torch.float64), CAM, backend="opengl")
     with pytest.raises(ValueError, match="world_to_cam"):

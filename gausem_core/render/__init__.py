@@ -8,8 +8,10 @@ and gsplat), which bounds every footprint to ``sqrt(2 ln(255 opacity)) <= 3.33``
 depth are ``sum_i w_i x_i`` over a black background; ``alpha`` is ``sum_i w_i``. Differentiable w.r.t. every cloud
 tensor and ``world_to_cam``.
 
-Back-ends: ``"torch"`` (reference, CPU and CUDA, exact, memory-bounded by row bands) and ``"gsplat"`` (CUDA, float32,
-needs the gsplat package); ``"auto"`` takes gsplat for float32 CUDA clouds when it imports, torch otherwise.
+Back-ends: ``"torch"`` (reference, CPU and CUDA, exact, memory-bounded by row bands), ``"cpu"`` (the same model in a
+C++ kernel compiled on first use, CPU only; see :mod:`gausem_core.render.cpu_backend`) and ``"gsplat"`` (CUDA, float32,
+needs the gsplat package). ``"auto"`` takes gsplat for float32 CUDA clouds when it imports, the compiled kernel for
+CPU clouds when it builds, torch otherwise.
 """
 from __future__ import annotations
 
@@ -19,11 +21,12 @@ import torch
 
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera
+from gausem_core.render.cpu_backend import cpu_kernel_available, rasterize_cpu
 from gausem_core.render.gsplat_backend import gsplat_available, rasterize_gsplat
 from gausem_core.render.projection import check_render_inputs, project
 from gausem_core.render.torch_backend import rasterize_torch
 
-BACKENDS = ("auto", "torch", "gsplat")
+BACKENDS = ("auto", "torch", "cpu", "gsplat")
 
 
 @dataclass
@@ -47,6 +50,8 @@ def select_backend(backend: str, cloud: GaussianCloud) -> str:
         raise ValueError(f"render: unknown backend {backend!r}; choose one of {BACKENDS}")
     if backend != "auto":
         return backend
+    if cloud.device.type == "cpu":
+        return "cpu" if cpu_kernel_available() else "torch"
     on_gpu = cloud.device.type == "cuda" and cloud.dtype == torch.float32
     return "gsplat" if on_gpu and gsplat_available() else "torch"
 
@@ -56,8 +61,11 @@ def render(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCame
     """Render ``cloud`` seen from ``world_to_cam`` (4x4, world -> camera optical frame) through ``camera``."""
     check_render_inputs(cloud, world_to_cam, camera, near)
     screen = project(cloud, world_to_cam, camera, near)
-    if select_backend(backend, cloud) == "gsplat":
+    chosen = select_backend(backend, cloud)
+    if chosen == "gsplat":
         image = rasterize_gsplat(screen, camera.width, camera.height)
+    elif chosen == "cpu":
+        image = rasterize_cpu(screen, camera.width, camera.height)
     else:
         image = rasterize_torch(screen, camera.width, camera.height)
     return RenderOutput(color=image[..., 0:3], semantic=image[..., 3:6], depth=image[..., 6], alpha=image[..., 7])

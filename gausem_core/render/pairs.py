@@ -57,14 +57,20 @@ def footprint_boxes(screen: ScreenGaussians, width: int, height: int) -> Boxes:
 
 
 @torch.no_grad()
+def depth_order(screen: ScreenGaussians, boxes: Boxes) -> torch.Tensor:
+    """Indices of the Gaussians with a non-empty box, front to back (stable in their index for equal depths)."""
+    order = torch.argsort(screen.depth.detach(), stable=True)
+    return order[boxes.nonempty()[order]]
+
+
+@torch.no_grad()
 def plan_bands(screen: ScreenGaussians, boxes: Boxes, height: int, max_pairs_per_band: int) -> list[Band]:
     """Split the rows into bands of about ``max_pairs_per_band`` box pixels and bucket the Gaussians per band once.
 
     A single row with more pairs than the budget gets a band of its own. Gaussians are listed front to back (stable
     in their index for equal depths), which makes a stable sort by pixel a per-pixel front-to-back order.
     """
-    order = torch.argsort(screen.depth.detach(), stable=True)
-    order = order[boxes.nonempty()[order]]
+    order = depth_order(screen, boxes)
     x0, x1, y0, y1 = (t[order] for t in (boxes.x0, boxes.x1, boxes.y0, boxes.y1))
     width = x1 - x0 + 1
     diff = torch.zeros(height + 1, dtype=torch.long, device=order.device)

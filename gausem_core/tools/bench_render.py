@@ -143,9 +143,12 @@ def _render_case(case: dict) -> dict:
 
 
 def _render_backends(device: torch.device) -> list[str]:
+    from gausem_core.render.cpu_backend import cpu_kernel_available
     from gausem_core.render.gsplat_backend import gsplat_available
 
-    return ["torch", "gsplat"] if device.type == "cuda" and gsplat_available() else ["torch"]
+    if device.type == "cuda":
+        return ["torch", "gsplat"] if gsplat_available() else ["torch"]
+    return ["torch", "cpu"] if cpu_kernel_available() else ["torch"]
 
 
 def add_arguments(parser) -> None:
@@ -154,7 +157,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--sizes", nargs="+", default=["160x120", "320x240", "640x480"], help="WxH image sizes")
     parser.add_argument("--counts", nargs="+", type=int, default=[5000, 20000, 50000, 200000], help="Gaussian counts")
-    parser.add_argument("--backend", nargs="+", choices=["torch", "gsplat"], help="default: every available one")
+    parser.add_argument("--backend", nargs="+", choices=["torch", "cpu", "gsplat"], help="default: every available one")
     parser.add_argument("--case-seconds", type=float, default=30.0,
                         help="fewer repeats for cases whose first forward+backward is slow (default: %(default)s)")
 
