@@ -5,10 +5,11 @@ already in compositing order) and every pixel is composited, and differentiated,
 needs a comparison sort and a dozen gathers/scatters over all pairs instead. Memory: about 8 bytes per (Gaussian,
 pixel) pair plus one float64 gradient buffer of (5 + C) values per Gaussian and thread.
 
-The extension is compiled with ``torch.utils.cpp_extension`` (needs a C++ compiler and ninja; the ``ninja`` wheel of
-``requirements.txt`` is found next to the running Python) into torch's extension cache (``TORCH_EXTENSIONS_DIR``,
-default ``~/.cache/torch_extensions``): tens of seconds once per machine, a fraction of a second afterwards. When it
-cannot be built, :func:`cpu_kernel_error` says why and ``backend="auto"`` uses the torch back-end.
+The extension is compiled with ``torch.utils.cpp_extension`` (needs a C++ compiler with OpenMP, and ninja: the
+``ninja`` wheel of ``requirements.txt`` is found next to the running Python) into torch's extension cache
+(``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``): tens of seconds once per machine, a fraction of a
+second afterwards. Rows run in parallel on torch's intra-op threads. When it cannot be built,
+:func:`cpu_kernel_error` says why and ``backend="auto"`` uses the torch back-end.
 """
 from __future__ import annotations
 
@@ -44,8 +45,8 @@ def _load():
                 from torch.utils.cpp_extension import load
 
                 _ninja_on_path()
-                _kernel = load(name="gausem_cpu_raster", sources=[str(_SOURCE)], extra_cflags=["-O3"],
-                               verbose=False)
+                _kernel = load(name="gausem_cpu_raster", sources=[str(_SOURCE)], extra_cflags=["-O3", "-fopenmp"],
+                               extra_ldflags=["-fopenmp"], verbose=False)
             except Exception as exc:  # noqa: BLE001 -- a missing compiler shows up as many different errors
                 _error = f"{type(exc).__name__}: {exc}".strip()
         return _kernel

@@ -1,7 +1,8 @@
 // Compiled CPU rasteriser of screen Gaussians: the model of gausem_core/render/__init__.py in plain loops.
 //
-// forward: the Gaussians, listed front to back, emit their (pixel, alpha >= 1/255) pairs; a counting sort by pixel
-// keeps them front to back within each pixel (no comparison sort); each pixel is then composited in one pass.
+// forward: per chunk of rows, the Gaussians, listed front to back, emit their (pixel, alpha >= 1/255) pairs; a
+// counting sort by pixel keeps them front to back within each pixel (no comparison sort); each pixel is then
+// composited in one pass.
 // backward: per pixel, a forward walk for the transmittances and a backward walk for the suffix sums
 // S_i = sum_{k>i} w_k h_k give dL/dalpha_i = T_i h_i - S_i / (1 - alpha_i), as in composite.py. Per-thread gradient
 // buffers avoid atomics. Transmittances and suffix sums are accumulated in double.
@@ -18,7 +19,8 @@ namespace {
 
 constexpr double kAlphaMin = 1.0 / 255.0;
 constexpr double kAlphaMax = 0.99;
-constexpr int64_t kGrain = 256;  // pixels per parallel chunk
+constexpr int64_t kGrain = 256;  // pixels per parallel task in the backward
+constexpr int64_t kRowsPerChunk = 8;  // image rows per parallel task in the forward
 
 struct Screen {
   torch::Tensor u, v, inv_var_x, inv_var_y, opacity, features;
@@ -32,62 +34,89 @@ void check_screen(const Screen& s) {
   TORCH_CHECK(s.features.dim() == 2 && s.features.size(0) == m, "features must be (M, C)");
 }
 
-// (pixel offsets [n_pixels + 1], gaussian [P] int32, unclamped alpha [P]), pairs sorted by pixel, front to back.
-std::vector<torch::Tensor> build_pairs(const Screen& s, const torch::Tensor& order, const torch::Tensor& x0,
-                                       const torch::Tensor& x1, const torch::Tensor& y0, const torch::Tensor& y1,
-                                       int64_t width, int64_t height) {
-  const int64_t n_pixels = width * height;
-  auto offsets = torch::zeros({n_pixels + 1}, torch::kInt64);
-  torch::Tensor gaussian_out, alpha_out;
-  AT_DISPATCH_FLOATING_TYPES(s.u.scalar_type(), "build_pairs", [&] {
-    const auto u = s.u.accessor<scalar_t, 1>();
-    const auto v = s.v.accessor<scalar_t, 1>();
-    const auto ivx = s.inv_var_x.accessor<scalar_t, 1>();
-    const auto ivy = s.inv_var_y.accessor<scalar_t, 1>();
-    const auto op = s.opacity.accessor<scalar_t, 1>();
-    const auto ord = order.accessor<int64_t, 1>();
-    const auto bx0 = x0.accessor<int64_t, 1>(), bx1 = x1.accessor<int64_t, 1>();
-    const auto by0 = y0.accessor<int64_t, 1>(), by1 = y1.accessor<int64_t, 1>();
-    const scalar_t alpha_min = static_cast<scalar_t>(kAlphaMin);
-    std::vector<int32_t> gen_pixel, gen_gaussian;
-    std::vector<scalar_t> gen_alpha;
-    auto* count = offsets.data_ptr<int64_t>() + 1;
-    for (int64_t k = 0; k < ord.size(0); ++k) {
-      const int64_t g = ord[k];
-      const scalar_t gu = u[g], gv = v[g], ax = ivx[g], ay = ivy[g], o = op[g];
-      for (int64_t y = by0[g]; y <= by1[g]; ++y) {
-        const scalar_t dy = static_cast<scalar_t>(y) + scalar_t(0.5) - gv;
-        const scalar_t qy = dy * dy * ay;
-        for (int64_t x = bx0[g]; x <= bx1[g]; ++x) {
-          const scalar_t dx = static_cast<scalar_t>(x) + scalar_t(0.5) - gu;
-          const scalar_t alpha = o * std::exp(scalar_t(-0.5) * (dx * dx * ax + qy));
-          if (alpha >= alpha_min) {
-            const int64_t pixel = y * width + x;
-            gen_pixel.push_back(static_cast<int32_t>(pixel));
-            gen_gaussian.push_back(static_cast<int32_t>(g));
-            gen_alpha.push_back(alpha);
-            ++count[pixel];
-          }
+// The pairs and the composited pixels of rows [row0, row1): Gaussians visited front to back emit (pixel, alpha)
+// pairs; a counting sort by pixel keeps each pixel's pairs in that order (no comparison sort).
+template <typename scalar_t>
+struct RowChunk {
+  int64_t row0 = 0, row1 = 0;
+  std::vector<int64_t> offsets;  // per pixel of the chunk (row-major), + 1
+  std::vector<int32_t> gaussian;
+  std::vector<scalar_t> alpha;  // unclamped
+};
+
+template <typename scalar_t>
+void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const std::vector<int64_t>& ordered,
+                const int64_t* x0, const int64_t* x1, const int64_t* y0, const int64_t* y1, int64_t width,
+                std::vector<int32_t>& gen_pixel, std::vector<int32_t>& gen_gaussian,
+                std::vector<scalar_t>& gen_alpha) {
+  const auto* u = s.u.data_ptr<scalar_t>();
+  const auto* v = s.v.data_ptr<scalar_t>();
+  const auto* ivx = s.inv_var_x.data_ptr<scalar_t>();
+  const auto* ivy = s.inv_var_y.data_ptr<scalar_t>();
+  const auto* op = s.opacity.data_ptr<scalar_t>();
+  const scalar_t alpha_min = static_cast<scalar_t>(kAlphaMin);
+  const int64_t n_pixels = (chunk.row1 - chunk.row0) * width;
+  gen_pixel.clear();
+  gen_gaussian.clear();
+  gen_alpha.clear();
+  chunk.offsets.assign(n_pixels + 1, 0);
+  auto* count = chunk.offsets.data() + 1;
+  for (const int64_t g : ordered) {
+    const int64_t ya = std::max(y0[g], chunk.row0), yb = std::min(y1[g], chunk.row1 - 1);
+    if (ya > yb) continue;
+    const scalar_t gu = u[g], gv = v[g], ax = ivx[g], ay = ivy[g], o = op[g];
+    for (int64_t y = ya; y <= yb; ++y) {
+      const scalar_t dy = static_cast<scalar_t>(y) + scalar_t(0.5) - gv;
+      const scalar_t qy = dy * dy * ay;
+      const int64_t row_start = (y - chunk.row0) * width;
+      for (int64_t x = x0[g]; x <= x1[g]; ++x) {
+        const scalar_t dx = static_cast<scalar_t>(x) + scalar_t(0.5) - gu;
+        const scalar_t alpha = o * std::exp(scalar_t(-0.5) * (dx * dx * ax + qy));
+        if (alpha >= alpha_min) {
+          gen_pixel.push_back(static_cast<int32_t>(row_start + x));
+          gen_gaussian.push_back(static_cast<int32_t>(g));
+          gen_alpha.push_back(alpha);
+          ++count[row_start + x];
         }
       }
     }
-    auto* off = offsets.data_ptr<int64_t>();
-    for (int64_t p = 0; p < n_pixels; ++p) off[p + 1] += off[p];
-    const auto n_pairs = static_cast<int64_t>(gen_pixel.size());
-    gaussian_out = torch::empty({n_pairs}, torch::kInt32);
-    alpha_out = torch::empty({n_pairs}, s.u.options());
-    auto* g_out = gaussian_out.data_ptr<int32_t>();
-    auto* a_out = alpha_out.data_ptr<scalar_t>();
-    std::vector<int64_t> cursor(off, off + n_pixels);
-    for (int64_t i = 0; i < n_pairs; ++i) {  // stable: generation order is front to back
-      const int64_t at = cursor[gen_pixel[i]]++;
-      g_out[at] = gen_gaussian[i];
-      a_out[at] = gen_alpha[i];
-    }
-  });
-  return {offsets, gaussian_out, alpha_out};
+  }
+  auto* off = chunk.offsets.data();
+  for (int64_t p = 0; p < n_pixels; ++p) off[p + 1] += off[p];
+  const auto n_pairs = static_cast<int64_t>(gen_pixel.size());
+  chunk.gaussian.resize(n_pairs);
+  chunk.alpha.resize(n_pairs);
+  std::vector<int64_t> cursor(off, off + n_pixels);
+  for (int64_t i = 0; i < n_pairs; ++i) {  // stable: generation order is front to back
+    const int64_t at = cursor[gen_pixel[i]]++;
+    chunk.gaussian[at] = gen_gaussian[i];
+    chunk.alpha[at] = gen_alpha[i];
+  }
 }
 
+template <typename scalar_t>
+void composite_chunk(const RowChunk<scalar_t>& chunk, const scalar_t* feat, int64_t channels, int64_t width,
+                     scalar_t* out) {
+  std::vector<double> acc(channels + 1);
+  const int64_t n_pixels = (chunk.row1 - chunk.row0) * width;
+  for (int64_t p = 0; p < n_pixels; ++p) {
+    std::fill(acc.begin(), acc.end(), 0.0);
+    double transmittance = 1.0;
+    for (int64_t i = chunk.offsets[p]; i < chunk.offsets[p + 1]; ++i) {
+      const double a = std::min(static_cast<double>(chunk.alpha[i]), kAlphaMax);
+      const double w = a * transmittance;
+      const scalar_t* f = feat + static_cast<int64_t>(chunk.gaussian[i]) * channels;
+      for (int64_t c = 0; c < channels; ++c) acc[c] += w * f[c];
+      acc[channels] += w;
+      transmittance *= 1.0 - a;
+    }
+    scalar_t* o = out + (chunk.row0 * width + p) * (channels + 1);
+    for (int64_t c = 0; c <= channels; ++c) o[c] = static_cast<scalar_t>(acc[c]);
+  }
+}
+
+// (image (n_pixels, C + 1), pixel offsets [n_pixels + 1], gaussian [P] int32, unclamped alpha [P]): the pairs sorted
+// by pixel, front to back within a pixel. Chunks of rows are independent, so they run in parallel.
 std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, torch::Tensor inv_var_x,
                                              torch::Tensor inv_var_y, torch::Tensor opacity, torch::Tensor features,
                                              torch::Tensor order, torch::Tensor x0, torch::Tensor x1,
@@ -95,34 +124,44 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, t
   const Screen s{u.contiguous(), v.contiguous(), inv_var_x.contiguous(), inv_var_y.contiguous(),
                  opacity.contiguous(), features.contiguous()};
   check_screen(s);
-  auto pairs = build_pairs(s, order.contiguous(), x0.contiguous(), x1.contiguous(), y0.contiguous(),
-                           y1.contiguous(), width, height);
+  order = order.contiguous();
+  x0 = x0.contiguous(), x1 = x1.contiguous(), y0 = y0.contiguous(), y1 = y1.contiguous();
   const int64_t n_pixels = width * height, channels = s.features.size(1);
+  const int64_t n_chunks = (height + kRowsPerChunk - 1) / kRowsPerChunk;
+  const std::vector<int64_t> ordered(order.data_ptr<int64_t>(), order.data_ptr<int64_t>() + order.size(0));
   auto image = torch::zeros({n_pixels, channels + 1}, s.u.options());
+  auto offsets = torch::empty({n_pixels + 1}, torch::kInt64);
+  torch::Tensor gaussian_out, alpha_out;
   AT_DISPATCH_FLOATING_TYPES(s.u.scalar_type(), "rasterize_forward", [&] {
-    const auto* off = pairs[0].data_ptr<int64_t>();
-    const auto* gauss = pairs[1].data_ptr<int32_t>();
-    const auto* alpha = pairs[2].data_ptr<scalar_t>();
-    const auto* feat = s.features.data_ptr<scalar_t>();
-    auto* out = image.data_ptr<scalar_t>();
-    at::parallel_for(0, n_pixels, kGrain, [&](int64_t begin, int64_t end) {
-      std::vector<double> acc(channels + 1);
-      for (int64_t p = begin; p < end; ++p) {
-        std::fill(acc.begin(), acc.end(), 0.0);
-        double transmittance = 1.0;
-        for (int64_t i = off[p]; i < off[p + 1]; ++i) {
-          const double a = std::min(static_cast<double>(alpha[i]), kAlphaMax);
-          const double w = a * transmittance;
-          const scalar_t* f = feat + static_cast<int64_t>(gauss[i]) * channels;
-          for (int64_t c = 0; c < channels; ++c) acc[c] += w * f[c];
-          acc[channels] += w;
-          transmittance *= 1.0 - a;
-        }
-        for (int64_t c = 0; c <= channels; ++c) out[p * (channels + 1) + c] = static_cast<scalar_t>(acc[c]);
+    std::vector<RowChunk<scalar_t>> chunks(n_chunks);
+    at::parallel_for(0, n_chunks, 1, [&](int64_t begin, int64_t end) {
+      std::vector<int32_t> gen_pixel, gen_gaussian;
+      std::vector<scalar_t> gen_alpha;
+      for (int64_t c = begin; c < end; ++c) {
+        chunks[c].row0 = c * kRowsPerChunk;
+        chunks[c].row1 = std::min(height, chunks[c].row0 + kRowsPerChunk);
+        fill_chunk(chunks[c], s, ordered, x0.data_ptr<int64_t>(), x1.data_ptr<int64_t>(), y0.data_ptr<int64_t>(),
+                   y1.data_ptr<int64_t>(), width, gen_pixel, gen_gaussian, gen_alpha);
+        composite_chunk(chunks[c], s.features.data_ptr<scalar_t>(), channels, width, image.data_ptr<scalar_t>());
       }
     });
+    int64_t n_pairs = 0;
+    for (const auto& chunk : chunks) n_pairs += static_cast<int64_t>(chunk.gaussian.size());
+    gaussian_out = torch::empty({n_pairs}, torch::kInt32);
+    alpha_out = torch::empty({n_pairs}, s.u.options());
+    auto* off = offsets.data_ptr<int64_t>();
+    int64_t at = 0;
+    for (const auto& chunk : chunks) {
+      const int64_t first_pixel = chunk.row0 * width, n = static_cast<int64_t>(chunk.gaussian.size());
+      const int64_t chunk_pixels = static_cast<int64_t>(chunk.offsets.size()) - 1;
+      for (int64_t p = 0; p < chunk_pixels; ++p) off[first_pixel + p] = at + chunk.offsets[p];
+      std::copy(chunk.gaussian.begin(), chunk.gaussian.end(), gaussian_out.data_ptr<int32_t>() + at);
+      std::copy(chunk.alpha.begin(), chunk.alpha.end(), alpha_out.data_ptr<scalar_t>() + at);
+      at += n;
+    }
+    off[n_pixels] = at;
   });
-  return {image, pairs[0], pairs[1], pairs[2]};
+  return {image, offsets, gaussian_out, alpha_out};
 }
 
 // Gradients w.r.t. (u, v, inv_var_x, inv_var_y, opacity, features) from dL/d(image) of shape (n_pixels, C + 1).
