@@ -232,6 +232,16 @@ def test_an_unavailable_kernel_is_a_clear_error_and_auto_falls_back_to_torch(mon
         render(cloud, torch.eye(4, dtype=torch.float64), CAM, backend="cpu")
 
 
+def test_gausem_info_reports_which_cpu_renderer_runs(monkeypatch):
+    from gausem_core.tools.info import component_status
+
+    expected = "compiled C++ kernel" if cpu_kernel_available() else f"torch only ({cpu_kernel_error()})"
+    assert component_status()["cpu renderer"] == expected.splitlines()[0]
+    monkeypatch.setattr(cpu_backend, "_kernel", None)
+    monkeypatch.setattr(cpu_backend, "_error", "RuntimeError: no C++ compiler")
+    assert component_status()["cpu renderer"] == "torch only (RuntimeError: no C++ compiler)"
+
+
 def test_auto_backend_on_cpu_is_the_compiled_kernel_when_it_builds_and_bad_arguments_raise():
     cloud = random_cloud(2)
     assert select_backend("auto", cloud) == ("cpu" if cpu_kernel_available() else "torch")
