@@ -17,7 +17,7 @@ $(STAMP): requirements.txt requirements-dev.txt constraints.txt setup.py
 	$(PIP) install -q "$(TORCH_SPEC)"
 	$(PIP) install -q -r requirements-dev.txt -c constraints.txt
 	$(PIP) install -q --no-deps --no-build-isolation -e .
-	$(PY) -m gausem_core.render.cpu_backend
+	$(VENV)/bin/gausem info  # also compiles the C++ CPU renderer (once per machine)
 	touch $@
 
 test: $(STAMP)

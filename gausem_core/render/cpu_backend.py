@@ -93,7 +93,3 @@ def rasterize_cpu(screen: ScreenGaussians, width: int, height: int) -> torch.Ten
                                 screen.features, order, boxes.x0, boxes.x1, boxes.y0, boxes.y1, width, height)
     return image.reshape(height, width, -1)
 
-
-if __name__ == "__main__":  # `python -m gausem_core.render.cpu_backend`: build the kernel now (make setup does)
-    print("compiled CPU renderer: ready" if cpu_kernel_available() else
-          f"compiled CPU renderer unavailable, the torch renderer will be used: {cpu_kernel_error()}")
