@@ -12,6 +12,9 @@ import torch
 from gausem_core.render.projection import ALPHA_MIN, ScreenGaussians
 
 
+_SAME_SIZE_INTEGER = {torch.float32: torch.int32, torch.float64: torch.int64}
+
+
 @dataclass
 class Boxes:
     """Inclusive integer pixel boxes (clipped to the image) of the footprints of screen Gaussians."""
@@ -58,8 +61,14 @@ def footprint_boxes(screen: ScreenGaussians, width: int, height: int) -> Boxes:
 
 @torch.no_grad()
 def depth_order(screen: ScreenGaussians, boxes: Boxes) -> torch.Tensor:
-    """Indices of the Gaussians with a non-empty box, front to back (stable in their index for equal depths)."""
-    order = torch.argsort(screen.depth.detach(), stable=True)
+    """Indices of the Gaussians with a non-empty box, front to back (stable in their index for equal depths).
+
+    Depths are positive (in front of the near plane), so they sort like their IEEE bit patterns read as integers:
+    the same order, by torch's integer radix sort (several times faster on CPU than a float comparison sort).
+    """
+    depth = screen.depth.detach()
+    as_integers = _SAME_SIZE_INTEGER.get(depth.dtype)
+    order = torch.argsort(depth.view(as_integers) if as_integers else depth, stable=True)
     return order[boxes.nonempty()[order]]
 
 
