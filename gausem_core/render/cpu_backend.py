@@ -39,6 +39,8 @@ def _ninja_on_path() -> None:
 def _load():
     """The compiled module, or None (with the reason kept for :func:`cpu_kernel_error`)."""
     global _kernel, _error
+    if _kernel is not None:  # every render asks: no lock once loaded
+        return _kernel
     with _lock:
         if _kernel is None and _error is None:
             try:

@@ -26,12 +26,17 @@ struct Screen {
   torch::Tensor u, v, inv_var_x, inv_var_y, opacity, features;
 };
 
-void check_screen(const Screen& s) {
+// The screen tensors, contiguous and checked: M rows each, features (M, C).
+Screen screen_of(const torch::Tensor& u, const torch::Tensor& v, const torch::Tensor& inv_var_x,
+                 const torch::Tensor& inv_var_y, const torch::Tensor& opacity, const torch::Tensor& features) {
+  const Screen s{u.contiguous(), v.contiguous(), inv_var_x.contiguous(), inv_var_y.contiguous(),
+                 opacity.contiguous(), features.contiguous()};
   const auto m = s.u.size(0);
   for (const auto& t : {s.v, s.inv_var_x, s.inv_var_y, s.opacity}) {
     TORCH_CHECK(t.dim() == 1 && t.size(0) == m, "screen tensors must all have M rows");
   }
   TORCH_CHECK(s.features.dim() == 2 && s.features.size(0) == m, "features must be (M, C)");
+  return s;
 }
 
 // The pairs and the composited pixels of rows [row0, row1): Gaussians visited front to back emit (pixel, alpha)
@@ -45,7 +50,7 @@ struct RowChunk {
 };
 
 template <typename scalar_t>
-void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const std::vector<int64_t>& ordered,
+void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const int64_t* order, int64_t n_ordered,
                 const int64_t* x0, const int64_t* x1, const int64_t* y0, const int64_t* y1, int64_t width,
                 std::vector<int32_t>& gen_pixel, std::vector<int32_t>& gen_gaussian,
                 std::vector<scalar_t>& gen_alpha) {
@@ -61,7 +66,8 @@ void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const std::vector<in
   gen_alpha.clear();
   chunk.offsets.assign(n_pixels + 1, 0);
   auto* count = chunk.offsets.data() + 1;
-  for (const int64_t g : ordered) {
+  for (int64_t k = 0; k < n_ordered; ++k) {
+    const int64_t g = order[k];
     const int64_t ya = std::max(y0[g], chunk.row0), yb = std::min(y1[g], chunk.row1 - 1);
     if (ya > yb) continue;
     const scalar_t gu = u[g], gv = v[g], ax = ivx[g], ay = ivy[g], o = op[g];
@@ -121,14 +127,11 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, t
                                              torch::Tensor inv_var_y, torch::Tensor opacity, torch::Tensor features,
                                              torch::Tensor order, torch::Tensor x0, torch::Tensor x1,
                                              torch::Tensor y0, torch::Tensor y1, int64_t width, int64_t height) {
-  const Screen s{u.contiguous(), v.contiguous(), inv_var_x.contiguous(), inv_var_y.contiguous(),
-                 opacity.contiguous(), features.contiguous()};
-  check_screen(s);
+  const Screen s = screen_of(u, v, inv_var_x, inv_var_y, opacity, features);
   order = order.contiguous();
   x0 = x0.contiguous(), x1 = x1.contiguous(), y0 = y0.contiguous(), y1 = y1.contiguous();
   const int64_t n_pixels = width * height, channels = s.features.size(1);
   const int64_t n_chunks = (height + kRowsPerChunk - 1) / kRowsPerChunk;
-  const std::vector<int64_t> ordered(order.data_ptr<int64_t>(), order.data_ptr<int64_t>() + order.size(0));
   auto image = torch::zeros({n_pixels, channels + 1}, s.u.options());
   auto offsets = torch::empty({n_pixels + 1}, torch::kInt64);
   torch::Tensor gaussian_out, alpha_out;
@@ -140,8 +143,9 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, t
       for (int64_t c = begin; c < end; ++c) {
         chunks[c].row0 = c * kRowsPerChunk;
         chunks[c].row1 = std::min(height, chunks[c].row0 + kRowsPerChunk);
-        fill_chunk(chunks[c], s, ordered, x0.data_ptr<int64_t>(), x1.data_ptr<int64_t>(), y0.data_ptr<int64_t>(),
-                   y1.data_ptr<int64_t>(), width, gen_pixel, gen_gaussian, gen_alpha);
+        fill_chunk(chunks[c], s, order.data_ptr<int64_t>(), order.size(0), x0.data_ptr<int64_t>(),
+                   x1.data_ptr<int64_t>(), y0.data_ptr<int64_t>(), y1.data_ptr<int64_t>(), width, gen_pixel,
+                   gen_gaussian, gen_alpha);
         composite_chunk(chunks[c], s.features.data_ptr<scalar_t>(), channels, width, image.data_ptr<scalar_t>());
       }
     });
@@ -169,9 +173,7 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor u, torch::Tensor v, 
                                               torch::Tensor inv_var_y, torch::Tensor opacity, torch::Tensor features,
                                               torch::Tensor offsets, torch::Tensor gaussian, torch::Tensor alpha,
                                               torch::Tensor grad_image, int64_t width) {
-  const Screen s{u.contiguous(), v.contiguous(), inv_var_x.contiguous(), inv_var_y.contiguous(),
-                 opacity.contiguous(), features.contiguous()};
-  check_screen(s);
+  const Screen s = screen_of(u, v, inv_var_x, inv_var_y, opacity, features);
   grad_image = grad_image.contiguous();
   const int64_t m = s.u.size(0), channels = s.features.size(1), n_pixels = offsets.size(0) - 1;
   const int64_t stride = 5 + channels;  // per Gaussian: u, v, inv_var_x, inv_var_y, opacity, features
