@@ -96,3 +96,29 @@ def test_semantic_sampling_follows_the_area_power_law():
     counts = torch.bincount(labels.reshape(-1)[picked], minlength=2)
     assert counts.tolist() == [200, 100]  # floor(300 * sqrt(A_c) / (40 + 20))
     assert len(torch.unique(picked)) == len(picked)
+
+
+def test_mapping_loss_is_eq3_with_the_eq4_ssim_losses_of_colour_and_semantics():
+    from gausem_core.eval.image import ssim
+    from gausem_core.render import RenderOutput
+    from gausem_core.slam.losses import mapping_loss
+    from gausem_core.slam.observation import Observation
+
+    g = torch.Generator().manual_seed(3)
+    h, w = 14, 11
+    out = RenderOutput(torch.rand(h, w, 3, generator=g, dtype=torch.float64),
+                       torch.rand(h, w, generator=g, dtype=torch.float64),
+                       torch.rand(h, w, 3, generator=g, dtype=torch.float64),
+                       0.5 + 0.5 * torch.rand(h, w, generator=g, dtype=torch.float64))
+    obs = Observation(rgb=torch.rand(h, w, 3, generator=g, dtype=torch.float64),
+                      depth=torch.rand(h, w, generator=g, dtype=torch.float64) * (torch.rand(h, w, generator=g) > 0.3),
+                      semantic=torch.rand(h, w, 3, generator=g, dtype=torch.float64),
+                      labels=torch.zeros(h, w, dtype=torch.long), camera=None, timestamp=0.0)
+
+    def eq4(rendered, target, lam):
+        return lam * (rendered - target).abs().mean() + (1 - lam) * (1 - ssim(rendered, target))
+
+    valid = obs.depth > 0
+    depth = (out.expected_depth - obs.depth).abs()[valid].mean() + (1 - out.alpha)[valid].mean()
+    expected = 2.0 * depth + 1.5 * eq4(out.color, obs.rgb, 0.8) + 0.25 * eq4(out.semantic, obs.semantic, 0.8)
+    assert mapping_loss(out, obs, 1.5, 2.0, 0.25, 0.8).item() == pytest.approx(expected.item(), rel=1e-12)

@@ -47,8 +47,9 @@ def _blur(x: torch.Tensor, window: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, window.view(1, 1, k, 1).expand(c, 1, k, 1), padding=(k // 2, 0), groups=c)
 
 
-def ssim(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of (H, W, C) or (B, C, H, W) images in [0, 1]; a differentiable scalar tensor (1 = identical)."""
+def ssim_map(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+    """Per-pixel, per-channel SSIM (B, C, H, W) of (H, W, C) or (B, C, H, W) images in [0, 1]; differentiable.
+    Channels are independent, so one call on stacked images costs half of two calls on their halves."""
     _check_pair(img1, img2)
     x, y = _as_bchw(img1, "img1"), _as_bchw(img2, "img2")
     window = gaussian_window(dtype=x.dtype, device=x.device)
@@ -58,7 +59,12 @@ def ssim(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
     cov = _blur(x * y, window) - mu_x * mu_y
     num = (2 * mu_x * mu_y + _C1) * (2 * cov + _C2)
     den = (mu_x**2 + mu_y**2 + _C1) * (var_x + var_y + _C2)
-    return (num / den).mean()
+    return num / den
+
+
+def ssim(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of (H, W, C) or (B, C, H, W) images in [0, 1]; a differentiable scalar tensor (1 = identical)."""
+    return ssim_map(img1, img2).mean()
 
 
 def psnr(img1: torch.Tensor, img2: torch.Tensor, mask: torch.Tensor | None = None) -> float:

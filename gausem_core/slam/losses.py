@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from gausem_core.eval.image import ssim
+from gausem_core.eval.image import ssim_map
 from gausem_core.render import RenderOutput
 from gausem_core.slam.observation import Observation
 
@@ -20,14 +20,9 @@ def tracking_loss(out: RenderOutput, obs: Observation, w_color: float, w_depth: 
     return (w_color * color + w_semantic * semantic + w_depth * depth)[mask].sum() / mask.sum()
 
 
-def ssim_l1_loss(rendered: torch.Tensor, target: torch.Tensor, lam: float) -> torch.Tensor:
-    """Eq. 4: lam * L1 + (1 - lam) * (1 - SSIM) for (H, W, 3) images."""
-    return lam * (rendered - target).abs().mean() + (1 - lam) * (1 - ssim(rendered, target))
-
-
 def mapping_loss(out: RenderOutput, obs: Observation, w_color: float, w_depth: float, w_semantic: float,
                  ssim_lambda: float) -> torch.Tensor:
-    """Eq. 3: depth L1 on valid pixels + weighted SSIM losses for colour and semantics.
+    """Eq. 3: depth L1 on valid pixels + weighted SSIM losses (Eq. 4) for colour and semantics.
 
     The depth term compares the expected depth of the covered part (``depth / alpha``) and adds the uncovered
     fraction ``1 - alpha``: comparing the alpha-weighted depth sum itself would pull Gaussians behind the surface
@@ -38,5 +33,9 @@ def mapping_loss(out: RenderOutput, obs: Observation, w_color: float, w_depth: f
         depth = (out.expected_depth - obs.depth).abs()[valid].mean() + (1 - out.alpha)[valid].mean()
     else:
         depth = out.depth.sum() * 0.0
-    return (w_depth * depth + w_color * ssim_l1_loss(out.color, obs.rgb, ssim_lambda)
-            + w_semantic * ssim_l1_loss(out.semantic, obs.semantic, ssim_lambda))
+    # Eq. 4 per channel, lam * L1 + (1 - lam) * (1 - SSIM), for colour and semantics in one SSIM pass
+    rendered, target = torch.cat([out.color, out.semantic], -1), torch.cat([obs.rgb, obs.semantic], -1)
+    l1 = (rendered - target).abs().mean(dim=(0, 1))
+    dssim = 1 - ssim_map(rendered, target).mean(dim=(0, 2, 3))
+    per_channel = ssim_lambda * l1 + (1 - ssim_lambda) * dssim
+    return w_depth * depth + w_color * per_channel[:3].mean() + w_semantic * per_channel[3:].mean()
