@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from gausem_core.geometry import PinholeCamera, invert_pose, se3_exp, skew
+from gausem_core.geometry import PinholeCamera, invert_pose, se3_exp
 
 
 @dataclass
@@ -118,14 +118,14 @@ def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
         return None
     p, z, obs, depth_res = p[valid], z[valid], obs[:, valid], depth_res[valid]
     gu, gv = _sample(observed.grad_u, u[valid], v[valid]), _sample(observed.grad_v, u[valid], v[valid])
-    # d(u, v)/dp (N, 2, 3) and dp/dxi = [I | -[p]x] (N, 3, 6) for a left increment exp(xi) on the motion
-    zero = torch.zeros_like(z)
-    dproj = torch.stack([torch.stack([cam.fx / z, zero, -cam.fx * p[:, 0] / z**2], -1),
-                         torch.stack([zero, cam.fy / z, -cam.fy * p[:, 1] / z**2], -1)], 1)
-    eye = torch.eye(3, dtype=p.dtype, device=p.device).expand(len(p), 3, 3)
-    dp = torch.cat([eye, -skew(p)], 2)
-    jac = torch.einsum("cnk,nkj->cnj", torch.stack([gu, gv], -1), dproj @ dp)  # (C, N, 6)
-    jac = torch.cat([jac[:6], (jac[6] - dp[:, 2])[None], jac[7:]], 0)  # observed depth moves with the pixel, so does z
+    # d(u, v, z)/dxi (N, 6) of the projection of p moved by a left increment exp(xi): dp/dxi = [I | -[p]x]
+    x, y, inv_z = p[:, 0], p[:, 1], 1 / z
+    xn, yn, zero, one = x * inv_z, y * inv_z, torch.zeros_like(z), torch.ones_like(z)
+    du = cam.fx * torch.stack([inv_z, zero, -xn * inv_z, -xn * yn, 1 + xn * xn, -yn], -1)
+    dv = cam.fy * torch.stack([zero, inv_z, -yn * inv_z, -1 - yn * yn, xn * yn, xn], -1)
+    dz = torch.stack([zero, zero, one, y, -x, zero], -1)
+    jac = gu[..., None] * du + gv[..., None] * dv  # (C, N, 6)
+    jac[6] -= dz  # the observed depth moves with the pixel, and so does z
     ref = ref[:, valid]
     res = torch.cat([obs[:6] - ref[:6], depth_res[None], obs[7:] - ref[6:]], 0)
     features = observed.feature_channels
