@@ -253,3 +253,25 @@ def test_auto_backend_on_cpu_is_the_compiled_kernel_when_it_builds_and_bad_argum
         render(cloud, torch.eye(4, dtype=torch.float64), CAM, near=0.0)
     with pytest.raises((ValueError, ImportError), match="gsplat"):
         render(cloud, torch.eye(4, dtype=torch.float64), CAM, backend="gsplat")
+
+
+@pytest.mark.skipif(not cpu_kernel_available(), reason="compiled CPU kernel unavailable")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_depth_order_is_the_stable_order_of_pairs_depth_order(dtype):
+    from gausem_core.render.cpu_backend import _load
+    from gausem_core.render.pairs import Boxes, depth_order
+    from gausem_core.render.projection import ScreenGaussians
+
+    g = torch.Generator().manual_seed(5)
+    m = 40000
+    depth = (torch.randint(1, 400, (m,), generator=g) * 0.01).to(dtype)  # many equal depths: stability matters
+    depth[:100] = torch.rand(100, generator=g, dtype=dtype) * 1e3 + 1e-3  # and a spread of magnitudes
+    empty = torch.rand(m, generator=g) < 0.2
+    x0 = torch.zeros(m, dtype=torch.long)
+    boxes = Boxes(x0, x0 - empty.long(), x0, x0)
+    screen = ScreenGaussians(*(torch.zeros(m, dtype=dtype),) * 5, depth=depth, features=torch.zeros(m, 1, dtype=dtype))
+    expected = depth_order(screen, boxes)
+    assert len(expected) == int((~empty).sum())
+    assert torch.equal(_load().depth_order(depth, boxes.nonempty()), expected)
+    with pytest.raises(RuntimeError, match="positive"):
+        _load().depth_order(-depth, boxes.nonempty())

@@ -1,7 +1,8 @@
 """The compiled CPU back-end: the torch back-end's exact model in C++ loops (``cpu_kernel.cpp``), built on first use.
 
-Pairs are bucketed by pixel with a counting sort (the Gaussians are visited front to back, so each pixel's list is
-already in compositing order) and every pixel is composited, and differentiated, in one pass; the torch back-end
+Gaussians are ordered front to back by a radix sort of their depths (the order of ``pairs.depth_order``), pairs are
+bucketed by pixel with a counting sort (the Gaussians are visited front to back, so each pixel's list is already in
+compositing order) and every pixel is composited, and differentiated, in one pass; the torch back-end
 needs a comparison sort and a dozen gathers/scatters over all pairs instead. Memory: about 8 bytes per (Gaussian,
 pixel) pair plus one float64 gradient buffer of (5 + C) values per Gaussian and thread.
 
@@ -20,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from gausem_core.render.pairs import depth_order, footprint_boxes
+from gausem_core.render.pairs import footprint_boxes
 from gausem_core.render.projection import ScreenGaussians
 
 _SOURCE = Path(__file__).with_name("cpu_kernel.cpp")
@@ -90,7 +91,7 @@ def rasterize_cpu(screen: ScreenGaussians, width: int, height: int) -> torch.Ten
     if screen.u.device.type != "cpu":
         raise ValueError(f"render backend 'cpu' needs CPU tensors, got {screen.u.device}")
     boxes = footprint_boxes(screen, width, height)
-    order = depth_order(screen, boxes)
+    order = _load().depth_order(screen.depth.detach(), boxes.nonempty())  # pairs.depth_order, by a radix sort
     image = _RasterizeCpu.apply(screen.u, screen.v, screen.inv_var_x, screen.inv_var_y, screen.opacity,
                                 screen.features, order, boxes.x0, boxes.x1, boxes.y0, boxes.y1, width, height)
     return image.reshape(height, width, -1)

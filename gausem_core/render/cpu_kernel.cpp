@@ -1,5 +1,6 @@
 // Compiled CPU rasteriser of screen Gaussians: the model of gausem_core/render/__init__.py in plain loops.
 //
+// depth_order: the front-to-back order of the Gaussians by a stable radix sort of their depths.
 // forward: per chunk of rows, the Gaussians, listed front to back, emit their (pixel, alpha >= 1/255) pairs; a
 // counting sort by pixel keeps them front to back within each pixel (no comparison sort); each pixel is then
 // composited in one pass.
@@ -13,6 +14,8 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -168,6 +171,54 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, t
   return {image, offsets, gaussian_out, alpha_out};
 }
 
+// Indices of the Gaussians with keep[i], front to back, stable in the index: an LSD radix sort (8-bit digits) of the
+// depths' bit patterns, which order like positive floats. Torch's CPU sort is a comparison sort at these sizes.
+template <typename scalar_t>
+torch::Tensor radix_depth_order(const torch::Tensor& depth, const torch::Tensor& keep) {
+  using key_t = std::conditional_t<sizeof(scalar_t) == 8, uint64_t, uint32_t>;
+  const auto* d = depth.data_ptr<scalar_t>();
+  const auto* k = keep.data_ptr<bool>();
+  std::vector<int64_t> index, index_tmp;
+  std::vector<key_t> keys, keys_tmp;
+  for (int64_t i = 0; i < depth.size(0); ++i) {
+    if (!k[i]) continue;
+    TORCH_CHECK(d[i] > 0, "depth_order: depths must be positive");
+    key_t key;
+    std::memcpy(&key, d + i, sizeof(key));
+    index.push_back(i);
+    keys.push_back(key);
+  }
+  const auto n = static_cast<int64_t>(index.size());
+  index_tmp.resize(n);
+  keys_tmp.resize(n);
+  for (unsigned shift = 0; shift < 8 * sizeof(key_t); shift += 8) {
+    int64_t start[257] = {0};
+    for (const key_t key : keys) ++start[((key >> shift) & 0xFF) + 1];
+    if (std::any_of(start + 1, start + 257, [n](int64_t c) { return c == n; })) continue;  // one digit: no-op pass
+    for (int b = 0; b < 256; ++b) start[b + 1] += start[b];
+    for (int64_t i = 0; i < n; ++i) {
+      const int64_t at = start[(keys[i] >> shift) & 0xFF]++;
+      index_tmp[at] = index[i];
+      keys_tmp[at] = keys[i];
+    }
+    index.swap(index_tmp);
+    keys.swap(keys_tmp);
+  }
+  auto order = torch::empty({n}, torch::kInt64);
+  std::copy(index.begin(), index.end(), order.data_ptr<int64_t>());
+  return order;
+}
+
+torch::Tensor depth_order(torch::Tensor depth, torch::Tensor keep) {
+  depth = depth.contiguous(), keep = keep.contiguous();
+  TORCH_CHECK(depth.dim() == 1 && keep.dim() == 1 && keep.size(0) == depth.size(0), "depth_order: (M,) and (M,)");
+  TORCH_CHECK(keep.scalar_type() == torch::kBool, "depth_order: keep must be a bool mask");
+  torch::Tensor order;
+  AT_DISPATCH_FLOATING_TYPES(depth.scalar_type(), "depth_order",
+                             [&] { order = radix_depth_order<scalar_t>(depth, keep); });
+  return order;
+}
+
 // Gradients w.r.t. (u, v, inv_var_x, inv_var_y, opacity, features) from dL/d(image) of shape (n_pixels, C + 1).
 std::vector<torch::Tensor> rasterize_backward(torch::Tensor u, torch::Tensor v, torch::Tensor inv_var_x,
                                               torch::Tensor inv_var_y, torch::Tensor opacity, torch::Tensor features,
@@ -243,4 +294,5 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor u, torch::Tensor v, 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_forward", &rasterize_forward, "composite screen Gaussians: (image, offsets, gaussian, alpha)");
   m.def("rasterize_backward", &rasterize_backward, "gradients of rasterize_forward's image");
+  m.def("depth_order", &depth_order, "indices of the kept Gaussians front to back (stable radix sort)");
 }
