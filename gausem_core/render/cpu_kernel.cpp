@@ -1,9 +1,9 @@
 // Compiled CPU rasteriser of screen Gaussians: the model of gausem_core/render/__init__.py in plain loops.
 //
 // depth_order: the front-to-back order of the Gaussians by a stable radix sort of their depths.
-// forward: per chunk of rows, the Gaussians, listed front to back, emit their (pixel, alpha >= 1/255) pairs; a
-// counting sort by pixel keeps them front to back within each pixel (no comparison sort); each pixel is then
-// composited in one pass.
+// forward: the Gaussians are bucketed once by chunk of rows; per chunk, its Gaussians, front to back, emit their
+// (pixel, alpha >= 1/255) pairs; a counting sort by pixel keeps them front to back within each pixel (no comparison
+// sort); each pixel is then composited in one pass.
 // backward: per pixel, a forward walk for the transmittances and a backward walk for the suffix sums
 // S_i = sum_{k>i} w_k h_k give dL/dalpha_i = T_i h_i - S_i / (1 - alpha_i), as in composite.py. Per-thread gradient
 // buffers avoid atomics. Transmittances and suffix sums are accumulated in double.
@@ -53,7 +53,7 @@ struct RowChunk {
 };
 
 template <typename scalar_t>
-void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const int64_t* order, int64_t n_ordered,
+void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const std::vector<int32_t>& members,
                 const int64_t* x0, const int64_t* x1, const int64_t* y0, const int64_t* y1, int64_t width,
                 std::vector<int32_t>& gen_pixel, std::vector<int32_t>& gen_gaussian,
                 std::vector<scalar_t>& gen_alpha) {
@@ -69,10 +69,8 @@ void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const int64_t* order
   gen_alpha.clear();
   chunk.offsets.assign(n_pixels + 1, 0);
   auto* count = chunk.offsets.data() + 1;
-  for (int64_t k = 0; k < n_ordered; ++k) {
-    const int64_t g = order[k];
+  for (const int64_t g : members) {
     const int64_t ya = std::max(y0[g], chunk.row0), yb = std::min(y1[g], chunk.row1 - 1);
-    if (ya > yb) continue;
     const scalar_t gu = u[g], gv = v[g], ax = ivx[g], ay = ivy[g], o = op[g];
     for (int64_t y = ya; y <= yb; ++y) {
       const scalar_t dy = static_cast<scalar_t>(y) + scalar_t(0.5) - gv;
@@ -140,13 +138,24 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, t
   torch::Tensor gaussian_out, alpha_out;
   AT_DISPATCH_FLOATING_TYPES(s.u.scalar_type(), "rasterize_forward", [&] {
     std::vector<RowChunk<scalar_t>> chunks(n_chunks);
+    std::vector<std::vector<int32_t>> members(n_chunks);  // the Gaussians whose box meets each chunk, front to back
+    const auto* ord = order.data_ptr<int64_t>();
+    const auto* top = y0.data_ptr<int64_t>();
+    const auto* bottom = y1.data_ptr<int64_t>();
+    for (int64_t k = 0; k < order.size(0); ++k) {
+      const int64_t g = ord[k];
+      TORCH_CHECK(top[g] > bottom[g] || (top[g] >= 0 && bottom[g] < height), "box rows outside the image");
+      for (int64_t c = top[g] / kRowsPerChunk; c <= bottom[g] / kRowsPerChunk; ++c) {
+        members[c].push_back(static_cast<int32_t>(g));
+      }
+    }
     at::parallel_for(0, n_chunks, 1, [&](int64_t begin, int64_t end) {
       std::vector<int32_t> gen_pixel, gen_gaussian;
       std::vector<scalar_t> gen_alpha;
       for (int64_t c = begin; c < end; ++c) {
         chunks[c].row0 = c * kRowsPerChunk;
         chunks[c].row1 = std::min(height, chunks[c].row0 + kRowsPerChunk);
-        fill_chunk(chunks[c], s, order.data_ptr<int64_t>(), order.size(0), x0.data_ptr<int64_t>(),
+        fill_chunk(chunks[c], s, members[c], x0.data_ptr<int64_t>(),
                    x1.data_ptr<int64_t>(), y0.data_ptr<int64_t>(), y1.data_ptr<int64_t>(), width, gen_pixel,
                    gen_gaussian, gen_alpha);
         composite_chunk(chunks[c], s.features.data_ptr<scalar_t>(), channels, width, image.data_ptr<scalar_t>());
