@@ -66,16 +66,21 @@ def project(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCam
     """Screen-space Gaussians of ``cloud`` seen through ``camera`` at ``world_to_cam``; culls ``z <= near``."""
     pose = world_to_cam.to(cloud.dtype)
     cam = cloud.means @ pose[:3, :3].T + pose[:3, 3]
-    visible = (cam[:, 2] > near).nonzero().squeeze(1)
-    cam = cam[visible]
-    x, y, z = cam.unbind(-1)
-    radii = cloud.log_radii[visible].exp()
+    in_front = cam[:, 2] > near
+    # often every Gaussian is in front: then no gathers here and no scatters in the backward
+    visible = None if bool(in_front.all()) else in_front.nonzero().squeeze(1)
+
+    def keep(t: torch.Tensor) -> torch.Tensor:
+        return t if visible is None else t[visible]
+
+    x, y, z = keep(cam).unbind(-1)
+    radii = keep(cloud.log_radii).exp()
     return ScreenGaussians(
         u=camera.fx * x / z + camera.cx,
         v=camera.fy * y / z + camera.cy,
         inv_var_x=(z / (camera.fx * radii)) ** 2,
         inv_var_y=(z / (camera.fy * radii)) ** 2,
-        opacity=torch.sigmoid(cloud.opacity_logits[visible]),
+        opacity=torch.sigmoid(keep(cloud.opacity_logits)),
         depth=z,
-        features=torch.cat([cloud.colors[visible], cloud.semantics[visible], z[:, None]], 1),
+        features=torch.cat([keep(cloud.colors), keep(cloud.semantics), z[:, None]], 1),
     )
