@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from gausem_core.geometry import PinholeCamera, invert_pose, se3_exp
+from gausem_core.geometry import PinholeCamera, se3_exp
 
 
 @dataclass
