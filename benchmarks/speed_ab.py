@@ -1,10 +1,11 @@
 """Whole-system speed of two commits, interleaved: for each sequence of a suite, GauSem at BASE, then at HEAD.
 
-The machines behind this repository change speed by up to 2x within minutes, so a speed-up is only measured by runs
-that alternate. BASE is checked out into a temporary worktree (with its own extension cache, so the two compiled
-renderers do not rebuild each other); each run is one `gausem bench slam` of that tree, run inside it (its own
-params files). Writes
-benchmarks/results/speed_ab_<name>.{json,md}. Run from the repository root:
+The machines behind this repository change speed by 10-20 % within the hour and by up to 2x between days, so a
+speed-up is only measured by runs that alternate. BASE is checked out into a temporary worktree (with its own
+extension cache, so the two compiled renderers do not rebuild each other); each run is one `gausem bench slam` of
+that tree, run inside it (its own params files); HEAD runs from this checkout. Writes
+benchmarks/results/speed_ab_<name>.{json,md} (default name: 160x120_<HEAD>, the paper suite's size). Run from the
+repository root:
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/speed_ab.py BASE [--suite S] [--sequences A B] [--name N]
 """
 from __future__ import annotations
@@ -49,9 +50,10 @@ def main() -> None:
     parser.add_argument("--sequences", nargs="+",
                         default=["synthetic_default", "synthetic_loop", "tum_fr1_rpy", "7scenes_redkitchen"])
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--name", default="160x120")
+    parser.add_argument("--name", help="results name (default: 160x120_<HEAD short>)")
     args = parser.parse_args()
     base, head = git("rev-parse", args.base), git("rev-parse", "HEAD")
+    name = args.name or f"160x120_{head[:7]}"
     rows = []
     with tempfile.TemporaryDirectory(prefix="gausem-ab-") as tmp:
         work = Path(tmp)
@@ -76,8 +78,8 @@ def main() -> None:
     document = {"base": base, "head": head, "threads": args.threads, "suite": str(args.suite),
                 "load_average": os.getloadavg(), "rows": rows}
     OUT.mkdir(exist_ok=True)
-    (OUT / f"speed_ab_{args.name}.json").write_text(json.dumps(document, indent=2) + "\n")
-    (OUT / f"speed_ab_{args.name}.md").write_text(markdown(document))
+    (OUT / f"speed_ab_{name}.json").write_text(json.dumps(document, indent=2) + "\n")
+    (OUT / f"speed_ab_{name}.md").write_text(markdown(document))
     print(markdown(document))
 
 
