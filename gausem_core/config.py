@@ -130,6 +130,10 @@ class LoopConfig:
     max_descriptor_distance: float = 0.2  # loop candidates: DINOv2 CLS distance below this (paper)
     max_fallback_descriptor_distance: float = 0.35  # ... colour-layout fallback distance below this (its own scale)
     exclude_recent: int = 6
+    # > 0: past keyframes whose estimated camera centre lies within this many metres of the keyframe's, looking within
+    # proximity_max_angle_deg of its direction, are loop candidates too, at every keyframe (0: descriptors only)
+    proximity_radius: float = 0.0
+    proximity_max_angle_deg: float = 30.0
     robust_kernel: str = "huber"
     odometry_sigma_translation: float = 0.01  # pose-graph odometry edges per keyframe step (metres, radians)
     odometry_sigma_rotation: float = 0.005

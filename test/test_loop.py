@@ -158,6 +158,29 @@ def test_detector_checks_only_every_sixth_keyframe(backend):
     assert detector.is_keyframe(10) and not detector.is_keyframe(11)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_detector_takes_nearby_keyframes_at_every_keyframe(backend):
+    """Keyframes the caller names as nearby are candidates on any keyframe, whatever their descriptors; the recent
+    window stays excluded, unknown ids are ignored, and on a check keyframe descriptor candidates join them (the
+    landmark scores pick the loop)."""
+    g = torch.Generator().manual_seed(5)
+    descriptors = [_unit(torch.randn(8, generator=g)) for _ in range(11)]
+    scores = torch.rand(11, 3, generator=g)
+    detector = LoopDetector(check_every=6, exclude_recent=2, max_descriptor_distance=0.2, descriptor_dim=8,
+                            backend=backend)
+    for kf in range(4):
+        assert detector.add_keyframe(kf, 0, descriptors[kf], scores[kf]) is None
+    loop = detector.add_keyframe(4, 1, descriptors[4], scores[1] + 0.01, nearby=[1, 3, 99])  # 3 is too recent
+    assert (loop.query_keyframe, loop.match_keyframe, loop.query_submap, loop.match_submap) == (4, 1, 1, 0)
+    assert loop.descriptor_distance == pytest.approx(float((descriptors[4] - descriptors[1]).norm()), abs=1e-5)
+    assert detector.add_keyframe(5, 1, descriptors[0], scores[5], nearby=[]).match_keyframe == 0  # 6th: descriptors
+    for kf in range(6, 11):  # calls 7-11: no check, nothing nearby
+        assert detector.add_keyframe(kf, 1, descriptors[kf], scores[kf]) is None
+    loop = detector.add_keyframe(11, 1, descriptors[0], scores[2], nearby=[2])  # the 12th call: a check, and nearby
+    assert loop.match_keyframe == 2  # kf 0 is the descriptor candidate, kf 2 matches the landmark scores
+    assert detector.add_keyframe(12, 1, descriptors[2], scores[2], nearby=[]) is None  # kf 2: no check, not nearby
+
+
 def test_detector_min_submap_gap_and_errors():
     place = torch.ones(4)
     detector = LoopDetector(check_every=2, exclude_recent=0, min_submap_gap=1, descriptor_dim=4, backend="torch")

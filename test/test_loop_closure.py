@@ -50,6 +50,23 @@ def test_inter_submap_loop_moves_the_drifted_submap_rigidly():
     assert torch.equal(last.cloud.means, local_means)
 
 
+def test_proximity_finds_the_revisit_the_descriptor_misses():
+    """With a descriptor threshold nothing passes and checks that never come, only keyframes near in the (drifted)
+    pose estimate are candidates: the revisit is found, registered from the current anchors and closed."""
+    truth = frame(330)[1]
+    results = []
+    for radius in (0.0, 0.5):
+        first = make_submap(0, list(range(0, 50, 5)))
+        last = make_submap(1, list(range(330, 360, 5)), anchor=perturbation(0.08, 3.0, 1).float() @ truth)
+        closure = _closure(check_every=100, max_fallback_descriptor_distance=1e-6, proximity_radius=radius)
+        _feed(closure, [first, last])
+        results.append((closure, last))
+    assert results[0][0].records == []
+    closure, last = results[1]
+    assert closure.loops and all(r.match_frame <= 10 and r.query_frame >= 345 for r in closure.records)
+    assert pose_error(last.anchor, truth)[0] < 0.5 * 0.08
+
+
 def test_intra_submap_loop_pulls_drifted_keyframes_back():
     """One submap: out along frames 0..36, back along 30..0 with growing drift; the way back revisits the way out."""
     frames = [0, 6, 12, 18, 24, 30, 36, 30, 24, 18, 12, 6, 0]

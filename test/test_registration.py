@@ -167,6 +167,20 @@ def test_fine_step_rejects_a_far_initial_guess():
     assert not is_acceptable(fine, cfg)
 
 
+def test_fine_step_starts_from_the_alternative_the_views_agree_with():
+    """A far initial guess (as a misled coarse step gives) and a near alternative (as the anchors give): the fine step
+    refines the near one, whichever order they come in."""
+    source, target, truth, poses = _overlapping_submaps()
+    cfg = RegistrationConfig()
+    far, near = perturbation(0.5, 25.0, 3) @ truth, perturbation(0.05, 3.0, 1) @ truth
+    camera = source.keyframes[0].obs.camera
+    for init, alternative in ((far, near), (near, far)):
+        fine = fine_registration(source.cloud, target.cloud, poses[:2], camera, init, cfg, backend="torch",
+                                 alternatives=[alternative])
+        translation, rotation = pose_error(fine.transform, truth)
+        assert translation < 0.025 and rotation < 1.0 and is_acceptable(fine, cfg)
+
+
 def test_semantic_guided_registration_coarse_then_fine():
     """Keyframe descriptors pair source views with similar target views (closer than the loop threshold); Eq. 5 on
     their poses lands within reach of the fine step, which recovers the transform. A seed pair leads the coarse

@@ -2,7 +2,9 @@
 
 Per keyframe: the global descriptor of its semantic image is computed (and kept for SGR); keyframes whose frame index
 is a multiple of ``keyframe_every`` enter the loop database with their landmark score vector over their submap's
-Gaussians, and every ``check_every``-th of them queries it. A detected loop (k, j) is closed as follows.
+Gaussians, and every ``check_every``-th of them queries it. With ``proximity_radius`` > 0, the past keyframes near
+the new one in the current pose estimate (centre within the radius, similar viewing direction) are candidates at every
+keyframe as well: under small drift a revisit is found where a weak descriptor (the fallback) does not see it. A detected loop (k, j) is closed as follows.
 
 - Intra-submap (k and j in one submap): the relative pose of the two keyframes is measured from their images
   (:func:`~gausem_core.slam.registration.align_keyframes`); a keyframe pose graph with odometry edges between
@@ -23,6 +25,7 @@ beyond the drift). Every detection is recorded, accepted or not.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -144,7 +147,8 @@ class LoopClosure:
         if not detect or not self.detector.is_keyframe(keyframe.frame_id):
             return None
         candidate = self.detector.add_keyframe(keyframe.frame_id, submap.submap_id, descriptor,
-                                               self._landmark_scores(submap, keyframe))
+                                               self._landmark_scores(submap, keyframe),
+                                               self._nearby(submaps, submap.world_pose(keyframe)))
         if candidate is None:
             return None
         start = time.perf_counter()
@@ -171,6 +175,18 @@ class LoopClosure:
         seen = observed_gaussians(submap.cloud.means.detach(), keyframe.cam_to_world, keyframe.obs.camera,
                                   keyframe.obs.depth).cpu()
         return landmark_scores(ids, seen, gaussian_idf(ids, len(self.palette)))
+
+    def _nearby(self, submaps: Sequence, cam_to_world: torch.Tensor) -> list[int]:
+        """Frame ids of the keyframes within ``proximity_radius`` of ``cam_to_world`` (world frame, current estimates)
+        whose optical axes differ from its by at most ``proximity_max_angle_deg`` (none when the radius is 0)."""
+        if self.cfg.proximity_radius <= 0:
+            return []
+        ids = [kf.frame_id for s in submaps for kf in s.keyframes]
+        poses = torch.stack([s.world_pose(kf).detach().cpu().double() for s in submaps for kf in s.keyframes])
+        query = cam_to_world.detach().cpu().double()
+        close = (poses[:, :3, 3] - query[:3, 3]).norm(dim=1) < self.cfg.proximity_radius
+        aligned = poses[:, :3, 2] @ query[:3, 2] >= math.cos(math.radians(self.cfg.proximity_max_angle_deg))
+        return [i for i, keep in zip(ids, (close & aligned).tolist()) if keep]
 
     def _plausible(self, current: torch.Tensor, measured: torch.Tensor, keyframes: int) -> bool:
         """Whether a measured relative pose differs from the current estimate by at most ``max_correction_sigmas``
@@ -220,14 +236,14 @@ class LoopClosure:
         ends = {candidate.query_submap: candidate.query_keyframe, candidate.match_submap: candidate.match_keyframe}
         target, source = (match, query) if len(match.keyframes) >= len(query.keyframes) else (query, match)
         loop_pair = tuple([kf.frame_id for kf in s.keyframes].index(ends[s.submap_id]) for s in (source, target))
+        current = invert_pose(target.anchor) @ source.anchor
         registration = semantic_guided_registration(
             source.load_cloud(self.device), self._poses(source), self._descriptor_stack(source),
             target.load_cloud(self.device), self._poses(target), self._descriptor_stack(target),
             source.keyframes[0].obs.camera, self.cfg.registration, self.descriptor, self.backend,
-            self.detector.max_descriptor_distance, loop_pair)
+            self.detector.max_descriptor_distance, loop_pair, current.detach().cpu().double())
         first, last = sorted((target.submap_id, source.submap_id))
         between = sum(len(s.keyframes) for s in by_id.values() if first <= s.submap_id < last)
-        current = invert_pose(target.anchor) @ source.anchor
         constraint = LoopConstraint(ends[target.submap_id], ends[source.submap_id], target.submap_id,
                                     source.submap_id, registration.transform.detach().cpu().double(),
                                     registration.sigmas, registration.fine.fitness, False)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -284,12 +285,15 @@ def _spread(source_poses: torch.Tensor, corrected: torch.Tensor, transform: torc
 
 def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses: torch.Tensor,
                       camera: PinholeCamera, init: torch.Tensor, cfg: RegistrationConfig,
-                      features: DescriptorExtractor | None = None, backend: str = "auto") -> FineRegistration:
+                      features: DescriptorExtractor | None = None, backend: str = "auto",
+                      alternatives: Sequence[torch.Tensor] = ()) -> FineRegistration:
     """SGR fine step (Eq. 6): refine ``init`` (source -> target, 4x4) with both submaps' Gaussians frozen.
 
     ``source_poses`` (V, 4, 4): the source keyframe poses to compare the submaps from; ``features``: the dense
     semantic feature extractor of the Eq. 6 feature term (None leaves the term out of the reported loss). Both clouds
-    must be on one device; poses and the result are float64 on the CPU.
+    must be on one device; poses and the result are float64 on the CPU. ``alternatives``: other starts (e.g. the
+    current estimate from the anchors); the refinement starts from the one of ``init`` and these at which the most
+    source pixels agree with the target (overlap x fitness; ``init`` on a tie).
     """
     if source_poses.dim() != 3 or source_poses.shape[1:] != (4, 4) or source_poses.shape[0] == 0:
         raise ValueError(f"fine_registration: need (V, 4, 4) source poses, got {tuple(source_poses.shape)}")
@@ -300,6 +304,9 @@ def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses
                                feature=cfg.lambda_feat)
     with torch.no_grad():
         pyramids, projection = _source_views(source, src, camera, cfg, features, backend)
+        if alternatives:
+            transform = max([transform, *(a.to("cpu", torch.float64) for a in alternatives)],
+                            key=lambda t: _agreement(target, t, src, pyramids, cfg, backend))
         used = torch.zeros(0, dtype=torch.long)
         corrected = src[:0]
         for level in [l for l in reversed(range(cfg.pyramid_levels)) for _ in range(cfg.renders_per_level)]:
@@ -324,6 +331,14 @@ def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses
         spread = _spread(src[used], corrected, transform) if len(used) else (math.inf, math.inf)
         overlap, fitness, loss = _evaluate(target, transform, src, pyramids, cfg, features, backend)
     return FineRegistration(transform, overlap, fitness, loss, spread, len(used))
+
+
+def _agreement(target: GaussianCloud, transform: torch.Tensor, source_poses: torch.Tensor,
+               pyramids: list[list[ObservedImages]], cfg: RegistrationConfig, backend: str) -> float:
+    """Fraction of the source views' pixels that the target at ``transform`` renders and agrees with (overlap x
+    fitness): how good a start ``transform`` is."""
+    overlap, fitness, _ = _evaluate(target, transform, source_poses, pyramids, cfg, None, backend)
+    return overlap * fitness
 
 
 def _evaluate(target: GaussianCloud, transform: torch.Tensor, source_poses: torch.Tensor,
@@ -374,10 +389,13 @@ def semantic_guided_registration(source_cloud: GaussianCloud, source_poses: torc
                                  camera: PinholeCamera, cfg: RegistrationConfig,
                                  features: DescriptorExtractor | None = None, backend: str = "auto",
                                  max_pair_distance: float | None = None,
-                                 loop_pair: tuple[int, int] | None = None) -> Registration:
+                                 loop_pair: tuple[int, int] | None = None,
+                                 prior: torch.Tensor | None = None) -> Registration:
     """Coarse (Eq. 5, top-k descriptor pairs closer than ``max_pair_distance`` that agree with each other, or with
     ``loop_pair`` (source index, target index) when given) then fine (Eq. 6) registration of the source submap to
-    the target.
+    the target. ``prior``: the current estimate of the transform (from the anchors); the fine step starts from it
+    instead of the coarse estimate when more source pixels agree with the target there (look-alike views can mislead
+    Eq. 5, and a revisit under little drift is closer to the prior).
 
     Keyframe poses (S, 4, 4) / (T, 4, 4) are cam_to_world in their own submap's frame, descriptors (S, D) / (T, D).
     Accepted by :func:`is_acceptable`.
@@ -390,7 +408,7 @@ def semantic_guided_registration(source_cloud: GaussianCloud, source_poses: torc
     middle = time.perf_counter()
     views = fine_views(coarse.pairs, source_poses, cfg.views)
     fine = fine_registration(source_cloud, target_cloud, source_poses[views], camera, coarse.transform, cfg,
-                             features, backend)
+                             features, backend, () if prior is None else (prior,))
     end = time.perf_counter()
     return Registration(fine.transform, coarse, fine, is_acceptable(fine, cfg), edge_sigmas(fine, cfg),
                         middle - start, end - middle)

@@ -1,6 +1,7 @@
 """Semantic-aware loop detection (paper Algorithm 1): descriptor radius search, re-ranked by landmark scores."""
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import torch
@@ -31,7 +32,8 @@ class LoopDetector:
     """Algorithm 1. Every ``check_every``-th keyframe is compared with all stored keyframes except the newest
     ``exclude_recent``; those with a descriptor distance below ``max_descriptor_distance`` (and, when
     ``min_submap_gap`` > 0, from a submap at least that many ids older) are candidates, and the one whose landmark
-    score vector is closest to the query's is the loop.
+    score vector is closest to the query's is the loop. Stored keyframes the caller names as ``nearby`` (close in the
+    current pose estimate) are candidates too, at every keyframe: a revisit under small drift needs no descriptor.
 
     Landmark score vectors (:func:`~gausem_core.slam.loop.landmarks.landmark_scores`) are computed by the caller, who
     owns the Gaussians; a stored keyframe is compared with the vector it was added with. Vectors may grow as classes
@@ -67,22 +69,30 @@ class LoopDetector:
         return frame_index % self.keyframe_every == 0
 
     def add_keyframe(self, keyframe_id: int, submap_id: int, descriptor: torch.Tensor,
-                     landmark_scores: torch.Tensor) -> LoopCandidate | None:
-        """Check the keyframe for a loop (on every ``check_every``-th call), then store it. Returns the loop or None."""
+                     landmark_scores: torch.Tensor, nearby: Iterable[int] = ()) -> LoopCandidate | None:
+        """Check the keyframe for a loop (descriptors on every ``check_every``-th call, ``nearby`` keyframe ids on
+        every call), then store it. Returns the loop or None."""
         if landmark_scores.dim() != 1:
             raise ValueError(f"LoopDetector.add_keyframe: landmark scores of keyframe {keyframe_id} must be a vector, "
                              f"got shape {tuple(landmark_scores.shape)}")
         is_check = (len(self.database) + 1) % self.check_every == 0
-        loop = self._detect(keyframe_id, submap_id, descriptor, landmark_scores) if is_check else None
+        nearby = set(nearby)
+        loop = (self._detect(keyframe_id, submap_id, descriptor, landmark_scores, is_check, nearby)
+                if is_check or nearby else None)
         self.database.add(keyframe_id, descriptor)
         self._keyframes[keyframe_id] = (submap_id, landmark_scores.detach().cpu())
         return loop
 
-    def _detect(self, keyframe_id, submap_id, descriptor, landmark_scores) -> LoopCandidate | None:
-        ids, distances = self.database.search(descriptor, radius=self.max_descriptor_distance,
-                                              exclude_recent=self.exclude_recent)
+    def _detect(self, keyframe_id, submap_id, descriptor, landmark_scores, by_descriptor: bool,
+                nearby: set[int]) -> LoopCandidate | None:
+        searchable = len(self.database) - self.exclude_recent
+        if searchable <= 0:
+            return None
+        ids, distances = self.database.search(descriptor, k=searchable, exclude_recent=self.exclude_recent)
         best = None
         for match, desc_dist in zip(ids.tolist(), distances.tolist()):
+            if not ((by_descriptor and desc_dist < self.max_descriptor_distance) or match in nearby):
+                continue
             match_submap, match_scores = self._keyframes[match]
             if submap_id - match_submap < self.min_submap_gap:
                 continue
