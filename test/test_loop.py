@@ -8,7 +8,7 @@ import torch
 from gausem_core.config import LoopConfig
 from gausem_core.geometry import PinholeCamera
 from gausem_core.slam.loop import (DescriptorDatabase, LoopDetector, gaussian_idf, landmark_distance,
-                                   landmark_scores, observed_gaussians)
+                                   landmark_scores, nearby_keyframes, observed_gaussians)
 from gausem_core.slam.loop.database import _import_faiss
 
 BACKENDS = ["torch"] + (["faiss"] if _import_faiss() is not None else [])
@@ -179,6 +179,20 @@ def test_detector_takes_nearby_keyframes_at_every_keyframe(backend):
     loop = detector.add_keyframe(11, 1, descriptors[0], scores[2], nearby=[2])  # the 12th call: a check, and nearby
     assert loop.match_keyframe == 2  # kf 0 is the descriptor candidate, kf 2 matches the landmark scores
     assert detector.add_keyframe(12, 1, descriptors[2], scores[2], nearby=[]) is None  # kf 2: no check, not nearby
+
+
+def test_nearby_keyframes_by_centre_distance_and_viewing_direction():
+    def pose(x, yaw_deg):
+        c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+        out = torch.eye(4, dtype=torch.float64)
+        out[:3, :3] = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # optical axis turned about y
+        out[0, 3] = x
+        return out
+
+    poses = {0: pose(0.1, 10.0), 5: pose(0.29, 0.0), 10: pose(0.31, 0.0), 15: pose(0.0, 35.0), 20: pose(0.0, -29.0)}
+    assert nearby_keyframes(pose(0.0, 0.0), poses, 0.3, 30.0) == [0, 5, 20]
+    assert nearby_keyframes(pose(0.0, 0.0), poses, 0.0, 30.0) == []
+    assert nearby_keyframes(pose(0.0, 0.0), {}, 0.3, 30.0) == []
 
 
 def test_detector_min_submap_gap_and_errors():

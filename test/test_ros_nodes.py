@@ -243,12 +243,12 @@ def test_segmentation_node_publishes_labels_and_colours_and_refuses_the_labels_k
     np.testing.assert_array_equal(ma.image_to_rgb(color_msg), SYNTHETIC_CLASSES.colorize(expected))
 
 
-def test_loop_detection_finds_a_revisited_labelling():
-    layouts = [np.repeat(np.arange(8) % 3, 8).reshape(8, 8), np.full((8, 8), 5), np.repeat(np.arange(8) % 3, 8)
-               .reshape(8, 8)]
-    with ros_session(105) as (ctx, executor):
+def _loop_candidates(domain: int, parameters: dict, keyframes: list) -> list:
+    """Run a loop-detection node on keyframes (label layout, map-from-camera pose), ids 0, 5, 10, ...; the candidates
+    it publishes."""
+    with ros_session(domain) as (ctx, executor):
         loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides(
-            {"loop.check_every": 1, "loop.exclude_recent": 1, "label_stride": 1}))
+            {"loop.exclude_recent": 1, "label_stride": 1, **parameters}))
         recorder = Recorder(ctx, [(PointCloud2, "gausem/loop_candidates", EVENT_QOS)])
         kf_pub = recorder.node.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
         labels_pub = recorder.node.create_publisher(Image, "semantic/labels", IMAGE_QOS)
@@ -256,18 +256,35 @@ def test_loop_detection_finds_a_revisited_labelling():
         executor.add_node(recorder.node)
         assert spin_until(executor, lambda: kf_pub.get_subscription_count() and labels_pub.get_subscription_count(),
                           5.0)
-        for i, layout in enumerate(layouts):
+        for i, (layout, pose) in enumerate(keyframes):
             stamp = 1.0 + i
-            kf_pub.publish(ma.records_to_pointcloud2([ma.KeyframeRecord(5 * i, stamp, 0, np.eye(4), np.eye(4),
+            kf_pub.publish(ma.records_to_pointcloud2([ma.KeyframeRecord(5 * i, stamp, 0, pose, np.eye(4),
                                                                         np.zeros(0, np.float32))],
                                                      ma.make_header(stamp, "map")))
             labels_pub.publish(ma.labels_to_image(layout, ma.make_header(stamp, "cam")))
             assert spin_until(executor, lambda: loop.keyframes_checked == i + 1, 5.0)
         assert spin_until(executor, lambda: recorder.messages["gausem/loop_candidates"], 5.0)
-    candidates = [c for m in recorder.messages["gausem/loop_candidates"]
-                  for c in ma.pointcloud2_to_records(m, ma.LoopCandidateRecord)]
+    return [c for m in recorder.messages["gausem/loop_candidates"]
+            for c in ma.pointcloud2_to_records(m, ma.LoopCandidateRecord)]
+
+
+def test_loop_detection_finds_a_revisited_labelling():
+    stripes = np.repeat(np.arange(8) % 3, 8).reshape(8, 8)
+    candidates = _loop_candidates(105, {"loop.check_every": 1},
+                                  [(stripes, np.eye(4)), (np.full((8, 8), 5), np.eye(4)), (stripes, np.eye(4))])
     assert [(c.query_keyframe_id, c.match_keyframe_id, c.intra_submap) for c in candidates] == [(10, 0, True)]
     assert candidates[0].descriptor_distance == pytest.approx(0.0, abs=1e-6)
+
+
+def test_loop_detection_takes_keyframes_near_in_the_published_poses():
+    """Three different labellings, no descriptor check: the third keyframe is 10 cm from the first (the second 2 m
+    away), so with loop.proximity_radius it is a candidate."""
+    poses = [np.eye(4) for _ in range(3)]
+    poses[1][0, 3], poses[2][0, 3] = 2.0, 0.1
+    layouts = [np.full((8, 8), c) for c in (1, 5, 2)]
+    candidates = _loop_candidates(118, {"loop.check_every": 100, "loop.proximity_radius": 0.3},
+                                  list(zip(layouts, poses)))
+    assert [(c.query_keyframe_id, c.match_keyframe_id) for c in candidates] == [(10, 0)]
 
 
 def test_pose_graph_node_closes_an_intra_submap_loop():

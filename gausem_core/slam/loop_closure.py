@@ -25,7 +25,6 @@ beyond the drift). Every detection is recorded, accepted or not.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -37,7 +36,8 @@ from gausem_core.config import LoopConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_log
 from gausem_core.semantics.descriptors import DescriptorExtractor, make_descriptor
-from gausem_core.slam.loop import LoopCandidate, LoopDetector, gaussian_idf, landmark_scores, observed_gaussians
+from gausem_core.slam.loop import (LoopCandidate, LoopDetector, gaussian_idf, landmark_scores, nearby_keyframes,
+                                   observed_gaussians)
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.pose_graph import optimise_chain
 from gausem_core.slam.registration import align_keyframes, semantic_guided_registration
@@ -177,16 +177,9 @@ class LoopClosure:
         return landmark_scores(ids, seen, gaussian_idf(ids, len(self.palette)))
 
     def _nearby(self, submaps: Sequence, cam_to_world: torch.Tensor) -> list[int]:
-        """Frame ids of the keyframes within ``proximity_radius`` of ``cam_to_world`` (world frame, current estimates)
-        whose optical axes differ from its by at most ``proximity_max_angle_deg`` (none when the radius is 0)."""
-        if self.cfg.proximity_radius <= 0:
-            return []
-        ids = [kf.frame_id for s in submaps for kf in s.keyframes]
-        poses = torch.stack([s.world_pose(kf).detach().cpu().double() for s in submaps for kf in s.keyframes])
-        query = cam_to_world.detach().cpu().double()
-        close = (poses[:, :3, 3] - query[:3, 3]).norm(dim=1) < self.cfg.proximity_radius
-        aligned = poses[:, :3, 2] @ query[:3, 2] >= math.cos(math.radians(self.cfg.proximity_max_angle_deg))
-        return [i for i, keep in zip(ids, (close & aligned).tolist()) if keep]
+        """Frame ids of the keyframes near ``cam_to_world`` (world frame) in the current estimates."""
+        poses = {kf.frame_id: s.world_pose(kf) for s in submaps for kf in s.keyframes}
+        return nearby_keyframes(cam_to_world, poses, self.cfg.proximity_radius, self.cfg.proximity_max_angle_deg)
 
     def _plausible(self, current: torch.Tensor, measured: torch.Tensor, keyframes: int) -> bool:
         """Whether a measured relative pose differs from the current estimate by at most ``max_correction_sigmas``

@@ -6,9 +6,10 @@ first waits, at most ``cache_size`` of each). The keyframe's global descriptor i
 colour image (the class table's colours of the labels) with ``semantics.descriptor`` (DINOv2 CLS with
 ``semantics.dinov2_weights``, else the colour-layout fallback), so labels are needed. Every keyframe the tracker
 publishes is a loop keyframe (the tracker already keeps one every ``mapping.every`` frames; a keyframe id seen before
-is a re-publication and ignored); ``loop.check_every``,
-``loop.max_descriptor_distance`` (DINOv2) or ``loop.max_fallback_descriptor_distance`` (the fallback descriptor) and
-``loop.exclude_recent`` configure the detector.
+is a re-publication, whose corrected pose is kept, and otherwise ignored); ``loop.check_every``,
+``loop.max_descriptor_distance`` (DINOv2) or ``loop.max_fallback_descriptor_distance`` (the fallback descriptor),
+``loop.exclude_recent`` and ``loop.proximity_radius`` (keyframes near in the latest published poses are candidates
+too) configure the detector.
 
 Landmark scores (Eq. 7) need the class of every Gaussian of a submap and which ones a frame observes; this node does
 not hold the map, so the keyframes' label pixels (every ``label_stride``-th row and column) stand in for the Gaussians:
@@ -25,7 +26,7 @@ from sensor_msgs.msg import Image, PointCloud2
 import msg_adapters as ma
 from gausem_core.pipeline import resolve_device
 from gausem_core.semantics import make_descriptor
-from gausem_core.slam.loop import LoopDetector, gaussian_idf, landmark_scores
+from gausem_core.slam.loop import LoopDetector, gaussian_idf, landmark_scores, nearby_keyframes
 
 from ..qos import EVENT_QOS, input_qos
 from .common import DropReport, class_table, declare_parameters, declare_slam_config, run_node
@@ -52,6 +53,7 @@ class LoopDetectionNode(Node):
         self._labels: OrderedDict[float, object] = OrderedDict()  # stamp -> label image message
         self._keyframes: OrderedDict[float, ma.KeyframeRecord] = OrderedDict()  # waiting for their labels
         self._seen: set[int] = set()  # keyframe ids received
+        self._world_poses: dict[int, torch.Tensor] = {}  # keyframe id -> latest map-from-camera (for proximity)
         self._submap_pixels: dict[int, list[torch.Tensor]] = defaultdict(list)
         self._pub = self.create_publisher(PointCloud2, "gausem/loop_candidates", EVENT_QOS)
         self.create_subscription(PointCloud2, "gausem/keyframes", self._on_keyframes, EVENT_QOS)
@@ -72,6 +74,7 @@ class LoopDetectionNode(Node):
             self.drops.drop("bad_keyframes", str(err))
             return
         for record in records:
+            self._world_poses[record.keyframe_id] = torch.from_numpy(record.anchor_pose @ record.pose)
             if record.keyframe_id not in self._seen:  # re-published keyframes (corrected poses) are not new
                 self._seen.add(record.keyframe_id)
                 self._remember(self._keyframes, record.stamp, record, "keyframe")
@@ -107,7 +110,8 @@ class LoopDetectionNode(Node):
         observed = torch.zeros(len(class_ids), dtype=torch.bool)
         observed[-len(pixels):] = True
         scores = landmark_scores(class_ids, observed, gaussian_idf(class_ids, len(self.table)))
-        loop = self.detector.add_keyframe(record.keyframe_id, record.submap_id, descriptor, scores)
+        loop = self.detector.add_keyframe(record.keyframe_id, record.submap_id, descriptor, scores,
+                                          self._nearby(record.keyframe_id))
         self.keyframes_checked += 1
         if loop is None:
             return
@@ -116,6 +120,14 @@ class LoopDetectionNode(Node):
         self.get_logger().info(f"loop candidate: keyframe {loop.query_keyframe} -> {loop.match_keyframe} "
                                f"(descriptor distance {loop.descriptor_distance:.3f})")
         self._pub.publish(ma.records_to_pointcloud2([candidate], ma.make_header(record.stamp, "map")))
+
+
+    def _nearby(self, keyframe_id: int) -> list[int]:
+        """Keyframes near this one in the latest published poses (``loop.proximity_radius``; none when 0)."""
+        others = {k: pose for k, pose in self._world_poses.items() if k != keyframe_id}
+        loop = self.cfg.loop
+        return nearby_keyframes(self._world_poses[keyframe_id], others, loop.proximity_radius,
+                                loop.proximity_max_angle_deg)
 
 
 def main(args=None) -> int:

@@ -1,7 +1,8 @@
 """Semantic-aware loop detection (paper Algorithm 1): descriptor radius search, re-ranked by landmark scores."""
 from __future__ import annotations
 
-from collections.abc import Iterable
+import math
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 import torch
@@ -100,6 +101,20 @@ class LoopDetector:
             if best is None or land_dist < best.landmark_distance:
                 best = LoopCandidate(keyframe_id, match, submap_id, match_submap, desc_dist, land_dist)
         return best
+
+
+def nearby_keyframes(query: torch.Tensor, poses: Mapping[int, torch.Tensor], radius: float,
+                     max_angle_deg: float) -> list[int]:
+    """Ids of ``poses`` (cam_to_world 4x4, one frame with ``query``) whose camera centre lies within ``radius`` of
+    the query's and whose optical axis is within ``max_angle_deg`` of its (none when ``radius`` <= 0)."""
+    if radius <= 0 or not poses:
+        return []
+    ids = list(poses)
+    stacked = torch.stack([torch.as_tensor(poses[i]).detach().cpu().double() for i in ids])
+    query = torch.as_tensor(query).detach().cpu().double()
+    close = (stacked[:, :3, 3] - query[:3, 3]).norm(dim=1) < radius
+    aligned = stacked[:, :3, 2] @ query[:3, 2] >= math.cos(math.radians(max_angle_deg))
+    return [i for i, keep in zip(ids, (close & aligned).tolist()) if keep]
 
 
 def _zero_padded(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
