@@ -3,8 +3,10 @@ baselines (skipped without open3d, a benchmark-only dependency), colour resampli
 import dataclasses
 import json
 import math
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -191,6 +193,36 @@ def test_tiny_run_writes_json_and_paper_shaped_tables(tmp_path):
     assert "loop.enabled=False" in markdown
     ate = full["metrics"]["ate_rmse_cm"]
     assert f"| full | {'–' if ate is None else f'{ate:.2f}'} |" in markdown
+
+
+def _spawned_children(pid: int) -> list[int]:
+    """Children of ``pid`` started by multiprocessing's spawn (Linux /proc)."""
+    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    return [int(c) for c in children if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
+def test_sigterm_stops_the_running_case_too(tmp_path):
+    """SIGTERM to `gausem bench slam` while a run's process works: both end (the run's process is not orphaned)."""
+    suite = tiny_suite(tmp_path, [{"name": "full", "overrides": TINY}])
+    command = [sys.executable, "-c", "import sys; from gausem_core.cli import main; sys.exit(main())", "bench",
+               "slam", "--suite", str(suite), "--frames", "180", "--out", str(tmp_path / "res"), "--work",
+               str(tmp_path / "work"), "--quiet", "--threads", "1"]
+    harness = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not (children := _spawned_children(harness.pid)) and time.monotonic() < deadline:
+            assert harness.poll() is None, "the harness ended before starting its run"
+            time.sleep(0.2)
+        assert children, "no run process appeared"
+        time.sleep(1.0)
+        harness.send_signal(signal.SIGTERM)
+        assert harness.wait(timeout=60) == 128 + signal.SIGTERM
+    finally:
+        if harness.poll() is None:
+            harness.kill()
+    for child in children:
+        assert not Path(f"/proc/{child}").exists()
 
 
 # --- Open3D baselines -----------------------------------------------------------------------------------------------

@@ -96,6 +96,14 @@ def describe(case: Case) -> dict:
             "git_commit": git_commit(), "threads": torch.get_num_threads()}
 
 
+def send_run_case(case: Case, connection) -> None:
+    """:func:`run_case`, its record sent through ``connection`` (a multiprocessing pipe end), which is then closed."""
+    try:
+        connection.send(run_case(case))
+    finally:
+        connection.close()
+
+
 def run_case(case: Case) -> dict:
     """Run ``case`` in this process and return its record (status ``ok`` with metrics, or ``failed`` with error)."""
     if case.threads:

@@ -14,9 +14,8 @@ import json
 import multiprocessing
 import os
 import shlex
+import signal
 import sys
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -73,17 +72,32 @@ def build_suite(args: argparse.Namespace) -> Suite:
 
 
 def run_in_fresh_process(case: Case) -> dict:
-    """``worker.run_case`` in a new interpreter (spawn); a process that dies is recorded as a failed run."""
+    """``worker.run_case`` in a new interpreter (spawn). A process that dies is recorded as a failed run; one still
+    running when this one is interrupted (Ctrl-C, or SIGTERM under :func:`main`) is terminated with it."""
     from gausem_core.bench import worker
+    from gausem_core.io.metrics import to_jsonable
 
+    context = multiprocessing.get_context("spawn")
+    receive, send = context.Pipe(duplex=False)
+    process = context.Process(target=worker.send_run_case, args=(case, send))
+    process.start()
+    send.close()  # the child holds the sending end: its death ends recv() with EOFError
     try:
-        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-            return pool.submit(worker.run_case, case).result()
-    except BrokenProcessPool as exc:
-        from gausem_core.io.metrics import to_jsonable
-
+        return receive.recv()
+    except EOFError:
+        process.join()
         return to_jsonable({**worker.describe(case), "status": "failed",
-                            "error": f"the run's process died ({exc}); out of memory?"})
+                            "error": f"the run's process died (exit code {process.exitcode}); out of memory?"})
+    finally:
+        receive.close()
+        process.join(timeout=5)
+        if process.is_alive():
+            process.terminate()
+            process.join()
+
+
+def _exit_on_sigterm(signum, frame) -> None:
+    raise SystemExit(128 + signum)  # unwinds through run_in_fresh_process, which terminates the running child
 
 
 def listing(cases: list[Case]) -> str:
@@ -149,6 +163,14 @@ def write_results(out: Path, name: str, document: dict) -> tuple[Path, Path]:
 
 
 def main(args: argparse.Namespace) -> int:
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
+    try:
+        return _run_suite(args)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run_suite(args: argparse.Namespace) -> int:
     from gausem_core.tools.bench_render import environment
 
     try:
