@@ -178,6 +178,8 @@ class LoopClosure:
 
     def _nearby(self, submaps: Sequence, cam_to_world: torch.Tensor) -> list[int]:
         """Frame ids of the keyframes near ``cam_to_world`` (world frame) in the current estimates."""
+        if self.cfg.proximity_radius <= 0:
+            return []
         poses = {kf.frame_id: s.world_pose(kf) for s in submaps for kf in s.keyframes}
         return nearby_keyframes(cam_to_world, poses, self.cfg.proximity_radius, self.cfg.proximity_max_angle_deg)
 
