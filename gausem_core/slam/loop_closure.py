@@ -4,13 +4,15 @@ Per keyframe: the global descriptor of its semantic image is computed (and kept 
 is a multiple of ``keyframe_every`` enter the loop database with their landmark score vector over their submap's
 Gaussians, and every ``check_every``-th of them queries it. With ``proximity_radius`` > 0, the past keyframes near
 the new one in the current pose estimate (centre within the radius, similar viewing direction) are candidates at every
-keyframe as well: under small drift a revisit is found where a weak descriptor (the fallback) does not see it. A detected loop (k, j) is closed as follows.
+keyframe as well: under small drift a revisit is found where a weak descriptor (the fallback) does not see it. A
+detected loop (k, j) is closed as follows.
 
 - Intra-submap (k and j in one submap): the relative pose of the two keyframes is measured from their images
   (:func:`~gausem_core.slam.registration.align_keyframes`); a keyframe pose graph with odometry edges between
   consecutive keyframes and the loop edge moves the keyframes (the submap's first keyframe is held), and the submap
   is then re-mapped for ``remap_iterations_per_keyframe`` iterations per keyframe with the poses fixed.
-- Inter-submap: Semantic-Guided Registration of the submap with fewer keyframes (source) to the other (target); an
+- Inter-submap: Semantic-Guided Registration of the submap with fewer keyframes (source) to the other (target),
+  its fine step starting from the coarse estimate or the anchors' current one, whichever the views agree with more; an
   anchor pose graph with odometry edges between consecutive anchors and every accepted inter-submap loop edge so far
   moves the anchors. Keyframe poses and Gaussian centres are stored in their submap's frame, so a submap moves
   rigidly with its anchor: its world-frame keyframe poses and centres become C T and C x with C = A' A^-1
