@@ -19,10 +19,9 @@ import torch
 from gausem_core.config import load_config
 from gausem_core.data import open_dataset
 from gausem_core.eval.image import psnr
-from gausem_core.geometry import invert_pose
 from gausem_core.io.metrics import git_commit
 from gausem_core.pipeline import Pipeline
-from gausem_core.render import render
+from gausem_core.report import evaluation_positions, rendered_views
 from gausem_core.tools.run import default_params_file, parse_size
 
 OUT = Path(__file__).resolve().parent / "results"
@@ -51,15 +50,11 @@ def main() -> None:
     dataset = open_dataset(args.dataset, size=args.size)
     pipeline = Pipeline(dataset, cfg, progress=True)
     result = pipeline.run()
-    cloud = result.slam.global_cloud()
     frames = []
-    for k in range(0, len(result.frame_ids), args.eval_every):
-        obs = pipeline.observation(dataset[k])
-        with torch.no_grad():
-            pose = torch.as_tensor(result.poses[k], dtype=cloud.dtype, device=cloud.device)
-            out = render(cloud, invert_pose(pose), obs.camera, backend=cfg.backend)
+    for frame, obs, out in rendered_views(result, pipeline, evaluation_positions(len(result.frame_ids),
+                                                                                 args.eval_every)):
         corrected, coefficients = oracle_affine(out.color, obs.rgb)
-        frames.append({"frame": result.frame_ids[k], "psnr": psnr(out.color, obs.rgb),
+        frames.append({"frame": frame.index, "psnr": psnr(out.color, obs.rgb),
                        "psnr_oracle_exposure": psnr(corrected, obs.rgb), "gain_bias_rgb": coefficients})
     document = {"commit": git_commit(), "dataset": args.dataset, "size": list(args.size),
                 "psnr": statistics.mean(f["psnr"] for f in frames),

@@ -11,14 +11,12 @@ import argparse
 import json
 
 import numpy as np
-import torch
 
 from gausem_core.config import load_config
 from gausem_core.data import open_dataset
 from gausem_core.eval.image import psnr
-from gausem_core.geometry import invert_pose
 from gausem_core.pipeline import Pipeline
-from gausem_core.render import render
+from gausem_core.report import evaluation_positions, rendered_views
 from gausem_core.tools.run import default_params_file, parse_override, parse_size
 
 
@@ -33,15 +31,10 @@ def main() -> None:
     dataset = open_dataset(args.dataset, size=args.size, max_frames=args.frames)
     pipeline = Pipeline(dataset, cfg, progress=True)
     result = pipeline.run()
-    cloud = result.slam.global_cloud()
     scores = {"all": [], "valid_depth": [], "no_depth": []}
     error_no_depth = error_total = hole_fraction = 0.0
-    positions = range(0, len(result.frame_ids), 5)
-    for k in positions:
-        obs = pipeline.observation(dataset[k])
-        with torch.no_grad():
-            out = render(cloud, invert_pose(torch.as_tensor(result.poses[k], dtype=cloud.dtype)), obs.camera,
-                         backend=cfg.backend)
+    positions = evaluation_positions(len(result.frame_ids), 5)
+    for _, obs, out in rendered_views(result, pipeline, positions):
         valid = obs.valid_depth
         scores["all"].append(psnr(out.color, obs.rgb))
         scores["valid_depth"].append(psnr(out.color, obs.rgb, valid))

@@ -104,19 +104,17 @@ class RenderingEvaluation:
         return out
 
 
-def evaluate_rendering(result: RunResult, pipeline: Pipeline, eval_every: int,
-                       montage_frames: int = MONTAGE_FRAMES) -> RenderingEvaluation:
-    """Render the global map at every ``eval_every``-th processed frame's estimated pose and score it.
-
-    PSNR and SSIM over the whole image; depth L1 of the rendered (alpha-accumulated) depth over pixels with a
-    measured depth; semantics by the nearest palette class of each rendered semantic colour, against the labels.
-    """
+def evaluation_positions(frames: int, eval_every: int) -> list[int]:
+    """The processed-frame positions evaluated: every ``eval_every``-th of ``frames``, from the first."""
     if eval_every < 1:
         raise ValueError(f"eval_every must be >= 1, got {eval_every}")
-    positions = list(range(0, len(result.frame_ids), eval_every))
-    shown = set(evenly_spaced(positions, montage_frames))
+    return list(range(0, frames, eval_every))
+
+
+def rendered_views(result: RunResult, pipeline: Pipeline, positions: list[int]):
+    """Yield (frame, observation, render) per processed-frame position: the final global map rendered at the frame's
+    estimated pose (no gradients)."""
     cloud = result.slam.global_cloud().to(pipeline.device)
-    evaluation = RenderingEvaluation()
     for k in positions:
         frame = pipeline.dataset[k]
         if frame.index != result.frame_ids[k]:
@@ -126,14 +124,28 @@ def evaluate_rendering(result: RunResult, pipeline: Pipeline, eval_every: int,
         world_to_cam = invert_pose(torch.as_tensor(result.poses[k], dtype=cloud.dtype, device=cloud.device))
         with torch.no_grad():
             out = render(cloud, world_to_cam, obs.camera, backend=pipeline.cfg.backend)
-            evaluation.scores["psnr"].append(psnr(out.color, obs.rgb))
-            evaluation.scores["ssim"].append(float(ssim(out.color, obs.rgb)))
-            if obs.valid_depth.any():
-                evaluation.scores["depth_l1_m"].append(depth_l1(out.depth, obs.depth))
-            if frame.labels is not None:
-                predicted = nearest_palette_class(out.semantic, pipeline.palette)
-                confusion = confusion_matrix(predicted, obs.labels, len(pipeline.palette))
-                evaluation.confusion = confusion if evaluation.confusion is None else evaluation.confusion + confusion
+        yield frame, obs, out
+
+
+def evaluate_rendering(result: RunResult, pipeline: Pipeline, eval_every: int,
+                       montage_frames: int = MONTAGE_FRAMES) -> RenderingEvaluation:
+    """Render the global map at every ``eval_every``-th processed frame's estimated pose and score it.
+
+    PSNR and SSIM over the whole image; depth L1 of the rendered (alpha-accumulated) depth over pixels with a
+    measured depth; semantics by the nearest palette class of each rendered semantic colour, against the labels.
+    """
+    positions = evaluation_positions(len(result.frame_ids), eval_every)
+    shown = set(evenly_spaced(positions, montage_frames))
+    evaluation = RenderingEvaluation()
+    for k, (frame, obs, out) in zip(positions, rendered_views(result, pipeline, positions)):
+        evaluation.scores["psnr"].append(psnr(out.color, obs.rgb))
+        evaluation.scores["ssim"].append(float(ssim(out.color, obs.rgb)))
+        if obs.valid_depth.any():
+            evaluation.scores["depth_l1_m"].append(depth_l1(out.depth, obs.depth))
+        if frame.labels is not None:
+            predicted = nearest_palette_class(out.semantic, pipeline.palette)
+            confusion = confusion_matrix(predicted, obs.labels, len(pipeline.palette))
+            evaluation.confusion = confusion if evaluation.confusion is None else evaluation.confusion + confusion
         if k in shown:
             evaluation.rows.append(MontageRow(frame.rgb, out.color, out.semantic, out.depth, obs.depth,
                                               label=f"frame {frame.index}"))
