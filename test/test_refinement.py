@@ -73,3 +73,19 @@ def test_the_system_refines_after_the_last_frame_with_or_without_loop_closure():
     assert slam.loop_closure is None
     assert before.shape != after.shape or not torch.equal(before, after)  # refined
     assert torch.equal(*means[False])  # ablation "w/o global refinement": untouched
+
+
+def test_stage_one_decays_the_centres_learning_rate_and_uses_its_own_depth_weight():
+    def refine(**options):
+        submap = make_submap(0, [0, 4, 8], size=(80, 60))
+        submap.cloud.means.add_(0.01 * torch.randn(submap.cloud.means.shape, generator=torch.Generator().manual_seed(1)))
+        refined, losses = refine_submap(submap.cloud.clone(), submap.keyframes, [kf.obs for kf in submap.keyframes],
+                                        Mapper(MappingConfig()), 4, None, 0.0, "torch", **options)
+        return (refined.means - submap.cloud.means).norm(dim=1).mean(), losses  # no pruning on this scene
+
+    moved_constant, losses_constant = refine(final_lr_means_fraction=1.0)
+    moved_decayed, losses_decayed = refine(final_lr_means_fraction=1e-4)
+    assert moved_decayed < 0.6 * moved_constant
+    assert losses_decayed[-1] < losses_decayed[0]
+    _, losses_without_depth = refine(final_lr_means_fraction=1.0, w_depth=0.0)
+    assert losses_without_depth[0] < losses_constant[0]  # the depth term is gone from L_refine
