@@ -89,3 +89,12 @@ def test_stage_one_decays_the_centres_learning_rate_and_uses_its_own_depth_weigh
     assert losses_decayed[-1] < losses_decayed[0]
     _, losses_without_depth = refine(final_lr_means_fraction=1.0, w_depth=0.0)
     assert losses_without_depth[0] < losses_constant[0]  # the depth term is gone from L_refine
+
+
+def test_stage_one_leaves_the_optimised_colours_unclamped():
+    submap = make_submap(0, [0, 4], size=(80, 60))
+    submap.cloud.colors[:10] = 1.25  # what the optimiser may settle on where Gaussians overlap with partial opacity
+    submap.cloud.colors[10:20] = -0.25
+    refined, _ = refine_submap(submap.cloud.clone(), submap.keyframes, [kf.obs for kf in submap.keyframes],
+                               Mapper(MappingConfig()), 0, None, 0.0, "torch")
+    assert torch.equal(refined.colors[:20], submap.cloud.colors[:20])
