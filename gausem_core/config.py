@@ -143,6 +143,7 @@ class LoopConfig:
     refine_iterations_per_keyframe: int = 10  # both refinement stages
     refine_w_depth: float = 1.0  # lambda_D of L_map in stage 1 (the mapping keeps mapping.w_depth)
     refine_final_lr_means_fraction: float = 1.0  # stage 1: the centres' learning rate decays to this fraction
+    refine_final_lr_pose_fraction: float = 1.0  # ... and the keyframe poses' to this one
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
 
     def descriptor_threshold(self, kind: str) -> float:

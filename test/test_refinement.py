@@ -98,3 +98,18 @@ def test_stage_one_leaves_the_optimised_colours_unclamped():
     refined, _ = refine_submap(submap.cloud.clone(), submap.keyframes, [kf.obs for kf in submap.keyframes],
                                Mapper(MappingConfig()), 0, None, 0.0, "torch")
     assert torch.equal(refined.colors[:20], submap.cloud.colors[:20])
+
+
+def test_stage_one_decays_the_poses_learning_rate():
+    def moved(fraction: float) -> float:
+        submap = make_submap(0, [0, 4, 8], size=(80, 60))
+        for n, kf in enumerate(submap.keyframes[1:], start=1):
+            kf.cam_to_world = perturbation(0.01, 0.5, n).float() @ kf.cam_to_world
+        before = [kf.cam_to_world.clone() for kf in submap.keyframes]
+        refine_submap(submap.cloud, submap.keyframes, [kf.obs for kf in submap.keyframes], Mapper(MappingConfig()),
+                      4, None, 0.0, "torch", final_lr_pose_fraction=fraction)
+        return sum(pose_error(kf.cam_to_world, pose)[0] for kf, pose in zip(submap.keyframes, before))
+
+    constant, decayed = moved(1.0), moved(1e-4)
+    assert constant > 1e-3  # the poses move at the mapper's rate ...
+    assert decayed < 0.6 * constant  # ... and settle sooner when the rate decays

@@ -4,9 +4,10 @@ Stage 1, per submap: Gaussians and (non-fixed) keyframe poses are optimised join
 L_refine = L_map + lambda_feat * ||F(S_pix) - F(S)||^2, the mapping loss plus the squared distance between the dense
 semantic features of the input segmentation and of the rendered semantics, visiting every keyframe
 ``refine_iterations_per_keyframe`` times (in a shuffled order per pass). L_map's depth weight is the refinement's own
-(``refine_w_depth``), and the Gaussian centres' learning rate can decay exponentially over the passes (to
-``refine_final_lr_means_fraction``, as 3DGS does), so the map settles instead of jittering between views that
-disagree (motion blur, rolling shutter on real sequences).
+(``refine_w_depth``), and the learning rates of the Gaussian centres and of the keyframe poses can decay
+exponentially over the passes (to ``refine_final_lr_means_fraction`` and ``refine_final_lr_pose_fraction``, as 3DGS
+does for the centres), so map and poses settle instead of jittering between views that disagree (motion blur,
+rolling shutter on real sequences).
 
 Stage 2, alignment to the global map: each submap's anchor is refined by registering the submap (its keyframe views,
 rendered in the submap frame) to the union of all OTHER submaps in world coordinates, with the Gauss-Newton fine step
@@ -44,14 +45,14 @@ class RefinementReport:
 def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations: list[Observation], mapper: Mapper,
                   passes: int, features: DescriptorExtractor | None, lambda_feat: float,
                   backend: str = "auto", w_depth: float | None = None,
-                  final_lr_means_fraction: float = 1.0) -> tuple[GaussianCloud, list[float]]:
+                  final_lr_means_fraction: float = 1.0, final_lr_pose_fraction: float = 1.0) -> tuple[GaussianCloud, list[float]]:
     """Stage 1 on one submap: ``passes`` shuffled passes over the keyframes (with their ``observations``)
     minimising L_refine.
 
     Uses the mapper's learning rates and loss weights, except the depth weight ``w_depth`` when given; the centres'
-    learning rate decays exponentially to ``final_lr_means_fraction`` of the mapper's by the last step. Non-fixed
-    keyframe poses are updated in place. Returns the refined (pruned) cloud, colours unclamped, and the mean loss of
-    every pass.
+    learning rate decays exponentially to ``final_lr_means_fraction`` of the mapper's by the last step, the poses' to
+    ``final_lr_pose_fraction``. Non-fixed keyframe poses are updated in place. Returns the refined (pruned) cloud,
+    colours unclamped, and the mean loss of every pass.
     """
     cfg = mapper.cfg
     w_depth = cfg.w_depth if w_depth is None else w_depth
@@ -66,6 +67,7 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
         groups.append({"params": movable, "lr": cfg.lr_pose})
     optimiser = torch.optim.Adam(groups)
     means_group = next(g for g in optimiser.param_groups if g["params"][0] is params.means)
+    pose_group = optimiser.param_groups[-1] if movable else {}
     steps = max(passes * len(keyframes) - 1, 1)
     with torch.no_grad():
         targets = [features.dense_features(obs.semantic) if features is not None else None for obs in observations]
@@ -75,6 +77,7 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
         total = 0.0
         for i in torch.randperm(len(keyframes), generator=mapper.generator).tolist():
             means_group["lr"] = cfg.lr_means * final_lr_means_fraction ** (step / steps)
+            pose_group["lr"] = cfg.lr_pose * final_lr_pose_fraction ** (step / steps)
             step += 1
             obs = observations[i]
             w2c = invert_pose(keyframes[i].cam_to_world.to(params.device, params.dtype))
@@ -132,7 +135,7 @@ def global_refinement(submaps: Sequence, mapper: Mapper, cfg: LoopConfig, featur
         submap.cloud, losses = refine_submap(submap.load_cloud(device), submap.keyframes, observations, mapper,
                                              cfg.refine_iterations_per_keyframe, features,
                                              cfg.registration.lambda_feat, backend, cfg.refine_w_depth,
-                                             cfg.refine_final_lr_means_fraction)
+                                             cfg.refine_final_lr_means_fraction, cfg.refine_final_lr_pose_fraction)
         first[submap.submap_id], last[submap.submap_id] = losses[0], losses[-1]
     for submap in submaps[1:]:
         if submap.keyframes:
