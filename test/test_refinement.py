@@ -78,7 +78,8 @@ def test_the_system_refines_after_the_last_frame_with_or_without_loop_closure():
 def test_stage_one_decays_the_centres_learning_rate_and_uses_its_own_depth_weight():
     def refine(**options):
         submap = make_submap(0, [0, 4, 8], size=(80, 60))
-        submap.cloud.means.add_(0.01 * torch.randn(submap.cloud.means.shape, generator=torch.Generator().manual_seed(1)))
+        noise = torch.randn(submap.cloud.means.shape, generator=torch.Generator().manual_seed(1))
+        submap.cloud.means.add_(0.01 * noise)
         refined, losses = refine_submap(submap.cloud.clone(), submap.keyframes, [kf.obs for kf in submap.keyframes],
                                         Mapper(MappingConfig()), 4, None, 0.0, "torch", **options)
         return (refined.means - submap.cloud.means).norm(dim=1).mean(), losses  # no pruning on this scene

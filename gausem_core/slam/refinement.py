@@ -45,7 +45,8 @@ class RefinementReport:
 def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations: list[Observation], mapper: Mapper,
                   passes: int, features: DescriptorExtractor | None, lambda_feat: float,
                   backend: str = "auto", w_depth: float | None = None,
-                  final_lr_means_fraction: float = 1.0, final_lr_pose_fraction: float = 1.0) -> tuple[GaussianCloud, list[float]]:
+                  final_lr_means_fraction: float = 1.0,
+                  final_lr_pose_fraction: float = 1.0) -> tuple[GaussianCloud, list[float]]:
     """Stage 1 on one submap: ``passes`` shuffled passes over the keyframes (with their ``observations``)
     minimising L_refine.
 
@@ -59,15 +60,16 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
     params = cloud.clone().requires_grad_(True)
     lrs = {"means": cfg.lr_means, "log_radii": cfg.lr_log_radii, "opacity_logits": cfg.lr_opacity,
            "colors": cfg.lr_colors, "semantics": cfg.lr_semantics}
-    groups = [{"params": [t], "lr": lrs[name]} for name, t in params.parameters().items()]
+    # "final": the fraction of its initial learning rate a group decays to (exponentially) by the last step
+    groups = [{"params": [t], "lr": lrs[name], "initial": lrs[name],
+               "final": final_lr_means_fraction if name == "means" else 1.0}
+              for name, t in params.parameters().items()]
     twists = [None if kf.fixed else torch.zeros(6, dtype=params.dtype, device=params.device, requires_grad=True)
               for kf in keyframes]
     movable = [t for t in twists if t is not None]
     if movable:
-        groups.append({"params": movable, "lr": cfg.lr_pose})
+        groups.append({"params": movable, "lr": cfg.lr_pose, "initial": cfg.lr_pose, "final": final_lr_pose_fraction})
     optimiser = torch.optim.Adam(groups)
-    means_group = next(g for g in optimiser.param_groups if g["params"][0] is params.means)
-    pose_group = optimiser.param_groups[-1] if movable else {}
     steps = max(passes * len(keyframes) - 1, 1)
     with torch.no_grad():
         targets = [features.dense_features(obs.semantic) if features is not None else None for obs in observations]
@@ -76,8 +78,8 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
     for _ in range(passes):
         total = 0.0
         for i in torch.randperm(len(keyframes), generator=mapper.generator).tolist():
-            means_group["lr"] = cfg.lr_means * final_lr_means_fraction ** (step / steps)
-            pose_group["lr"] = cfg.lr_pose * final_lr_pose_fraction ** (step / steps)
+            for group in optimiser.param_groups:
+                group["lr"] = group["initial"] * group["final"] ** (step / steps)
             step += 1
             obs = observations[i]
             w2c = invert_pose(keyframes[i].cam_to_world.to(params.device, params.dtype))
