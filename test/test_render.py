@@ -5,6 +5,7 @@ import shutil
 
 import pytest
 import torch
+import torch.utils.cpp_extension
 
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, se3_exp
@@ -227,9 +228,32 @@ def test_an_unavailable_kernel_is_a_clear_error_and_auto_falls_back_to_torch(mon
     monkeypatch.setattr(cpu_backend, "_kernel", None)
     monkeypatch.setattr(cpu_backend, "_error", "RuntimeError: no C++ compiler")
     cloud = random_cloud(2)
-    assert select_backend("auto", cloud) == "torch"
+    assert select_backend("auto", cloud.device, cloud.dtype) == "torch"
     with pytest.raises(ValueError, match="'cpu' is unavailable.*no C\\+\\+ compiler.*backend='torch'"):
         render(cloud, torch.eye(4, dtype=torch.float64), CAM, backend="cpu")
+
+
+def test_the_slam_system_builds_the_cpu_kernel_before_its_first_frame(monkeypatch):
+    from gausem_core.config import from_flat
+    from gausem_core.slam.system import GauSemSLAM
+
+    builds = []
+
+    def fake_build(**kwargs):
+        builds.append(kwargs["name"])
+        return "kernel"
+
+    monkeypatch.setattr(cpu_backend, "_kernel", None)
+    monkeypatch.setattr(cpu_backend, "_error", None)
+    monkeypatch.setattr(torch.utils.cpp_extension, "load", fake_build)
+    GauSemSLAM(from_flat({"backend": "auto"}), "cpu")
+    assert builds == ["gausem_cpu_raster"] and cpu_backend._kernel == "kernel"
+    GauSemSLAM(from_flat({"backend": "auto"}), "cpu")
+    assert len(builds) == 1  # loaded once per process
+    monkeypatch.setattr(cpu_backend, "_kernel", None)
+    monkeypatch.setattr(cpu_backend, "_error", "RuntimeError: no C++ compiler")
+    with pytest.raises(ValueError, match="'cpu' is unavailable.*no C\\+\\+ compiler"):
+        GauSemSLAM(from_flat({"backend": "cpu"}), "cpu")  # asked for by name: a clear error at once
 
 
 def test_gausem_info_reports_which_cpu_renderer_runs(monkeypatch):
@@ -244,7 +268,7 @@ def test_gausem_info_reports_which_cpu_renderer_runs(monkeypatch):
 
 def test_auto_backend_on_cpu_is_the_compiled_kernel_when_it_builds_and_bad_arguments_raise():
     cloud = random_cloud(2)
-    assert select_backend("auto", cloud) == ("cpu" if cpu_kernel_available() else "torch")
+    assert select_backend("auto", cloud.device, cloud.dtype) == ("cpu" if cpu_kernel_available() else "torch")
     with pytest.raises(ValueError, match="unknown backend"):
         render(cloud, torch.eye(4, dtype=torch.float64), CAM, backend="opengl")
     with pytest.raises(ValueError, match="world_to_cam"):

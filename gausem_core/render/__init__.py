@@ -21,7 +21,7 @@ import torch
 
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera
-from gausem_core.render.cpu_backend import cpu_kernel_available, rasterize_cpu
+from gausem_core.render.cpu_backend import cpu_kernel_available, rasterize_cpu, require_cpu_kernel
 from gausem_core.render.gsplat_backend import gsplat_available, rasterize_gsplat
 from gausem_core.render.projection import check_render_inputs, project
 from gausem_core.render.torch_backend import rasterize_torch
@@ -44,15 +44,22 @@ class RenderOutput:
         return self.depth / self.alpha.clamp_min(1e-6)
 
 
-def select_backend(backend: str, cloud: GaussianCloud) -> str:
-    """Resolve ``"auto"`` to the back-end ``render`` will use for ``cloud``."""
+def select_backend(backend: str, device: torch.device | str, dtype: torch.dtype = torch.float32) -> str:
+    """The back-end ``render`` uses for clouds of ``dtype`` on ``device`` (``"auto"`` resolved).
+
+    On the CPU this builds or loads the compiled kernel (tens of seconds on a machine's first run, then a fraction of
+    one): call it before serving or timing frames to keep that out of the first one. ``"cpu"`` raises here when the
+    kernel is unavailable."""
     if backend not in BACKENDS:
         raise ValueError(f"render: unknown backend {backend!r}; choose one of {BACKENDS}")
+    device = torch.device(device)
+    if backend == "cpu":
+        require_cpu_kernel()
     if backend != "auto":
         return backend
-    if cloud.device.type == "cpu":
+    if device.type == "cpu":
         return "cpu" if cpu_kernel_available() else "torch"
-    on_gpu = cloud.device.type == "cuda" and cloud.dtype == torch.float32
+    on_gpu = device.type == "cuda" and dtype == torch.float32
     return "gsplat" if on_gpu and gsplat_available() else "torch"
 
 
@@ -61,7 +68,7 @@ def render(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCame
     """Render ``cloud`` seen from ``world_to_cam`` (4x4, world -> camera optical frame) through ``camera``."""
     check_render_inputs(cloud, world_to_cam, camera, near)
     screen = project(cloud, world_to_cam, camera, near)
-    chosen = select_backend(backend, cloud)
+    chosen = select_backend(backend, cloud.device, cloud.dtype)
     if chosen == "gsplat":
         image = rasterize_gsplat(screen, camera.width, camera.height)
     elif chosen == "cpu":

@@ -66,6 +66,13 @@ def cpu_kernel_error() -> str | None:
     return _error
 
 
+def require_cpu_kernel():
+    """The compiled module; a ValueError saying why when it is unavailable."""
+    if _load() is None:
+        raise ValueError(f"render backend 'cpu' is unavailable ({_error}); use backend='torch'")
+    return _kernel
+
+
 class _RasterizeCpu(torch.autograd.Function):
     """``apply(u, v, inv_var_x, inv_var_y, opacity, features, order, x0, x1, y0, y1, width, height)`` ->
     ``(height * width, C + 1)``."""
@@ -86,12 +93,11 @@ class _RasterizeCpu(torch.autograd.Function):
 
 def rasterize_cpu(screen: ScreenGaussians, width: int, height: int) -> torch.Tensor:
     """Composite ``screen`` (CPU tensors) into an (height, width, C + 1) image: the feature channels, then alpha."""
-    if _load() is None:
-        raise ValueError(f"render backend 'cpu' is unavailable ({_error}); use backend='torch'")
+    kernel = require_cpu_kernel()
     if screen.u.device.type != "cpu":
         raise ValueError(f"render backend 'cpu' needs CPU tensors, got {screen.u.device}")
     boxes = footprint_boxes(screen, width, height)
-    order = _load().depth_order(screen.depth.detach(), boxes.nonempty())  # pairs.depth_order, by a radix sort
+    order = kernel.depth_order(screen.depth.detach(), boxes.nonempty())  # pairs.depth_order, by a radix sort
     image = _RasterizeCpu.apply(screen.u, screen.v, screen.inv_var_x, screen.inv_var_y, screen.opacity,
                                 screen.features, order, boxes.x0, boxes.x1, boxes.y0, boxes.y1, width, height)
     return image.reshape(height, width, -1)

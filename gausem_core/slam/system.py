@@ -21,6 +21,7 @@ import torch
 from gausem_core.config import SlamConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
+from gausem_core.render import select_backend
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
 from gausem_core.slam.loop import LoopCandidate
@@ -167,6 +168,7 @@ class GauSemSLAM:
                              f"{cfg.submaps.boundary_window} and {cfg.submaps.boundary_iterations}")
         self.cfg = cfg
         self.device = torch.device(device)
+        select_backend(cfg.backend, self.device)  # builds or loads the compiled CPU kernel now, not in the first frame
         self.num_classes = num_classes
         self.tracker = Tracker(cfg.tracking, cfg.backend)
         self.mapper = Mapper(cfg.mapping, cfg.backend, cfg.seed)
