@@ -6,9 +6,8 @@ Model (paper Eq. 1): each Gaussian in front of the near plane becomes a screen G
 their centres with weights ``w_i = alpha_i prod_{j<i} (1 - alpha_j)``. Alphas below 1/255 are ignored (as in 3DGS
 and gsplat), which bounds every footprint to ``sqrt(2 ln(255 opacity)) <= 3.33`` sigma. Colour, semantic colour and
 depth are ``sum_i w_i x_i`` over a black background; ``alpha`` is ``sum_i w_i``. Differentiable w.r.t. every cloud
-tensor and ``world_to_cam``. When gradients are wanted, Gaussians whose footprint box misses the image are left
-out before projection by the torch and cpu back-ends (:func:`gausem_core.render.pairs.in_view`): the same image and
-gradients for less work.
+tensor and ``world_to_cam``. Gaussians whose footprint box misses the image are left out before projection by the
+torch and cpu back-ends (:func:`gausem_core.render.pairs.in_view`): the image and gradients are the same, the work less.
 
 Back-ends: ``"torch"`` (reference, CPU and CUDA, exact, memory-bounded by row bands), ``"cpu"`` (the same model in a
 C++ kernel compiled on first use, CPU only; see :mod:`gausem_core.render.cpu_backend`) and ``"gsplat"`` (CUDA, float32,
@@ -71,10 +70,8 @@ def render(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCame
     """Render ``cloud`` seen from ``world_to_cam`` (4x4, world -> camera optical frame) through ``camera``."""
     check_render_inputs(cloud, world_to_cam, camera, near)
     chosen = select_backend(backend, cloud.device, cloud.dtype)
-    # the torch and cpu back-ends are spared the Gaussians that miss the image where the saving pays for the visibility
-    # pass: through the backward (measured, benchmarks/render_culling.py); gsplat culls in its own kernels
-    differentiated = torch.is_grad_enabled() and any(t.requires_grad for t in (*cloud.tensors().values(), world_to_cam))
-    seen = in_view(cloud, world_to_cam, camera, near) if differentiated and chosen != "gsplat" else None
+    # gsplat culls in its own kernels; the others are spared the Gaussians that miss the image
+    seen = None if chosen == "gsplat" else in_view(cloud, world_to_cam, camera, near)
     screen = project(cloud, world_to_cam, camera, near, seen)
     if chosen == "gsplat":
         image = rasterize_gsplat(screen, camera.width, camera.height)
