@@ -43,12 +43,11 @@ class Band:
 def in_view(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCamera, near: float) -> torch.Tensor | None:
     """Indices of the Gaussians with a pixel in their footprint box (None when every one has): the others add nothing
     to the image and get zero gradients, so rendering only these gives the same image and gradients for less."""
-    ahead = cloud.means @ world_to_cam[2, :3].to(cloud.dtype) + world_to_cam[2, 3].to(cloud.dtype) > near
-    index = None if bool(ahead.all()) else ahead.nonzero().squeeze(1)
-    seen = footprint_boxes(project(cloud, world_to_cam, camera, near, index), camera.width, camera.height).nonempty()
-    if index is None:
-        return None if bool(seen.all()) else seen.nonzero().squeeze(1)
-    return index[seen]
+    ahead = (cloud.means @ world_to_cam[2, :3].to(cloud.dtype) + world_to_cam[2, 3].to(cloud.dtype) > near)
+    ahead = ahead.nonzero().squeeze(1)
+    seen = ahead[footprint_boxes(project(cloud, world_to_cam, camera, near, ahead), camera.width,
+                                 camera.height).nonempty()]
+    return None if len(seen) == len(cloud) else seen
 
 
 def take(index: torch.Tensor, *tensors: torch.Tensor) -> list[torch.Tensor]:
