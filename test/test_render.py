@@ -224,36 +224,6 @@ def test_compiled_kernel_matches_the_torch_backend_on_a_dense_scene_with_two_thr
         assert torch.allclose(grad, expected, atol=atol * expected.abs().max().item())
 
 
-@pytest.mark.parametrize("backend", CPU_BACKENDS)
-def test_gaussians_out_of_view_are_culled_without_changing_image_or_gradients(backend, monkeypatch):
-    import gausem_core.render as render_module
-    from gausem_core.render.pairs import in_view
-
-    torch.manual_seed(3)
-    # in view, far left of the image (footprint cannot reach it), behind the camera, and just off the right edge
-    # (its centre outside, its footprint inside): the second and third are culled
-    means = torch.tensor([[0.0, 0.0, 2.0], [-3.0, 0.0, 2.0], [0.0, 0.0, -1.0], [0.85, 0.0, 2.0]], dtype=torch.float64)
-    cloud = cloud_of(torch.cat([means, random_cloud(30).means]), torch.full((34,), 0.06, dtype=torch.float64),
-                     torch.full((34,), 0.8, dtype=torch.float64), dtype=torch.float64)
-    kept = in_view(cloud, torch.eye(4, dtype=torch.float64), CAM, 0.01)
-    assert kept is not None and {0, 3} <= set(kept.tolist()) and not {1, 2} & set(kept.tolist())
-    assert CAM.fx * 0.85 / 2.0 + CAM.cx > CAM.width  # the fourth's centre is off the image
-
-    def image_and_gradients():
-        leaves = {k: t.detach().clone().requires_grad_(True) for k, t in cloud.tensors().items()}
-        out = render(GaussianCloud(**leaves), torch.eye(4, dtype=torch.float64), CAM, backend=backend)
-        (out.color * torch.linspace(0, 1, 3, dtype=torch.float64)).sum().add(out.depth.sum()).backward()
-        return out.color.detach(), {k: t.grad for k, t in leaves.items()}
-
-    culled = image_and_gradients()
-    monkeypatch.setattr(render_module, "in_view", lambda *args: None)
-    full = image_and_gradients()
-    torch.testing.assert_close(culled[0], full[0], rtol=0, atol=1e-12)
-    for name, grad in full[1].items():
-        torch.testing.assert_close(culled[1][name], grad, rtol=0, atol=1e-12)
-    assert full[1]["colors"][3].abs().sum() > 0 and full[1]["colors"][1].abs().sum() == 0
-
-
 def test_an_unavailable_kernel_is_a_clear_error_and_auto_falls_back_to_torch(monkeypatch):
     monkeypatch.setattr(cpu_backend, "_kernel", None)
     monkeypatch.setattr(cpu_backend, "_error", "RuntimeError: no C++ compiler")

@@ -6,8 +6,7 @@ Model (paper Eq. 1): each Gaussian in front of the near plane becomes a screen G
 their centres with weights ``w_i = alpha_i prod_{j<i} (1 - alpha_j)``. Alphas below 1/255 are ignored (as in 3DGS
 and gsplat), which bounds every footprint to ``sqrt(2 ln(255 opacity)) <= 3.33`` sigma. Colour, semantic colour and
 depth are ``sum_i w_i x_i`` over a black background; ``alpha`` is ``sum_i w_i``. Differentiable w.r.t. every cloud
-tensor and ``world_to_cam``. Gaussians whose footprint box misses the image are left out before projection by the
-torch and cpu back-ends (:func:`gausem_core.render.pairs.in_view`): the image and gradients are the same, the work less.
+tensor and ``world_to_cam``.
 
 Back-ends: ``"torch"`` (reference, CPU and CUDA, exact, memory-bounded by row bands), ``"cpu"`` (the same model in a
 C++ kernel compiled on first use, CPU only; see :mod:`gausem_core.render.cpu_backend`) and ``"gsplat"`` (CUDA, float32,
@@ -24,7 +23,6 @@ from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera
 from gausem_core.render.cpu_backend import cpu_kernel_available, rasterize_cpu, require_cpu_kernel
 from gausem_core.render.gsplat_backend import gsplat_available, rasterize_gsplat
-from gausem_core.render.pairs import in_view
 from gausem_core.render.projection import check_render_inputs, project
 from gausem_core.render.torch_backend import rasterize_torch
 
@@ -69,10 +67,8 @@ def render(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCame
            near: float = 0.01) -> RenderOutput:
     """Render ``cloud`` seen from ``world_to_cam`` (4x4, world -> camera optical frame) through ``camera``."""
     check_render_inputs(cloud, world_to_cam, camera, near)
+    screen = project(cloud, world_to_cam, camera, near)
     chosen = select_backend(backend, cloud.device, cloud.dtype)
-    # gsplat culls in its own kernels; the others are spared the Gaussians that miss the image
-    seen = None if chosen == "gsplat" else in_view(cloud, world_to_cam, camera, near)
-    screen = project(cloud, world_to_cam, camera, near, seen)
     if chosen == "gsplat":
         image = rasterize_gsplat(screen, camera.width, camera.height)
     elif chosen == "cpu":

@@ -9,9 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import PinholeCamera
-from gausem_core.render.projection import ALPHA_MIN, ScreenGaussians, project
+from gausem_core.render.projection import ALPHA_MIN, ScreenGaussians
 
 
 _SAME_SIZE_INTEGER = {torch.float32: torch.int32, torch.float64: torch.int64}
@@ -37,17 +35,6 @@ class Band:
     row0: int
     row1: int
     gaussians: torch.Tensor
-
-
-@torch.no_grad()
-def in_view(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCamera, near: float) -> torch.Tensor | None:
-    """Indices of the Gaussians with a pixel in their footprint box (None when every one has): the others add nothing
-    to the image and get zero gradients, so rendering only these gives the same image and gradients for less."""
-    ahead = (cloud.means @ world_to_cam[2, :3].to(cloud.dtype) + world_to_cam[2, 3].to(cloud.dtype) > near)
-    ahead = ahead.nonzero().squeeze(1)
-    seen = ahead[footprint_boxes(project(cloud, world_to_cam, camera, near, ahead), camera.width,
-                                 camera.height).nonempty()]
-    return None if len(seen) == len(cloud) else seen
 
 
 def take(index: torch.Tensor, *tensors: torch.Tensor) -> list[torch.Tensor]:

@@ -62,22 +62,18 @@ def check_render_inputs(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera
         raise ValueError(f"render: near must be a positive distance in metres, got {near}")
 
 
-def project(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCamera, near: float,
-            index: torch.Tensor | None = None) -> ScreenGaussians:
-    """Screen-space Gaussians of ``cloud`` seen through ``camera`` at ``world_to_cam``: those of ``index`` (all when
-    None) whose centre lies beyond ``near``."""
+def project(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCamera, near: float) -> ScreenGaussians:
+    """Screen-space Gaussians of ``cloud`` seen through ``camera`` at ``world_to_cam``; culls ``z <= near``."""
     pose = world_to_cam.to(cloud.dtype)
-    means = cloud.means if index is None else cloud.means[index]
-    cam = means @ pose[:3, :3].T + pose[:3, 3]
+    cam = cloud.means @ pose[:3, :3].T + pose[:3, 3]
     in_front = cam[:, 2] > near
-    if not bool(in_front.all()):
-        ahead = in_front.nonzero().squeeze(1)
-        cam, index = cam[ahead], ahead if index is None else index[ahead]
+    # often every Gaussian is in front: then no gathers here and no scatters in the backward
+    visible = None if bool(in_front.all()) else in_front.nonzero().squeeze(1)
 
     def keep(t: torch.Tensor) -> torch.Tensor:
-        return t if index is None else t[index]
+        return t if visible is None else t[visible]
 
-    x, y, z = cam.unbind(-1)
+    x, y, z = keep(cam).unbind(-1)
     radii = keep(cloud.log_radii).exp()
     return ScreenGaussians(
         u=camera.fx * x / z + camera.cx,
