@@ -193,6 +193,23 @@ def test_the_compiled_cpu_kernel_builds_where_a_compiler_exists():
     assert cpu_kernel_error() is None
 
 
+def images_and_gradients_of_both_cpu_backends(cloud, pose, cam, threads=2):
+    """(image, gradients of every cloud tensor) from the torch back-end and from the compiled kernel."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        results = []
+        for rasterize in (rasterize_torch, rasterize_cpu):
+            tensors = {k: t.detach().clone().requires_grad_() for k, t in cloud.tensors().items()}
+            image = rasterize(project(GaussianCloud(**tensors), pose, cam, 0.01), cam.width, cam.height)
+            weights = torch.linspace(-1, 1, image.numel(), dtype=image.dtype).reshape(image.shape)
+            (image * weights).sum().backward()
+            results.append((image.detach(), [t.grad for t in tensors.values()]))
+    finally:
+        torch.set_num_threads(previous)
+    return results
+
+
 @pytest.mark.skipif(not cpu_kernel_available(), reason="compiled CPU kernel unavailable")
 @pytest.mark.parametrize("dtype, atol", [(torch.float64, 1e-10), (torch.float32, 1e-4)])
 def test_compiled_kernel_matches_the_torch_backend_on_a_dense_scene_with_two_threads(dtype, atol):
@@ -203,25 +220,36 @@ def test_compiled_kernel_matches_the_torch_backend_on_a_dense_scene_with_two_thr
     z = 1.0 + torch.rand(400, 1, dtype=dtype)
     opacities = torch.where(torch.rand(400, dtype=dtype) < 0.2, 0.995, 0.1 + 0.8 * torch.rand(400, dtype=dtype))
     cloud = cloud_of(torch.cat([xy * z, z], 1), 0.02 + 0.1 * torch.rand(400, dtype=dtype), opacities, dtype=dtype)
-    pose = torch.eye(4, dtype=dtype)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
-        results = []
-        for rasterize in (rasterize_torch, rasterize_cpu):
-            tensors = {k: t.detach().clone().requires_grad_() for k, t in cloud.tensors().items()}
-            image = rasterize(project(GaussianCloud(**tensors), pose, cam, 0.01), cam.width, cam.height)
-            weights = torch.linspace(-1, 1, image.numel(), dtype=dtype).reshape(image.shape)
-            (image * weights).sum().backward()
-            results.append((image.detach(), [t.grad for t in tensors.values()]))
-    finally:
-        torch.set_num_threads(threads)
-    (reference, reference_grads), (image, grads) = results
+    (reference, reference_grads), (image, grads) = images_and_gradients_of_both_cpu_backends(
+        cloud, torch.eye(4, dtype=dtype), cam)
     assert reference.shape == (36, 48, 8) and reference[..., 7].max() > 0.99  # opaque pixels exist
     assert torch.allclose(image, reference, atol=atol)
     for grad, expected in zip(grads, reference_grads):
         assert expected.abs().max() > 0
         assert torch.allclose(grad, expected, atol=atol * expected.abs().max().item())
+
+
+@pytest.mark.skipif(not cpu_kernel_available(), reason="compiled CPU kernel unavailable")
+def test_compiled_kernel_matches_the_torch_backend_when_most_gaussians_are_out_of_view():
+    """Gaussians behind the camera, before the near plane and beside the image, shuffled among those in view: the
+    same image and gradients from both back-ends, and exactly zero gradients for every Gaussian out of view."""
+    torch.manual_seed(5)
+    in_view = random_cloud(60)
+    behind = cloud_of(torch.rand(50, 3, dtype=torch.float64) - torch.tensor([0.5, 0.5, 2.0], dtype=torch.float64),
+                      [0.1] * 50, [0.8] * 50)
+    near_plane = cloud_of([[0.0, 0.0, 0.005]] * 5, [0.1] * 5, [0.8] * 5)
+    beside = cloud_of(torch.tensor([[40.0, 0.0, 2.0], [-40.0, 1.0, 2.0], [0.0, 30.0, 2.0]], dtype=torch.float64),
+                      [0.1] * 3, [0.8] * 3)
+    shuffle = torch.randperm(118)
+    cloud = GaussianCloud(**{k: t[shuffle] for k, t in GaussianCloud.cat([in_view, behind, near_plane, beside])
+                             .tensors().items()})
+    out_of_view = shuffle >= 60
+    (reference, reference_grads), (image, grads) = images_and_gradients_of_both_cpu_backends(
+        cloud, torch.eye(4, dtype=torch.float64), CAM)
+    assert torch.allclose(image, reference, atol=1e-10) and reference[..., 7].max() > 0.5
+    for grad, expected in zip(grads, reference_grads):
+        assert torch.allclose(grad, expected, atol=1e-10 * expected.abs().max().item())
+        assert grad[~out_of_view].abs().max() > 0 and grad[out_of_view].abs().max() == 0
 
 
 def test_an_unavailable_kernel_is_a_clear_error_and_auto_falls_back_to_torch(monkeypatch):

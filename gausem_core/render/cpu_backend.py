@@ -4,7 +4,8 @@ Gaussians are ordered front to back by a radix sort of their depths (the order o
 bucketed by pixel with a counting sort (the Gaussians are visited front to back, so each pixel's list is already in
 compositing order) and every pixel is composited, and differentiated, in one pass; the torch back-end
 needs a comparison sort and a dozen gathers/scatters over all pairs instead. Memory: about 8 bytes per (Gaussian,
-pixel) pair plus one float64 gradient buffer of (5 + C) values per Gaussian and thread.
+pixel) pair plus one float64 gradient buffer of (5 + C) values per Gaussian with a footprint in the image, and
+thread.
 
 The extension is compiled with ``torch.utils.cpp_extension`` (needs a C++ compiler with OpenMP, and ninja: the
 ``ninja`` wheel of ``requirements.txt`` is found next to the running Python) into torch's extension cache
@@ -79,9 +80,9 @@ class _RasterizeCpu(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, u, v, inv_var_x, inv_var_y, opacity, features, order, x0, x1, y0, y1, width, height):
-        image, offsets, gaussian, alpha = _load().rasterize_forward(
+        image, offsets, slots, alpha = _load().rasterize_forward(
             u, v, inv_var_x, inv_var_y, opacity, features, order, x0, x1, y0, y1, width, height)
-        ctx.save_for_backward(u, v, inv_var_x, inv_var_y, opacity, features, offsets, gaussian, alpha)
+        ctx.save_for_backward(u, v, inv_var_x, inv_var_y, opacity, features, order, offsets, slots, alpha)
         ctx.width = width
         return image
 

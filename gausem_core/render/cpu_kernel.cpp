@@ -6,7 +6,9 @@
 // sort); each pixel is then composited in one pass.
 // backward: per pixel, a forward walk for the transmittances and a backward walk for the suffix sums
 // S_i = sum_{k>i} w_k h_k give dL/dalpha_i = T_i h_i - S_i / (1 - alpha_i), as in composite.py. Per-thread gradient
-// buffers avoid atomics. Transmittances and suffix sums are accumulated in double.
+// buffers avoid atomics. Transmittances and suffix sums are accumulated in double. Pairs name a Gaussian by its slot
+// in the depth order (only Gaussians with a footprint have one), so the backward's buffers and their reduction scale
+// with the Gaussians in view, not with the whole cloud.
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
@@ -48,14 +50,14 @@ template <typename scalar_t>
 struct RowChunk {
   int64_t row0 = 0, row1 = 0;
   std::vector<int64_t> offsets;  // per pixel of the chunk (row-major), + 1
-  std::vector<int32_t> gaussian;
+  std::vector<int32_t> slot;  // the pair's Gaussian as its position in the depth order
   std::vector<scalar_t> alpha;  // unclamped
 };
 
 template <typename scalar_t>
 void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const std::vector<int32_t>& members,
-                const int64_t* x0, const int64_t* x1, const int64_t* y0, const int64_t* y1, int64_t width,
-                std::vector<int32_t>& gen_pixel, std::vector<int32_t>& gen_gaussian,
+                const int64_t* ord, const int64_t* x0, const int64_t* x1, const int64_t* y0, const int64_t* y1,
+                int64_t width, std::vector<int32_t>& gen_pixel, std::vector<int32_t>& gen_slot,
                 std::vector<scalar_t>& gen_alpha) {
   const auto* u = s.u.data_ptr<scalar_t>();
   const auto* v = s.v.data_ptr<scalar_t>();
@@ -65,11 +67,12 @@ void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const std::vector<in
   const scalar_t alpha_min = static_cast<scalar_t>(kAlphaMin);
   const int64_t n_pixels = (chunk.row1 - chunk.row0) * width;
   gen_pixel.clear();
-  gen_gaussian.clear();
+  gen_slot.clear();
   gen_alpha.clear();
   chunk.offsets.assign(n_pixels + 1, 0);
   auto* count = chunk.offsets.data() + 1;
-  for (const int64_t g : members) {
+  for (const int32_t k : members) {
+    const int64_t g = ord[k];
     const int64_t ya = std::max(y0[g], chunk.row0), yb = std::min(y1[g], chunk.row1 - 1);
     const scalar_t gu = u[g], gv = v[g], ax = ivx[g], ay = ivy[g], o = op[g];
     for (int64_t y = ya; y <= yb; ++y) {
@@ -81,7 +84,7 @@ void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const std::vector<in
         const scalar_t alpha = o * std::exp(scalar_t(-0.5) * (dx * dx * ax + qy));
         if (alpha >= alpha_min) {
           gen_pixel.push_back(static_cast<int32_t>(row_start + x));
-          gen_gaussian.push_back(static_cast<int32_t>(g));
+          gen_slot.push_back(k);
           gen_alpha.push_back(alpha);
           ++count[row_start + x];
         }
@@ -91,19 +94,19 @@ void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const std::vector<in
   auto* off = chunk.offsets.data();
   for (int64_t p = 0; p < n_pixels; ++p) off[p + 1] += off[p];
   const auto n_pairs = static_cast<int64_t>(gen_pixel.size());
-  chunk.gaussian.resize(n_pairs);
+  chunk.slot.resize(n_pairs);
   chunk.alpha.resize(n_pairs);
   std::vector<int64_t> cursor(off, off + n_pixels);
   for (int64_t i = 0; i < n_pairs; ++i) {  // stable: generation order is front to back
     const int64_t at = cursor[gen_pixel[i]]++;
-    chunk.gaussian[at] = gen_gaussian[i];
+    chunk.slot[at] = gen_slot[i];
     chunk.alpha[at] = gen_alpha[i];
   }
 }
 
 template <typename scalar_t>
-void composite_chunk(const RowChunk<scalar_t>& chunk, const scalar_t* feat, int64_t channels, int64_t width,
-                     scalar_t* out) {
+void composite_chunk(const RowChunk<scalar_t>& chunk, const scalar_t* feat, const int64_t* ord, int64_t channels,
+                     int64_t width, scalar_t* out) {
   std::vector<double> acc(channels + 1);
   const int64_t n_pixels = (chunk.row1 - chunk.row0) * width;
   for (int64_t p = 0; p < n_pixels; ++p) {
@@ -112,7 +115,7 @@ void composite_chunk(const RowChunk<scalar_t>& chunk, const scalar_t* feat, int6
     for (int64_t i = chunk.offsets[p]; i < chunk.offsets[p + 1]; ++i) {
       const double a = std::min(static_cast<double>(chunk.alpha[i]), kAlphaMax);
       const double w = a * transmittance;
-      const scalar_t* f = feat + static_cast<int64_t>(chunk.gaussian[i]) * channels;
+      const scalar_t* f = feat + ord[chunk.slot[i]] * channels;
       for (int64_t c = 0; c < channels; ++c) acc[c] += w * f[c];
       acc[channels] += w;
       transmittance *= 1.0 - a;
@@ -122,8 +125,8 @@ void composite_chunk(const RowChunk<scalar_t>& chunk, const scalar_t* feat, int6
   }
 }
 
-// (image (n_pixels, C + 1), pixel offsets [n_pixels + 1], gaussian [P] int32, unclamped alpha [P]): the pairs sorted
-// by pixel, front to back within a pixel. Chunks of rows are independent, so they run in parallel.
+// (image (n_pixels, C + 1), pixel offsets [n_pixels + 1], slot [P] int32 (into order), unclamped alpha [P]): the
+// pairs sorted by pixel, front to back within a pixel. Chunks of rows are independent, so they run in parallel.
 std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, torch::Tensor inv_var_x,
                                              torch::Tensor inv_var_y, torch::Tensor opacity, torch::Tensor features,
                                              torch::Tensor order, torch::Tensor x0, torch::Tensor x1,
@@ -135,10 +138,10 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, t
   const int64_t n_chunks = (height + kRowsPerChunk - 1) / kRowsPerChunk;
   auto image = torch::zeros({n_pixels, channels + 1}, s.u.options());
   auto offsets = torch::empty({n_pixels + 1}, torch::kInt64);
-  torch::Tensor gaussian_out, alpha_out;
+  torch::Tensor slot_out, alpha_out;
   AT_DISPATCH_FLOATING_TYPES(s.u.scalar_type(), "rasterize_forward", [&] {
     std::vector<RowChunk<scalar_t>> chunks(n_chunks);
-    std::vector<std::vector<int32_t>> members(n_chunks);  // the Gaussians whose box meets each chunk, front to back
+    std::vector<std::vector<int32_t>> members(n_chunks);  // slots of the Gaussians whose box meets each chunk
     const auto* ord = order.data_ptr<int64_t>();
     const auto* top = y0.data_ptr<int64_t>();
     const auto* bottom = y1.data_ptr<int64_t>();
@@ -146,38 +149,38 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, t
       const int64_t g = ord[k];
       TORCH_CHECK(top[g] > bottom[g] || (top[g] >= 0 && bottom[g] < height), "box rows outside the image");
       for (int64_t c = top[g] / kRowsPerChunk; c <= bottom[g] / kRowsPerChunk; ++c) {
-        members[c].push_back(static_cast<int32_t>(g));
+        members[c].push_back(static_cast<int32_t>(k));
       }
     }
     at::parallel_for(0, n_chunks, 1, [&](int64_t begin, int64_t end) {
-      std::vector<int32_t> gen_pixel, gen_gaussian;
+      std::vector<int32_t> gen_pixel, gen_slot;
       std::vector<scalar_t> gen_alpha;
       for (int64_t c = begin; c < end; ++c) {
         chunks[c].row0 = c * kRowsPerChunk;
         chunks[c].row1 = std::min(height, chunks[c].row0 + kRowsPerChunk);
-        fill_chunk(chunks[c], s, members[c], x0.data_ptr<int64_t>(),
-                   x1.data_ptr<int64_t>(), y0.data_ptr<int64_t>(), y1.data_ptr<int64_t>(), width, gen_pixel,
-                   gen_gaussian, gen_alpha);
-        composite_chunk(chunks[c], s.features.data_ptr<scalar_t>(), channels, width, image.data_ptr<scalar_t>());
+        fill_chunk(chunks[c], s, members[c], ord, x0.data_ptr<int64_t>(), x1.data_ptr<int64_t>(),
+                   y0.data_ptr<int64_t>(), y1.data_ptr<int64_t>(), width, gen_pixel, gen_slot, gen_alpha);
+        composite_chunk(chunks[c], s.features.data_ptr<scalar_t>(), ord, channels, width,
+                        image.data_ptr<scalar_t>());
       }
     });
     int64_t n_pairs = 0;
-    for (const auto& chunk : chunks) n_pairs += static_cast<int64_t>(chunk.gaussian.size());
-    gaussian_out = torch::empty({n_pairs}, torch::kInt32);
+    for (const auto& chunk : chunks) n_pairs += static_cast<int64_t>(chunk.slot.size());
+    slot_out = torch::empty({n_pairs}, torch::kInt32);
     alpha_out = torch::empty({n_pairs}, s.u.options());
     auto* off = offsets.data_ptr<int64_t>();
     int64_t at = 0;
     for (const auto& chunk : chunks) {
-      const int64_t first_pixel = chunk.row0 * width, n = static_cast<int64_t>(chunk.gaussian.size());
+      const int64_t first_pixel = chunk.row0 * width, n = static_cast<int64_t>(chunk.slot.size());
       const int64_t chunk_pixels = static_cast<int64_t>(chunk.offsets.size()) - 1;
       for (int64_t p = 0; p < chunk_pixels; ++p) off[first_pixel + p] = at + chunk.offsets[p];
-      std::copy(chunk.gaussian.begin(), chunk.gaussian.end(), gaussian_out.data_ptr<int32_t>() + at);
+      std::copy(chunk.slot.begin(), chunk.slot.end(), slot_out.data_ptr<int32_t>() + at);
       std::copy(chunk.alpha.begin(), chunk.alpha.end(), alpha_out.data_ptr<scalar_t>() + at);
       at += n;
     }
     off[n_pixels] = at;
   });
-  return {image, offsets, gaussian_out, alpha_out};
+  return {image, offsets, slot_out, alpha_out};
 }
 
 // Indices of the Gaussians with keep[i], front to back, stable in the index: an LSD radix sort (8-bit digits) of the
@@ -231,18 +234,21 @@ torch::Tensor depth_order(torch::Tensor depth, torch::Tensor keep) {
 // Gradients w.r.t. (u, v, inv_var_x, inv_var_y, opacity, features) from dL/d(image) of shape (n_pixels, C + 1).
 std::vector<torch::Tensor> rasterize_backward(torch::Tensor u, torch::Tensor v, torch::Tensor inv_var_x,
                                               torch::Tensor inv_var_y, torch::Tensor opacity, torch::Tensor features,
-                                              torch::Tensor offsets, torch::Tensor gaussian, torch::Tensor alpha,
-                                              torch::Tensor grad_image, int64_t width) {
+                                              torch::Tensor order, torch::Tensor offsets, torch::Tensor slots,
+                                              torch::Tensor alpha, torch::Tensor grad_image, int64_t width) {
   const Screen s = screen_of(u, v, inv_var_x, inv_var_y, opacity, features);
   grad_image = grad_image.contiguous();
-  const int64_t m = s.u.size(0), channels = s.features.size(1), n_pixels = offsets.size(0) - 1;
+  order = order.contiguous();
+  const int64_t m = order.size(0), channels = s.features.size(1), n_pixels = offsets.size(0) - 1;
   const int64_t stride = 5 + channels;  // per Gaussian: u, v, inv_var_x, inv_var_y, opacity, features
   TORCH_CHECK(grad_image.size(0) == n_pixels && grad_image.size(1) == channels + 1, "grad_image has the wrong shape");
   const int n_threads = at::get_num_threads();
-  auto buffers = torch::zeros({n_threads, m * stride}, torch::kFloat64);
+  auto buffers = torch::zeros({n_threads, m * stride}, torch::kFloat64);  // per slot, not per Gaussian
+  auto total = torch::zeros({s.u.size(0), stride}, s.u.options());
   AT_DISPATCH_FLOATING_TYPES(s.u.scalar_type(), "rasterize_backward", [&] {
     const auto* off = offsets.data_ptr<int64_t>();
-    const auto* gauss = gaussian.data_ptr<int32_t>();
+    const auto* ord = order.data_ptr<int64_t>();
+    const auto* slot = slots.data_ptr<int32_t>();
     const auto* al = alpha.data_ptr<scalar_t>();
     const auto* feat = s.features.data_ptr<scalar_t>();
     const auto* gu = s.u.data_ptr<scalar_t>();
@@ -264,7 +270,7 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor u, torch::Tensor v, 
         double transmittance = 1.0;
         for (int64_t k = 0; k < n; ++k) {
           const int64_t i = first + k;
-          const scalar_t* f = feat + static_cast<int64_t>(gauss[i]) * channels;
+          const scalar_t* f = feat + ord[slot[i]] * channels;
           double hk = gp[channels];
           for (int64_t c = 0; c < channels; ++c) hk += static_cast<double>(f[c]) * gp[c];
           trans[k] = transmittance;
@@ -274,9 +280,9 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor u, torch::Tensor v, 
         const double col = static_cast<double>(p % width) + 0.5, row = static_cast<double>(p / width) + 0.5;
         double behind = 0.0;  // S_k = sum over the pairs behind k of w h
         for (int64_t k = n - 1; k >= 0; --k) {
-          const int64_t i = first + k, g = gauss[i];
+          const int64_t i = first + k, g = ord[slot[i]];
           const double a_raw = al[i], a = std::min(a_raw, kAlphaMax), w = a * trans[k];
-          double* gacc = acc + g * stride;
+          double* gacc = acc + static_cast<int64_t>(slot[i]) * stride;
           for (int64_t c = 0; c < channels; ++c) gacc[5 + c] += w * gp[c];
           if (a_raw <= kAlphaMax) {  // a clamped alpha has no gradient
             const double grad_alpha = trans[k] * h[k] - behind / (1.0 - a);
@@ -292,8 +298,18 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor u, torch::Tensor v, 
         }
       }
     });
+    auto* out = total.data_ptr<scalar_t>();
+    at::parallel_for(0, m, 1024, [&](int64_t begin, int64_t end) {  // sum the threads' buffers into the Gaussians
+      for (int64_t k = begin; k < end; ++k) {
+        scalar_t* row = out + ord[k] * stride;
+        for (int64_t j = 0; j < stride; ++j) {
+          double sum = 0.0;
+          for (int t = 0; t < n_threads; ++t) sum += all_buffers[(t * m + k) * stride + j];
+          row[j] = static_cast<scalar_t>(sum);
+        }
+      }
+    });
   });
-  auto total = buffers.sum(0).view({m, stride}).to(s.u.scalar_type());
   return {total.select(1, 0), total.select(1, 1), total.select(1, 2), total.select(1, 3), total.select(1, 4),
           total.narrow(1, 5, channels).contiguous()};
 }
@@ -301,7 +317,7 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor u, torch::Tensor v, 
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("rasterize_forward", &rasterize_forward, "composite screen Gaussians: (image, offsets, gaussian, alpha)");
+  m.def("rasterize_forward", &rasterize_forward, "composite screen Gaussians: (image, offsets, slot, alpha)");
   m.def("rasterize_backward", &rasterize_backward, "gradients of rasterize_forward's image");
   m.def("depth_order", &depth_order, "indices of the kept Gaussians front to back (stable radix sort)");
 }

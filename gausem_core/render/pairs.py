@@ -45,14 +45,15 @@ def take(index: torch.Tensor, *tensors: torch.Tensor) -> list[torch.Tensor]:
 
 @torch.no_grad()
 def footprint_boxes(screen: ScreenGaussians, width: int, height: int) -> Boxes:
-    """Pixels whose centre ``(j + 0.5, i + 0.5)`` lies within the footprint ellipse's bounding box."""
+    """Pixels whose centre ``(j + 0.5, i + 0.5)`` lies within the footprint ellipse's bounding box (empty for
+    Gaussians without a footprint)."""
     rx, ry = screen.footprint_radii()
     u, v = screen.u.detach(), screen.v.detach()
 
     def span(centre, radius, size):
         lo = torch.ceil(centre - radius - 0.5).clamp(0, size).long()
         hi = torch.floor(centre + radius - 0.5).clamp(-1, size - 1).long()
-        return lo, hi
+        return lo, torch.where(radius > 0, hi, lo - 1)  # no footprint (opacity below 1/255): an empty span
 
     x0, x1 = span(u, rx, width)
     y0, y1 = span(v, ry, height)

@@ -3,7 +3,8 @@
 A Gaussian of world-space standard deviation ``r`` at camera depth ``z`` becomes an axis-aligned screen Gaussian of
 standard deviations ``sigma_x = r fx / z`` and ``sigma_y = r fy / z`` pixels centred on the projected centre
 (``u = fx x / z + cx``, pixel ``j`` has its centre at ``j + 0.5``). Gaussians whose centre is not in front of the near
-plane are culled here. Everything is differentiable w.r.t. the cloud tensors and ``world_to_cam``.
+plane get opacity 0 here, which leaves them out of every back-end. Everything is differentiable w.r.t. the cloud
+tensors and ``world_to_cam``.
 """
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ ALPHA_MAX = 0.99  # alpha is clamped to this value (paper / 3DGS)
 
 @dataclass
 class ScreenGaussians:
-    """The M Gaussians in front of the near plane, in screen space (all tensors have M rows)."""
+    """A cloud's N Gaussians in screen space (all tensors have N rows; those not in front of the near plane have
+    opacity 0)."""
 
     u: torch.Tensor  # pixel x of the centre
     v: torch.Tensor  # pixel y of the centre
@@ -63,24 +65,25 @@ def check_render_inputs(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera
 
 
 def project(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCamera, near: float) -> ScreenGaussians:
-    """Screen-space Gaussians of ``cloud`` seen through ``camera`` at ``world_to_cam``; culls ``z <= near``."""
+    """Screen-space Gaussians of ``cloud`` seen through ``camera`` at ``world_to_cam``, one per Gaussian.
+
+    Gaussians whose centre is not in front of the near plane get opacity 0 (so an empty footprint and no gradients)
+    and a placeholder depth of 1: masking instead of gathering keeps the backward free of scatters."""
     pose = world_to_cam.to(cloud.dtype)
     cam = cloud.means @ pose[:3, :3].T + pose[:3, 3]
-    in_front = cam[:, 2] > near
-    # often every Gaussian is in front: then no gathers here and no scatters in the backward
-    visible = None if bool(in_front.all()) else in_front.nonzero().squeeze(1)
-
-    def keep(t: torch.Tensor) -> torch.Tensor:
-        return t if visible is None else t[visible]
-
-    x, y, z = keep(cam).unbind(-1)
-    radii = keep(cloud.log_radii).exp()
+    x, y, z = cam.unbind(-1)
+    opacity = torch.sigmoid(cloud.opacity_logits)
+    in_front = z > near
+    if not bool(in_front.all()):
+        z = torch.where(in_front, z, torch.ones_like(z))
+        opacity = torch.where(in_front, opacity, torch.zeros_like(opacity))
+    radii = cloud.log_radii.exp()
     return ScreenGaussians(
         u=camera.fx * x / z + camera.cx,
         v=camera.fy * y / z + camera.cy,
         inv_var_x=(z / (camera.fx * radii)) ** 2,
         inv_var_y=(z / (camera.fy * radii)) ** 2,
-        opacity=torch.sigmoid(keep(cloud.opacity_logits)),
+        opacity=opacity,
         depth=z,
-        features=torch.cat([keep(cloud.colors), keep(cloud.semantics), z[:, None]], 1),
+        features=torch.cat([cloud.colors, cloud.semantics, z[:, None]], 1),
     )
