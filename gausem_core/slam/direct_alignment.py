@@ -33,12 +33,11 @@ class ModelView:
 
 @dataclass
 class ObservedImages:
-    """One pyramid level of the observation, channels first for sampling: (C, H, W), colour 3 + semantic colour 3 +
-    depth 1, then F feature channels (F = 0 without features)."""
+    """One pyramid level of the observation, channels first for sampling: ``stack`` (C, H, W) is colour 3 + semantic
+    colour 3 + depth 1, then F feature channels (F = 0 without features); ``samples`` (3C, H, W) is the stack, its
+    horizontal and its vertical gradient, sampled together."""
 
-    stack: torch.Tensor
-    grad_u: torch.Tensor
-    grad_v: torch.Tensor
+    samples: torch.Tensor
     camera: PinholeCamera
 
     @classmethod
@@ -49,7 +48,11 @@ class ObservedImages:
         padded = F.pad(stack[None], (1, 1, 1, 1), mode="replicate")[0]
         grad_u = 0.5 * (padded[:, 1:-1, 2:] - padded[:, 1:-1, :-2])
         grad_v = 0.5 * (padded[:, 2:, 1:-1] - padded[:, :-2, 1:-1])
-        return cls(stack, grad_u, grad_v, camera)
+        return cls(torch.cat([stack, grad_u, grad_v], 0), camera)
+
+    @property
+    def stack(self) -> torch.Tensor:
+        return self.samples[:self.samples.shape[0] // 3]
 
     def downsampled(self) -> "ObservedImages":
         """Half resolution: colour, semantics and features averaged, depth averaged over valid pixels only."""
@@ -111,13 +114,15 @@ def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
     z = p[:, 2]
     u, v = cam.fx * p[:, 0] / z + cam.cx, cam.fy * p[:, 1] / z + cam.cy
     inside = (z > 1e-3) & (u > 0.5) & (u < cam.width - 0.5) & (v > 0.5) & (v < cam.height - 0.5)
-    obs = _sample(observed.stack, u, v)
-    depth_res = obs[6] - z
-    valid = inside & (obs[6] > 0) & (depth_res.abs() < weights.max_depth_residual)
-    if int(valid.sum()) < 12:
+    samples = _sample(observed.samples, u, v)
+    depth_res = samples[6] - z
+    valid = inside & (samples[6] > 0) & (depth_res.abs() < weights.max_depth_residual)
+    kept = valid.nonzero().squeeze(1)
+    if len(kept) < 12:
         return None
-    p, z, obs, depth_res = p[valid], z[valid], obs[:, valid], depth_res[valid]
-    gu, gv = _sample(observed.grad_u, u[valid], v[valid]), _sample(observed.grad_v, u[valid], v[valid])
+    p, z, depth_res, ref = p.index_select(0, kept), z.index_select(0, kept), depth_res.index_select(0, kept), \
+        ref.index_select(1, kept)
+    obs, gu, gv = samples.index_select(1, kept).chunk(3)
     # d(u, v, z)/dxi (N, 6) of the projection of p moved by a left increment exp(xi): dp/dxi = [I | -[p]x]
     x, y, inv_z = p[:, 0], p[:, 1], 1 / z
     xn, yn, zero, one = x * inv_z, y * inv_z, torch.zeros_like(z), torch.ones_like(z)
@@ -126,7 +131,6 @@ def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
     dz = torch.stack([zero, zero, one, y, -x, zero], -1)
     jac = gu[..., None] * du + gv[..., None] * dv  # (C, N, 6)
     jac[6] -= dz  # the observed depth moves with the pixel, and so does z
-    ref = ref[:, valid]
     res = torch.cat([obs[:6] - ref[:6], depth_res[None], obs[7:] - ref[6:]], 0)
     features = observed.feature_channels
     chan = torch.tensor([weights.color] * 3 + [weights.semantic] * 3 + [weights.depth] + [weights.feature] * features,
@@ -137,7 +141,7 @@ def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
     irls[6] = irls[6] * (slope < weights.max_depth_slope)
     cap = (weights.depth * weights.max_depth_residual
            + (3 * weights.color + 3 * weights.semantic + features * weights.feature) * _MAX_COLOR_RESIDUAL)
-    cost = (chan * res.abs()).sum(0).clamp_max(cap).sum() + cap * (len(points) - len(p))
+    cost = (chan * res.abs()).sum(0).clamp_max(cap).sum() + cap * (len(points) - len(kept))
     return res, jac, irls, float(cost / len(points))
 
 
