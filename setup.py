@@ -12,7 +12,7 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     packages=find_packages(include=["gausem_core*", "msg_adapters*", "gausem_ros*"]),
-    package_data={"gausem_core": ["data/assets/*", "render/*.cpp"]},
+    package_data={"gausem_core": ["data/assets/*", "native/*.cpp", "native/*.h"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

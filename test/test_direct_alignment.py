@@ -6,7 +6,10 @@ import pytest
 import torch
 
 from gausem_core.geometry import PinholeCamera, invert_pose, se3_exp, so3_log
-from gausem_core.slam.direct_alignment import AlignmentWeights, ModelView, ObservedImages, align_level
+from gausem_core.native import kernel_available
+from gausem_core.slam import direct_alignment
+from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, _model_samples,
+                                               _normal_equations_compiled, _normal_equations_torch, align_level)
 
 CAMERA = PinholeCamera(100.0, 100.0, 80.0, 60.0, 160, 120)
 
@@ -55,23 +58,32 @@ def align(motion_truth: torch.Tensor, weights: AlignmentWeights, features: bool 
     return motion
 
 
+@pytest.fixture(params=["torch", pytest.param("compiled", marks=pytest.mark.skipif(
+    not kernel_available(), reason="compiled CPU kernels unavailable"))])
+def implementation(request, monkeypatch):
+    """Each alignment test runs with the torch normal equations and with the compiled kernel's."""
+    if request.param == "torch":
+        monkeypatch.setattr(direct_alignment, "kernel_available", lambda: False)
+    return request.param
+
+
 MOTION = se3_exp(torch.tensor([0.004, -0.003, 0.002, 0.003, 0.004, -0.002], dtype=torch.float64))
 WEIGHTS = AlignmentWeights(0.5, 0.0, 5.0, huber_delta=0.002)  # the depth term dominates, as in params/*.yaml
 
 
-def test_depth_steps_do_not_bias_the_alignment():
+def test_depth_steps_do_not_bias_the_alignment(implementation):
     error = invert_pose(MOTION) @ align(MOTION, WEIGHTS)
     assert error[:3, 3].norm() < 5e-4
     assert np.degrees(float(so3_log(error[:3, :3]).norm())) < 0.05
 
 
-def test_the_depth_step_mask_is_what_keeps_the_alignment_unbiased():
+def test_the_depth_step_mask_is_what_keeps_the_alignment_unbiased(implementation):
     unmasked = dataclasses.replace(WEIGHTS, max_depth_slope=float("inf"))
     errors = [float((invert_pose(MOTION) @ align(MOTION, w))[:3, 3].norm()) for w in (WEIGHTS, unmasked)]
     assert errors[0] < 0.5 * errors[1]
 
 
-def test_feature_channels_alone_recover_the_motion():
+def test_feature_channels_alone_recover_the_motion(implementation):
     """Colour, semantics and depth weighted zero: the feature residuals carry the whole solve."""
     features_only = AlignmentWeights(0.0, 0.0, 0.0, huber_delta=0.002, feature=1.0)
     error = invert_pose(MOTION) @ align(MOTION, features_only, features=True)
@@ -91,3 +103,33 @@ def test_feature_channels_survive_the_pyramid_and_must_match_the_model():
     model = ModelView(color, color, depth, depth > 0, CAMERA)  # no features
     with pytest.raises(ValueError, match="0 feature channels, the observation 2"):
         align_level(model, observed, torch.eye(4, dtype=torch.float64), AlignmentWeights(1.0, 0.0, 1.0), 1)
+
+
+@pytest.mark.skipif(not kernel_available(), reason="compiled CPU kernels unavailable")
+# float32: the torch path's residuals are rounded to float32 (the kernel sums in double), and the L1 weights
+# 1 / max(|r|, delta) of near-zero residuals amplify that in g
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-9), (torch.float32, 1e-2)])
+def test_the_compiled_normal_equations_are_the_torch_ones(dtype, rtol):
+    """Same H, g and cost from both implementations, with feature channels, model points that leave the view,
+    occlusions (depth residuals beyond the limit) and depth steps; neither solves for a view behind the camera."""
+    model_color, model_depth = ray_cast(torch.eye(4, dtype=torch.float64))
+    observed_color, observed_depth = ray_cast(invert_pose(MOTION))
+    features = [torch.stack([c[..., 0] - c[..., 1], c[..., 2]], -1).to(dtype) for c in (model_color, observed_color)]
+    model_depth = model_depth.clone()
+    model_depth[40:50, 20:30] += 0.3  # occluded in the observation
+    model = ModelView(model_color.to(dtype), model_color.flip(-1).to(dtype), model_depth.to(dtype),
+                      torch.ones_like(model_depth, dtype=torch.bool), CAMERA, features[0])
+    observed = ObservedImages.build(observed_color.to(dtype), observed_color.flip(-1).to(dtype),
+                                    jitter_edges(observed_depth).to(dtype), CAMERA, features[1])
+    weights = AlignmentWeights(0.5, 0.3, 5.0, huber_delta=0.002, feature=0.7)
+    points, ref = _model_samples(model, observed)
+    for twist in ([0.004, -0.003, 0.002, 0.003, 0.004, -0.002], [0.5, 0.1, 0.0, 0.0, 0.0, 0.0]):  # a third out of view
+        motion = se3_exp(torch.tensor(twist, dtype=torch.float64)).to(dtype)
+        (h, g, cost), (h_ref, g_ref, cost_ref) = (f(observed, motion, weights, points, ref) for f in
+                                                  (_normal_equations_compiled, _normal_equations_torch))
+        assert torch.allclose(h, h_ref.double(), rtol=rtol, atol=rtol * float(h_ref.abs().max()))
+        assert torch.allclose(g, g_ref.double(), rtol=rtol, atol=rtol * float(g_ref.abs().max()))
+        assert cost == pytest.approx(cost_ref, rel=rtol)
+    behind = se3_exp(torch.tensor([0.0, 0.0, -3.0, 0.0, 0.0, 0.0], dtype=torch.float64)).to(dtype)
+    assert _normal_equations_compiled(observed, behind, weights, points, ref) is None
+    assert _normal_equations_torch(observed, behind, weights, points, ref) is None

@@ -9,8 +9,10 @@ import torch.utils.cpp_extension
 
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, se3_exp
-from gausem_core.render import RenderOutput, cpu_backend, render, select_backend
-from gausem_core.render.cpu_backend import cpu_kernel_available, cpu_kernel_error, rasterize_cpu
+from gausem_core import native
+from gausem_core.native import kernel_available as cpu_kernel_available, kernel_error as cpu_kernel_error
+from gausem_core.render import RenderOutput, render, select_backend
+from gausem_core.render.cpu_backend import rasterize_cpu
 from gausem_core.render.projection import project
 from gausem_core.render.torch_backend import rasterize_torch
 
@@ -253,8 +255,8 @@ def test_compiled_kernel_matches_the_torch_backend_when_most_gaussians_are_out_o
 
 
 def test_an_unavailable_kernel_is_a_clear_error_and_auto_falls_back_to_torch(monkeypatch):
-    monkeypatch.setattr(cpu_backend, "_kernel", None)
-    monkeypatch.setattr(cpu_backend, "_error", "RuntimeError: no C++ compiler")
+    monkeypatch.setattr(native, "_kernel", None)
+    monkeypatch.setattr(native, "_error", "RuntimeError: no C++ compiler")
     cloud = random_cloud(2)
     assert select_backend("auto", cloud.device, cloud.dtype) == "torch"
     with pytest.raises(ValueError, match="'cpu' is unavailable.*no C\\+\\+ compiler.*backend='torch'"):
@@ -271,15 +273,15 @@ def test_the_slam_system_builds_the_cpu_kernel_before_its_first_frame(monkeypatc
         builds.append(kwargs["name"])
         return "kernel"
 
-    monkeypatch.setattr(cpu_backend, "_kernel", None)
-    monkeypatch.setattr(cpu_backend, "_error", None)
+    monkeypatch.setattr(native, "_kernel", None)
+    monkeypatch.setattr(native, "_error", None)
     monkeypatch.setattr(torch.utils.cpp_extension, "load", fake_build)
     GauSemSLAM(from_flat({"backend": "auto"}), "cpu")
-    assert builds == ["gausem_cpu_raster"] and cpu_backend._kernel == "kernel"
+    assert builds == ["gausem_cpu_kernels"] and native._kernel == "kernel"
     GauSemSLAM(from_flat({"backend": "auto"}), "cpu")
     assert len(builds) == 1  # loaded once per process
-    monkeypatch.setattr(cpu_backend, "_kernel", None)
-    monkeypatch.setattr(cpu_backend, "_error", "RuntimeError: no C++ compiler")
+    monkeypatch.setattr(native, "_kernel", None)
+    monkeypatch.setattr(native, "_error", "RuntimeError: no C++ compiler")
     with pytest.raises(ValueError, match="'cpu' is unavailable.*no C\\+\\+ compiler"):
         GauSemSLAM(from_flat({"backend": "cpu"}), "cpu")  # asked for by name: a clear error at once
 
@@ -289,8 +291,8 @@ def test_gausem_info_reports_which_cpu_renderer_runs(monkeypatch):
 
     expected = "compiled C++ kernel" if cpu_kernel_available() else f"torch only ({cpu_kernel_error()})"
     assert component_status()["cpu renderer"] == expected.splitlines()[0]
-    monkeypatch.setattr(cpu_backend, "_kernel", None)
-    monkeypatch.setattr(cpu_backend, "_error", "RuntimeError: no C++ compiler")
+    monkeypatch.setattr(native, "_kernel", None)
+    monkeypatch.setattr(native, "_error", "RuntimeError: no C++ compiler")
     assert component_status()["cpu renderer"] == "torch only (RuntimeError: no C++ compiler)"
 
 
@@ -310,7 +312,6 @@ def test_auto_backend_on_cpu_is_the_compiled_kernel_when_it_builds_and_bad_argum
 @pytest.mark.skipif(not cpu_kernel_available(), reason="compiled CPU kernel unavailable")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_compiled_depth_order_is_the_stable_order_of_pairs_depth_order(dtype):
-    from gausem_core.render.cpu_backend import _load
     from gausem_core.render.pairs import Boxes, depth_order
     from gausem_core.render.projection import ScreenGaussians
 
@@ -324,6 +325,6 @@ def test_compiled_depth_order_is_the_stable_order_of_pairs_depth_order(dtype):
     screen = ScreenGaussians(*(torch.zeros(m, dtype=dtype),) * 5, depth=depth, features=torch.zeros(m, 1, dtype=dtype))
     expected = depth_order(screen, boxes)
     assert len(expected) == int((~empty).sum())
-    assert torch.equal(_load().depth_order(depth, boxes.nonempty()), expected)
+    assert torch.equal(native.require_kernel().depth_order(depth, boxes.nonempty()), expected)
     with pytest.raises(RuntimeError, match="positive"):
-        _load().depth_order(-depth, boxes.nonempty())
+        native.require_kernel().depth_order(-depth, boxes.nonempty())

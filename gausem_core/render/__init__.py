@@ -21,7 +21,8 @@ import torch
 
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera
-from gausem_core.render.cpu_backend import cpu_kernel_available, rasterize_cpu, require_cpu_kernel
+from gausem_core.native import kernel_available, kernel_error
+from gausem_core.render.cpu_backend import rasterize_cpu
 from gausem_core.render.gsplat_backend import gsplat_available, rasterize_gsplat
 from gausem_core.render.projection import check_render_inputs, project
 from gausem_core.render.torch_backend import rasterize_torch
@@ -53,12 +54,12 @@ def select_backend(backend: str, device: torch.device | str, dtype: torch.dtype 
     if backend not in BACKENDS:
         raise ValueError(f"render: unknown backend {backend!r}; choose one of {BACKENDS}")
     device = torch.device(device)
-    if backend == "cpu":
-        require_cpu_kernel()
+    if backend == "cpu" and not kernel_available():
+        raise ValueError(f"render backend 'cpu' is unavailable ({kernel_error()}); use backend='torch'")
     if backend != "auto":
         return backend
     if device.type == "cpu":
-        return "cpu" if cpu_kernel_available() else "torch"
+        return "cpu" if kernel_available() else "torch"
     on_gpu = device.type == "cuda" and dtype == torch.float32
     return "gsplat" if on_gpu and gsplat_available() else "torch"
 

@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from gausem_core.geometry import PinholeCamera, se3_exp
+from gausem_core.native import kernel_available, require_kernel
 
 
 @dataclass
@@ -98,17 +99,46 @@ class AlignmentWeights:
     feature: float = 0.0  # weight of each dense feature channel (when the images carry any)
 
 
-def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
-               points: torch.Tensor, ref: torch.Tensor):
-    """Residuals (C, N), Jacobians (C, N, 6), IRLS weights (C, N) and the cost at ``motion``; C = 7 + F channels
-    (colour, semantics, depth, features).
+def _channel_weights(weights: AlignmentWeights, features: int) -> list[float]:
+    """The weight of each of the 7 + F channels (colour, semantics, depth, features)."""
+    return [weights.color] * 3 + [weights.semantic] * 3 + [weights.depth] + [weights.feature] * features
 
-    The cost is the weighted L1 per model pixel, truncated at the cost of a ``max_depth_residual`` depth error plus
-    colour, semantic and feature errors of ``_MAX_COLOR_RESIDUAL``, which is also what a model pixel without a valid
-    observed counterpart costs: comparable across poses. Depth residuals where the observed depth is steeper than
-    ``max_depth_slope`` (discontinuities: sensor noise and mixed pixels, no surface derivative) get no IRLS weight.
-    Returns None when fewer than 12 model pixels land on valid observed pixels.
+
+def _cost_cap(weights: AlignmentWeights, features: int) -> float:
+    """What a model pixel costs at most: a ``max_depth_residual`` depth error and colour, semantic and feature errors
+    of ``_MAX_COLOR_RESIDUAL``."""
+    return (weights.depth * weights.max_depth_residual
+            + (3 * weights.color + 3 * weights.semantic + features * weights.feature) * _MAX_COLOR_RESIDUAL)
+
+
+def normal_equations(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights, points: torch.Tensor,
+                     ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, float] | None:
+    """``(H, g, cost)`` of one IRLS Gauss-Newton step at ``motion``: H = sum w J J^T (6, 6), g = sum w J r (6) over the
+    7 + F channels (colour, semantics, depth, features) of the model ``points`` (N, 3) with values ``ref`` (6 + F, N),
+    and the mean cost per model point.
+
+    The cost is the weighted L1 per model pixel, truncated at :func:`_cost_cap`, which is also what a model pixel
+    without a valid observed counterpart costs: comparable across poses. Depth residuals where the observed depth is
+    steeper than ``max_depth_slope`` (discontinuities: sensor noise and mixed pixels, no surface derivative) get no
+    IRLS weight. Returns None when fewer than 12 model pixels land on valid observed pixels. On CPU tensors the
+    compiled kernel computes it in one pass (``native/alignment.cpp``) when it loads; torch otherwise, same maths.
     """
+    if points.device.type == "cpu" and kernel_available():
+        return _normal_equations_compiled(observed, motion, weights, points, ref)
+    return _normal_equations_torch(observed, motion, weights, points, ref)
+
+
+def _normal_equations_compiled(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
+                               points: torch.Tensor, ref: torch.Tensor):
+    cam, features = observed.camera, observed.feature_channels
+    h, g, cost, valid = require_kernel().alignment_normal_equations(
+        points, ref, motion, observed.samples, [cam.fx, cam.fy, cam.cx, cam.cy], _channel_weights(weights, features),
+        weights.huber_delta, weights.max_depth_residual, weights.max_depth_slope, _cost_cap(weights, features))
+    return None if valid < 12 else (h, g, cost / len(points))
+
+
+def _normal_equations_torch(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
+                            points: torch.Tensor, ref: torch.Tensor):
     cam = observed.camera
     p = points @ motion[:3, :3].T + motion[:3, 3]
     z = p[:, 2]
@@ -133,16 +163,15 @@ def _linearise(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
     jac[6] -= dz  # the observed depth moves with the pixel, and so does z
     res = torch.cat([obs[:6] - ref[:6], depth_res[None], obs[7:] - ref[6:]], 0)
     features = observed.feature_channels
-    chan = torch.tensor([weights.color] * 3 + [weights.semantic] * 3 + [weights.depth] + [weights.feature] * features,
-                        dtype=p.dtype, device=p.device)[:, None]
+    chan = torch.tensor(_channel_weights(weights, features), dtype=p.dtype, device=p.device)[:, None]
     irls = chan / res.abs().clamp_min(weights.huber_delta)  # IRLS weights of the L1 norm
     # depth discontinuities: the observed depth's gradient there is no derivative of the surface, leave them out
     slope = (gu[6].abs() * cam.fx + gv[6].abs() * cam.fy) / z
     irls[6] = irls[6] * (slope < weights.max_depth_slope)
-    cap = (weights.depth * weights.max_depth_residual
-           + (3 * weights.color + 3 * weights.semantic + features * weights.feature) * _MAX_COLOR_RESIDUAL)
+    cap = _cost_cap(weights, features)
     cost = (chan * res.abs()).sum(0).clamp_max(cap).sum() + cap * (len(points) - len(kept))
-    return res, jac, irls, float(cost / len(points))
+    jw = (jac * irls[..., None]).reshape(-1, 6)
+    return jw.T @ jac.reshape(-1, 6), jw.T @ res.reshape(-1), float(cost / len(points))
 
 
 def _model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Tensor, torch.Tensor]:
@@ -154,14 +183,14 @@ def _model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Te
     rays = model.camera.pixel_rays(model.depth.dtype, model.depth.device)
     points = (rays * model.depth[..., None])[model.mask]
     values = [model.color, model.semantic] + ([model.features] if channels else [])
-    return points, torch.cat([v[model.mask] for v in values], 1).T
+    return points, torch.cat([v[model.mask] for v in values], 1).T.contiguous()
 
 
 def alignment_cost(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
                    weights: AlignmentWeights) -> float:
     """Mean weighted L1 residual of the model seen through ``motion`` (inf when the views do not overlap)."""
-    lin = _linearise(model, observed, motion, weights, *_model_samples(model, observed))
-    return float("inf") if lin is None else lin[3]
+    step = normal_equations(observed, motion, weights, *_model_samples(model, observed))
+    return float("inf") if step is None else step[2]
 
 
 def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
@@ -170,15 +199,12 @@ def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor
     points, ref = _model_samples(model, observed)
     cost = float("nan")
     for _ in range(iterations):
-        lin = _linearise(model, observed, motion, weights, points, ref)
-        if lin is None:
+        step = normal_equations(observed, motion, weights, points, ref)
+        if step is None:
             break
-        res, jac, irls, cost = lin
-        jw = (jac * irls[..., None]).reshape(-1, 6)
-        h = jw.T @ jac.reshape(-1, 6)
-        g = jw.T @ res.reshape(-1)
+        h, g, cost = step
         h = h + damping * torch.diag(h.diagonal()) + 1e-9 * torch.eye(6, dtype=h.dtype, device=h.device)
-        xi = -torch.linalg.solve(h, g)
+        xi = -torch.linalg.solve(h, g).to(motion.dtype)
         motion = se3_exp(xi) @ motion
         if float(xi.norm()) < 1e-6:
             break

@@ -143,12 +143,12 @@ def _render_case(case: dict) -> dict:
 
 
 def _render_backends(device: torch.device) -> list[str]:
-    from gausem_core.render.cpu_backend import cpu_kernel_available
+    from gausem_core.native import kernel_available
     from gausem_core.render.gsplat_backend import gsplat_available
 
     if device.type == "cuda":
         return ["torch", "gsplat"] if gsplat_available() else ["torch"]
-    return ["torch", "cpu"] if cpu_kernel_available() else ["torch"]
+    return ["torch", "cpu"] if kernel_available() else ["torch"]
 
 
 def add_arguments(parser) -> None:

@@ -16,9 +16,9 @@ def component_status() -> dict[str, str]:
 
     status = {"python": platform.python_version(), "torch": torch.__version__,
               "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "not available"}
-    from gausem_core.render.cpu_backend import cpu_kernel_error
+    from gausem_core.native import kernel_error
 
-    error = cpu_kernel_error()
+    error = kernel_error()
     status["cpu renderer"] = "compiled C++ kernel" if error is None else f"torch only ({error})".splitlines()[0]
     for dist, module in [("numpy", "numpy"), ("gtsam", "gtsam"), ("faiss-cpu", "faiss"), ("gsplat", "gsplat"),
                          ("transformers", "transformers"), ("rosbags", "rosbags"), ("rclpy", "rclpy")]:

@@ -9,7 +9,7 @@
 // buffers avoid atomics. Transmittances and suffix sums are accumulated in double. Pairs name a Gaussian by its slot
 // in the depth order (only Gaussians with a footprint have one), so the backward's buffers and their reduction scale
 // with the Gaussians in view, not with the whole cloud.
-#include <torch/extension.h>
+#include "kernels.h"
 
 #include <ATen/Parallel.h>
 
@@ -124,6 +124,10 @@ void composite_chunk(const RowChunk<scalar_t>& chunk, const scalar_t* feat, cons
     for (int64_t c = 0; c <= channels; ++c) o[c] = static_cast<scalar_t>(acc[c]);
   }
 }
+
+}  // namespace
+
+namespace gausem {
 
 // (image (n_pixels, C + 1), pixel offsets [n_pixels + 1], slot [P] int32 (into order), unclamped alpha [P]): the
 // pairs sorted by pixel, front to back within a pixel. Chunks of rows are independent, so they run in parallel.
@@ -314,10 +318,4 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor u, torch::Tensor v, 
           total.narrow(1, 5, channels).contiguous()};
 }
 
-}  // namespace
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("rasterize_forward", &rasterize_forward, "composite screen Gaussians: (image, offsets, slot, alpha)");
-  m.def("rasterize_backward", &rasterize_backward, "gradients of rasterize_forward's image");
-  m.def("depth_order", &depth_order, "indices of the kept Gaussians front to back (stable radix sort)");
-}
+}  // namespace gausem

@@ -1,0 +1,65 @@
+"""GauSem's compiled CPU kernels, one C++ extension module built on first use: the renderer's compositing
+(``raster.cpp``, :mod:`gausem_core.render.cpu_backend`) and the Gauss-Newton normal equations of direct alignment
+(``alignment.cpp``, :mod:`gausem_core.slam.direct_alignment`).
+
+The extension is compiled with ``torch.utils.cpp_extension`` (needs a C++ compiler with OpenMP, and ninja: the
+``ninja`` wheel of ``requirements.txt`` is found next to the running Python) into torch's extension cache
+(``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``): tens of seconds once per machine, a fraction of a
+second afterwards. Loops run in parallel on torch's intra-op threads. When it cannot be built, :func:`kernel_error`
+says why and every caller falls back to its torch implementation.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import threading
+from pathlib import Path
+
+_HERE = Path(__file__).parent
+_SOURCES = [str(_HERE / name) for name in ("bindings.cpp", "raster.cpp", "alignment.cpp")]
+_lock = threading.Lock()
+_kernel = None
+_error: str | None = None
+
+
+def _ninja_on_path() -> None:
+    """torch looks for ``ninja`` on PATH; the ninja wheel puts it beside the interpreter (a venv's bin)."""
+    bin_dir = str(Path(sys.executable).parent)
+    if bin_dir not in os.environ.get("PATH", "").split(os.pathsep):
+        os.environ["PATH"] = os.pathsep.join([bin_dir, os.environ.get("PATH", "")])
+
+
+def _load():
+    """The compiled module, or None (with the reason kept for :func:`kernel_error`)."""
+    global _kernel, _error
+    if _kernel is not None:  # every render asks: no lock once loaded
+        return _kernel
+    with _lock:
+        if _kernel is None and _error is None:
+            try:
+                from torch.utils.cpp_extension import load
+
+                _ninja_on_path()
+                _kernel = load(name="gausem_cpu_kernels", sources=_SOURCES, extra_cflags=["-O3", "-fopenmp"],
+                               extra_ldflags=["-fopenmp"], extra_include_paths=[str(_HERE)], verbose=False)
+            except Exception as exc:  # noqa: BLE001 -- a missing compiler shows up as many different errors
+                _error = f"{type(exc).__name__}: {exc}".strip()
+        return _kernel
+
+
+def kernel_available() -> bool:
+    """True when the compiled kernels build (or are cached) and load."""
+    return _load() is not None
+
+
+def kernel_error() -> str | None:
+    """Why the kernels are unavailable (None when they load)."""
+    _load()
+    return _error
+
+
+def require_kernel():
+    """The compiled module; a ValueError saying why when it is unavailable."""
+    if _load() is None:
+        raise ValueError(f"the compiled CPU kernels are unavailable ({_error})")
+    return _kernel
