@@ -22,7 +22,6 @@ struct Sums {
   std::array<double, 6> g{};
   double cost = 0.0;
   int64_t valid = 0;
-  char pad[64];  // keeps two threads' sums off one cache line
 };
 
 struct Problem {
@@ -74,7 +73,12 @@ void add_point(const Problem& pb, const scalar_t* pt, const scalar_t* ref, int64
     if (c == 6 && !((std::abs(gu) * pb.fx + std::abs(gv) * pb.fy) / z < pb.max_depth_slope)) w = 0.0;
     muu += w * gu * gu, muv += w * gu * gv, mvv += w * gv * gv;
     bu += w * gu * res, bv += w * gv * res;
-    if (c == 6) muz -= w * gu, mvz -= w * gv, mzz += w, bz -= w * res;  // the depth moves with z: a_z = -1
+    if (c == 6) {  // the observed depth moves with z: a_z = -1
+      muz -= w * gu;
+      mvz -= w * gv;
+      mzz += w;
+      bz -= w * res;
+    }
   }
   s.cost += std::min(cost, pb.cap);
   // B: rows d(u, v, z)/dxi of the point moved by a left increment exp(xi), dp/dxi = [I | -[p]x]

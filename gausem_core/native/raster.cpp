@@ -125,6 +125,44 @@ void composite_chunk(const RowChunk<scalar_t>& chunk, const scalar_t* feat, cons
   }
 }
 
+// Indices of the Gaussians with keep[i], front to back, stable in the index: an LSD radix sort (8-bit digits) of the
+// depths' bit patterns, which order like positive floats. Torch's CPU sort is a comparison sort at these sizes.
+template <typename scalar_t>
+torch::Tensor radix_depth_order(const torch::Tensor& depth, const torch::Tensor& keep) {
+  using key_t = std::conditional_t<sizeof(scalar_t) == 8, uint64_t, uint32_t>;
+  const auto* d = depth.data_ptr<scalar_t>();
+  const auto* k = keep.data_ptr<bool>();
+  std::vector<int64_t> index, index_tmp;
+  std::vector<key_t> keys, keys_tmp;
+  for (int64_t i = 0; i < depth.size(0); ++i) {
+    if (!k[i]) continue;
+    TORCH_CHECK(d[i] > 0, "depth_order: depths must be positive");
+    key_t key;
+    std::memcpy(&key, d + i, sizeof(key));
+    index.push_back(i);
+    keys.push_back(key);
+  }
+  const auto n = static_cast<int64_t>(index.size());
+  index_tmp.resize(n);
+  keys_tmp.resize(n);
+  for (unsigned shift = 0; shift < 8 * sizeof(key_t); shift += 8) {
+    int64_t start[257] = {0};
+    for (const key_t key : keys) ++start[((key >> shift) & 0xFF) + 1];
+    if (std::any_of(start + 1, start + 257, [n](int64_t c) { return c == n; })) continue;  // one digit: no-op pass
+    for (int b = 0; b < 256; ++b) start[b + 1] += start[b];
+    for (int64_t i = 0; i < n; ++i) {
+      const int64_t at = start[(keys[i] >> shift) & 0xFF]++;
+      index_tmp[at] = index[i];
+      keys_tmp[at] = keys[i];
+    }
+    index.swap(index_tmp);
+    keys.swap(keys_tmp);
+  }
+  auto order = torch::empty({n}, torch::kInt64);
+  std::copy(index.begin(), index.end(), order.data_ptr<int64_t>());
+  return order;
+}
+
 }  // namespace
 
 namespace gausem {
@@ -185,44 +223,6 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, t
     off[n_pixels] = at;
   });
   return {image, offsets, slot_out, alpha_out};
-}
-
-// Indices of the Gaussians with keep[i], front to back, stable in the index: an LSD radix sort (8-bit digits) of the
-// depths' bit patterns, which order like positive floats. Torch's CPU sort is a comparison sort at these sizes.
-template <typename scalar_t>
-torch::Tensor radix_depth_order(const torch::Tensor& depth, const torch::Tensor& keep) {
-  using key_t = std::conditional_t<sizeof(scalar_t) == 8, uint64_t, uint32_t>;
-  const auto* d = depth.data_ptr<scalar_t>();
-  const auto* k = keep.data_ptr<bool>();
-  std::vector<int64_t> index, index_tmp;
-  std::vector<key_t> keys, keys_tmp;
-  for (int64_t i = 0; i < depth.size(0); ++i) {
-    if (!k[i]) continue;
-    TORCH_CHECK(d[i] > 0, "depth_order: depths must be positive");
-    key_t key;
-    std::memcpy(&key, d + i, sizeof(key));
-    index.push_back(i);
-    keys.push_back(key);
-  }
-  const auto n = static_cast<int64_t>(index.size());
-  index_tmp.resize(n);
-  keys_tmp.resize(n);
-  for (unsigned shift = 0; shift < 8 * sizeof(key_t); shift += 8) {
-    int64_t start[257] = {0};
-    for (const key_t key : keys) ++start[((key >> shift) & 0xFF) + 1];
-    if (std::any_of(start + 1, start + 257, [n](int64_t c) { return c == n; })) continue;  // one digit: no-op pass
-    for (int b = 0; b < 256; ++b) start[b + 1] += start[b];
-    for (int64_t i = 0; i < n; ++i) {
-      const int64_t at = start[(keys[i] >> shift) & 0xFF]++;
-      index_tmp[at] = index[i];
-      keys_tmp[at] = keys[i];
-    }
-    index.swap(index_tmp);
-    keys.swap(keys_tmp);
-  }
-  auto order = torch::empty({n}, torch::kInt64);
-  std::copy(index.begin(), index.end(), order.data_ptr<int64_t>());
-  return order;
 }
 
 torch::Tensor depth_order(torch::Tensor depth, torch::Tensor keep) {
