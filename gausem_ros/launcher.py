@@ -2,12 +2,15 @@
 one process (``gausem-ros``). Without ROS ``launch`` (not on PyPI), this is a small supervisor:
 
 ``gausem-launch [--params-file F] [--nodes tracking_mapping,pose_graph] [--play "SOURCE --lockstep ..."]
-[-- ROS_ARGS...]``
+[--respawn] [-- ROS_ARGS...]``
 
 Each node runs as ``python -m gausem_ros.nodes.<name> --ros-args --params-file F ROS_ARGS``; with ``--play`` the
-player runs too and, once it exits, the nodes are stopped with SIGINT. SIGINT/SIGTERM to the launcher are forwarded
-to every child; children still running ``--grace`` s later are killed. The exit code is the worst of the children's
-(a child ended by signal N counts as 128 + N).
+player runs too and, once it exits, the nodes are stopped with SIGINT. A node that dies is reported (name, exit code
+or signal) and the others go on; with ``--respawn`` it is started again after ``--respawn-delay`` s (doubled after
+each crash within 10 s of its start, at most 32x). The launcher ends when the player is done, when every node has
+ended, or on SIGINT/SIGTERM, which it forwards to every child; children still running ``--grace`` s later are killed.
+The exit code is the worst of every child process that ended, crashed ones included (a child ended by signal N
+counts as 128 + N).
 """
 from __future__ import annotations
 
@@ -17,6 +20,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import dataclass, field
 
 from .nodes import NODE_MODULES
 
@@ -43,37 +47,98 @@ def exit_code(returncode: int) -> int:
     return 128 - returncode if returncode < 0 else returncode
 
 
-class Launcher:
-    """Runs ``nodes`` (commands) and an optional ``player`` command; see the module docstring."""
+def describe(returncode: int) -> str:
+    if returncode < 0:
+        return f"signal {signal.Signals(-returncode).name} (exit code {exit_code(returncode)})"
+    return f"exit code {returncode}"
 
-    def __init__(self, nodes: list[list[str]], player: list[str] | None = None, grace: float = 10.0):
-        self.grace = grace
-        self.nodes = [subprocess.Popen(cmd) for cmd in nodes]
-        self.player = subprocess.Popen(player) if player else None
+
+QUICK_CRASH_S = 10.0  # a node that dies sooner after its start waits longer before its next respawn
+
+
+@dataclass
+class Child:
+    """A supervised process: its command, the running process, when it started and how often it was restarted."""
+
+    name: str
+    command: list[str]
+    process: subprocess.Popen = field(init=False)
+    started: float = field(init=False)
+    restarts: int = 0
+    quick_crashes: int = 0
+    restart_at: float | None = None  # when a dead node is due to be started again
+    ended: bool = False  # dead and not to be started again
+
+    def __post_init__(self):
+        self.start()
+
+    def start(self) -> None:
+        self.process = subprocess.Popen(self.command)
+        self.started, self.restart_at = time.monotonic(), None
+
+
+class Launcher:
+    """Runs ``nodes`` ({name: command}) and an optional ``player`` command; see the module docstring."""
+
+    def __init__(self, nodes: dict[str, list[str]], player: list[str] | None = None, grace: float = 10.0,
+                 respawn: bool = False, respawn_delay: float = 1.0):
+        self.grace, self.respawn, self.respawn_delay = grace, respawn, respawn_delay
+        self.nodes = [Child(name, cmd) for name, cmd in nodes.items()]
+        self.player = Child("player", player) if player else None
+        self.exit_codes: list[int] = []  # of every child process that ended
         self._stopping = False
 
     @property
-    def children(self) -> list[subprocess.Popen]:
+    def children(self) -> list[Child]:
         return self.nodes + ([self.player] if self.player else [])
 
-    def signal_all(self, signum: int, children=None) -> None:
-        for child in children if children is not None else self.children:
-            if child.poll() is None:
-                child.send_signal(signum)
+    def signal_all(self, signum: int) -> None:
+        for child in self.children:
+            if child.process.poll() is None:
+                child.process.send_signal(signum)
 
     def _forward(self, signum, frame) -> None:
         del frame
         self._stopping = True
         self.signal_all(signum)
 
+    def _log(self, text: str) -> None:
+        print(f"[gausem-launch] {text}", file=sys.stderr, flush=True)
+
+    def _supervise(self, now: float) -> None:
+        """Report nodes that died and (with respawn) start them again when their delay has passed."""
+        for child in self.nodes:
+            code = child.process.poll()
+            if code is None or child.ended:
+                continue
+            if child.restart_at is None:  # found dead just now
+                self.exit_codes.append(exit_code(code))
+                child.quick_crashes = child.quick_crashes + 1 if now - child.started < QUICK_CRASH_S else 0
+                if self.respawn:
+                    delay = self.respawn_delay * 2 ** min(child.quick_crashes, 5)
+                    child.restart_at = now + delay
+                    self._log(f"{child.name} ended with {describe(code)}; restarting it in {delay:.1f} s")
+                else:
+                    child.ended = True
+                    self._log(f"{child.name} ended with {describe(code)}; the other nodes go on")
+            elif now >= child.restart_at:
+                child.restarts += 1
+                child.start()
+                self._log(f"{child.name} restarted ({child.restarts} so far)")
+
+    def _all_nodes_ended(self) -> bool:
+        return not self.respawn and all(child.process.poll() is not None for child in self.nodes)
+
     def wait(self) -> int:
-        """Until the player exits (then stop the nodes), a node exits, or a signal arrives; the worst exit code."""
+        """Until the player exits (then stop the nodes), every node has ended, or a signal arrives; the worst exit
+        code."""
         previous = {s: signal.signal(s, self._forward) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
             while not self._stopping:
-                if self.player is not None and self.player.poll() is not None:
+                if self.player is not None and self.player.process.poll() is not None:
                     break
-                if any(node.poll() is not None for node in self.nodes):
+                self._supervise(time.monotonic())
+                if self._all_nodes_ended():
                     break
                 time.sleep(0.1)
             if not self._stopping:  # a forwarded signal already reached every child; a second SIGINT interrupts
@@ -81,14 +146,15 @@ class Launcher:
             deadline = time.monotonic() + self.grace
             for child in self.children:
                 try:
-                    child.wait(max(deadline - time.monotonic(), 0.1))
+                    child.process.wait(max(deadline - time.monotonic(), 0.1))
                 except subprocess.TimeoutExpired:
-                    child.kill()
-                    child.wait()
+                    child.process.kill()
+                    child.process.wait()
         finally:
             for s, handler in previous.items():
                 signal.signal(s, handler)
-        return max(exit_code(child.returncode) for child in self.children)
+        final = [exit_code(c.process.returncode) for c in self.children if not c.ended and c.restart_at is None]
+        return max(self.exit_codes + final, default=0)
 
 
 def main(args=None) -> int:
@@ -100,13 +166,16 @@ def main(args=None) -> int:
     parser.add_argument("--nodes", default=",".join(DEFAULT_NODES), help="comma-separated node names")
     parser.add_argument("--play", help="player arguments, quoted: 'SOURCE --lockstep --size 80x60'")
     parser.add_argument("--grace", type=float, default=10.0, help="seconds children get to exit after SIGINT")
+    parser.add_argument("--respawn", action="store_true", help="start a node that dies again")
+    parser.add_argument("--respawn-delay", type=float, default=1.0, help="seconds before a respawn (doubles after "
+                                                                         "quick crashes)")
     ns = parser.parse_args(own)
     try:
-        nodes = [node_command(name, ns.params_file, ros_args) for name in ns.nodes.split(",") if name]
+        nodes = {name: node_command(name, ns.params_file, ros_args) for name in ns.nodes.split(",") if name}
     except ValueError as err:
         parser.error(str(err))
     player = player_command(ns.play, ros_args) if ns.play else None
-    return Launcher(nodes, player, ns.grace).wait()
+    return Launcher(nodes, player, ns.grace, ns.respawn, ns.respawn_delay).wait()
 
 
 if __name__ == "__main__":

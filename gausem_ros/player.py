@@ -10,7 +10,11 @@ Published (relative names, remappable): ``rgb/image``, ``depth/image``, ``rgb/ca
 Ground truth is never published; ``--gt-out FILE`` writes the dataset's ground-truth poses of the replayed frames as a
 TUM trajectory for evaluation.
 
-Timing: frames follow their recorded stamps scaled by ``--rate`` (0 = as fast as possible). ``--lockstep`` publishes
+Timing: frames follow their recorded stamps scaled by ``--rate`` (0 = as fast as possible), on the wall clock: the
+player is the source of ``/clock``, so it never runs on sim time itself (``use_sim_time`` is forced off for it, also
+when ``-p use_sim_time:=true`` is given for the nodes it feeds). Frames are published from the player's own thread,
+which sleeps until the next frame is due (or a lock-step answer wakes it), so an executor busy with a slow frame in
+the same process does not hold playback back. ``--lockstep`` publishes
 frame k+1 only after ``gausem/odometry`` for frame k arrived, or tracking_mapping's ``gausem/diagnostics`` said it
 dropped frame k (bad input, a diverged estimate), or ``--timeout`` seconds passed (which is logged).
 ``--finish`` calls tracking_mapping's ``gausem/finish`` service (the global refinement) after the last frame (in
@@ -25,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -36,6 +41,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
@@ -122,8 +128,9 @@ class Player(Node):
 
     def __init__(self, frames: Iterable[PlayerFrame], *, rate: float = 1.0, lockstep: bool = False,
                  timeout: float = 10.0, wait_subscribers: float = 5.0, finish: bool = False,
-                 finish_timeout: float = 600.0, period: float = 0.005, **kwargs):
-        super().__init__("player", **kwargs)
+                 finish_timeout: float = 600.0, period: float = 0.05, **kwargs):
+        overrides = [*kwargs.pop("parameter_overrides", []), Parameter("use_sim_time", value=False)]
+        super().__init__("player", parameter_overrides=overrides, **kwargs)
         if rate < 0 or timeout <= 0 or wait_subscribers < 0 or finish_timeout <= 0:
             raise ValueError(f"player: rate must be >= 0, timeout and finish_timeout > 0 and wait_subscribers >= 0, "
                              f"got {rate}, {timeout}, {finish_timeout}, {wait_subscribers}")
@@ -142,11 +149,15 @@ class Player(Node):
         self._awaiting: int | None = None  # stamp (ns) whose odometry lock-step waits for
         self._waiting_since = time.monotonic()
         self._start: tuple[float, int] | None = None  # (wall time, stamp ns) of the first frame
+        self._last_published = 0.0  # wall time of the last frame
         self._finish = self.create_client(Trigger, "gausem/finish") if finish else None
         self._finish_timeout = finish_timeout
         self._finish_call = None  # (future, wall time of the call)
         self.finished: bool | None = None  # with finish: whether gausem/finish answered with success
-        self._timer = self.create_timer(period, self._tick)
+        self._period = period  # longest sleep of the playback thread (subscriber and lock-step timeouts)
+        self._wake, self._stop = threading.Event(), threading.Event()
+        self._thread = threading.Thread(target=self._play, name="gausem-player", daemon=True)
+        self._thread.start()
 
     def _read_next(self) -> PlayerFrame | None:
         """The next frame; None at the end or, logged and kept in ``error``, when the source cannot be read on."""
@@ -156,6 +167,11 @@ class Player(Node):
             self.error = f"playback stopped after {self.published} frames: {err}"
             self.get_logger().error(self.error)
             return None
+
+    @property
+    def playback_seconds(self) -> float:
+        """Wall time from the first frame published to the last."""
+        return self._last_published - self._start[0] if self._start else 0.0
 
     @property
     def done(self) -> bool:
@@ -175,6 +191,30 @@ class Player(Node):
         """Lock-step: the tracker is done with the frame stamped ``stamp_ns``."""
         if self._awaiting is not None and stamp_ns >= self._awaiting - _STAMP_TOLERANCE_NS:
             self._awaiting = None
+            self._wake.set()
+
+    def _play(self) -> None:
+        """The playback thread: publish what is due, sleep until the next frame is due or an answer arrives."""
+        while not self._stop.is_set() and not self.done:
+            self._wake.clear()
+            self._tick()
+            self._wake.wait(self._sleep())
+
+    def _sleep(self) -> float:
+        """Seconds until the next frame is due (at most the polling period)."""
+        if self._awaiting is not None or self._next is None or self._start is None:
+            return self._period
+        if self.rate == 0:
+            return 0.0
+        wall0, stamp0 = self._start
+        due = wall0 + ma.ns_to_seconds(self._next.stamp_ns - stamp0) / self.rate
+        return min(max(due - time.monotonic(), 0.0), self._period)
+
+    def destroy_node(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join()
+        super().destroy_node()
 
     def _tick(self) -> None:
         now = time.monotonic()
@@ -198,6 +238,7 @@ class Player(Node):
             self._pubs[key].publish(msg)
         self._clock_pub.publish(Clock(clock=ma.ns_to_time(frame.stamp_ns)))
         self.published += 1
+        self._last_published = time.monotonic()
         if frame.gt_pose is not None:
             self.ground_truth.append((ma.ns_to_seconds(frame.stamp_ns), frame.gt_pose))
         if self.lockstep:
@@ -293,7 +334,8 @@ def main(args=None) -> int:
         linger_end = time.monotonic() + 1.0  # let reliable QoS deliver the last frame before the node goes
         while rclpy.ok() and time.monotonic() < linger_end:
             rclpy.spin_once(player, timeout_sec=0.1)
-        player.get_logger().info(f"published {player.published} frames, {player.odometry_received} odometry "
+        player.get_logger().info(f"published {player.published} frames in {player.playback_seconds:.1f} s, "
+                                 f"{player.odometry_received} odometry "
                                  f"messages received, {player.timeouts} lock-step timeouts")
         if ns.gt_out:
             player.get_logger().info(f"wrote {player.write_ground_truth(ns.gt_out)} ground-truth poses to {ns.gt_out}")

@@ -1,11 +1,16 @@
-"""All GauSem nodes in one process on a SingleThreadedExecutor (entry point ``gausem-ros``), optionally with the
-player: ``gausem-ros [SOURCE --lockstep ...] [--save DIR] [--report DIR] --ros-args --params-file FILE``.
+"""All GauSem nodes in one process (entry point ``gausem-ros``), optionally with the player:
+``gausem-ros [SOURCE --lockstep ...] [--save DIR] [--report DIR] --ros-args --params-file FILE``.
+
+One multi-threaded executor runs every node: each node's callbacks stay serialised in its own callback groups, but
+the player, the tracker's inputs and its processing never wait for each other, so a real-time player is not starved
+by a slow frame and the tracker always sees the newest frame.
 
 Which nodes: tracking_mapping always; segmentation unless ``semantics.segmenter`` is ``labels`` (then the labels come
 with the data); loop_detection (needs labels) and pose_graph when ``loop.enabled`` and tracking_mapping's
 ``loop_closure`` is ``nodes`` (the default; with ``core`` the tracking node closes loops itself). The ROS arguments (params file,
 ``-p``, remappings) apply to every node. With a SOURCE the process ends when the player is done (after ``--save`` and
-``--report``); without, it runs until Ctrl-C. ``--report DIR`` evaluates the run like ``gausem run`` (ATE, PSNR, SSIM,
+``--report``); without, it runs until Ctrl-C. On Ctrl-C or SIGTERM the frame in progress is finished, ``--save`` still
+writes the map, and the input accounting (frames in, processed, dropped by reason, latency) is printed. ``--report DIR`` evaluates the run like ``gausem run`` (ATE, PSNR, SSIM,
 mIoU, fps; trajectories, map, metrics JSON, montage in DIR) against a reference dataset: SOURCE when it is a dataset,
 else ``--reference SPEC`` (for a bag from ``gausem-bag SPEC``: the same SPEC; opened at the processed image size).
 """
@@ -18,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.utilities import remove_ros_args
 from tqdm import tqdm
 
@@ -26,6 +31,7 @@ from gausem_core.data import open_dataset
 from gausem_core.report import format_summary
 
 from .evaluation import write_report
+from .executor import NodeExecutor
 from .nodes.loop_detection import LoopDetectionNode
 from .nodes.pose_graph import PoseGraphNode
 from .nodes.segmentation import SegmentationNode
@@ -108,11 +114,25 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
     return ns
 
 
+def accounting(tracking: TrackingMappingNode, player=None) -> str:
+    """One line: frames in, processed, dropped by reason, pending, latency (and the player's timeouts)."""
+    s = tracking.summary()
+    dropped = f" {s['dropped']}" if s["dropped"] else ""
+    line = (f"frames in {s['frames_in']}, processed {s['frames_processed']}, dropped {sum(s['dropped'].values())}"
+            f"{dropped}, pending {s['frames_pending']}")
+    if "latency_ms.median" in s:
+        line += f"; latency median {s['latency_ms.median']} ms, p95 {s['latency_ms.p95']} ms"
+    if player is not None:
+        line += f"; player published {player.published} frames ({player.timeouts} lock-step timeouts)"
+    return line
+
+
 def main(args=None) -> int:
     argv = sys.argv if args is None else ["gausem-ros", *args]
     ns = parse_arguments(argv)
     rclpy.init(args=argv)
-    nodes, executor, player = [], SingleThreadedExecutor(), None
+    nodes, player = [], None
+    executor = NodeExecutor(num_threads=5)
     try:
         nodes = build_nodes()
         player = player_from_args(ns) if ns.source else None
@@ -120,17 +140,20 @@ def main(args=None) -> int:
             executor.add_node(node)
         tracking = nodes[0]
         bar, update = progress_bar(tracking, disable=player is None or ns.quiet)
-        spin_until_done(executor, player, on_spin=update)
+        try:
+            spin_until_done(executor, player, on_spin=update)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        interrupted = not rclpy.ok()  # SIGINT or SIGTERM shut the context down
         bar.close()
-        if player is not None:
-            tracking.get_logger().info(f"processed {tracking.frames_processed} of {player.published} frames "
-                                       f"({player.timeouts} lock-step timeouts); dropped: "
-                                       f"{dict(tracking.drops.counts) or 'none'}")
+        executor.shutdown()  # waits for the frame in progress
+        tracking.get_logger().info(accounting(tracking, player))
+        if player is not None and not interrupted:
             tracking.finish()  # the sequence is over: global refinement, as the offline pipeline does
-        if ns.save:
+        if ns.save and tracking.frames_processed:
             ply, trajectory = tracking.save_map(ns.save)
             tracking.get_logger().info(f"wrote {ply} and {trajectory}")
-        if ns.report:
+        if ns.report and not interrupted:
             report(tracking, ns, argv)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -139,7 +162,7 @@ def main(args=None) -> int:
         return 1
     finally:
         executor.shutdown()
-        for node in executor.get_nodes() or nodes:
+        for node in nodes + ([player] if player else []):
             node.destroy_node()
         rclpy.try_shutdown()
     return 1 if player is not None and player.error else 0

@@ -1,16 +1,22 @@
-"""Approximate-time synchronisation of N stamped inputs (e.g. rgb, depth and optional labels).
+"""Approximate-time synchronisation of N stamped inputs (e.g. rgb, depth and optional labels), with every dropped
+message accounted for.
 
 ``ApproximateTimeSync`` is pure Python and independent of rclpy: feed it ``(input index, stamp, msg)`` and it calls
 ``callback(*msgs)`` with one message per input whose stamps lie within ``slop`` seconds of each other. Like
 ``message_filters.ApproximateTimeSynchronizer`` (Python), each new message is matched against the other inputs'
 queues (at most ``queue_size`` each, oldest evicted) and every message takes part in at most one match. Unlike it,
-among several valid sets the one with the smallest stamp spread wins, and after a match everything at or before the
-matched stamps is dropped as stale (so late, out-of-order arrivals cannot produce a match that goes back in time).
-A second message with a stamp already queued on the same input is dropped (the first is kept). Drops are counted by
-reason in ``dropped``: ``stale``, ``duplicate``, ``overflow``.
+among several valid sets the one with the smallest stamp spread wins, after a match everything at or before the
+matched stamps is dropped (so late, out-of-order arrivals cannot produce a match that goes back in time), and no
+message disappears silently: each one is either matched, still queued (``pending``) or dropped, and every drop is
+counted in ``dropped[(input name, reason)]`` and reported to ``on_drop(index, reason, detail)``. Reasons:
 
-``make_synchronizer`` subscribes a node to the inputs and uses ``message_filters`` when it is importable (it is not
-on PyPI), otherwise ``ApproximateTimeSync``.
+- ``backwards``: stamped at or before the last matched stamp of its input (out of order, or a replay restarted
+  without :meth:`ApproximateTimeSync.reset`);
+- ``duplicate``: a stamp already queued on the same input (the first is kept);
+- ``unmatched``: left behind by a later match or evicted from a full queue without a partner within ``slop``; the
+  detail gives the nearest stamp offset seen on each other input, or ``no_<input>`` when that input has sent nothing.
+
+``message_filters`` (not on PyPI) is not used: its synchroniser drops without telling.
 """
 from __future__ import annotations
 
@@ -25,42 +31,60 @@ from msg_adapters.stamps import header_seconds
 
 
 class ApproximateTimeSync:
-    def __init__(self, num_inputs: int, callback: Callable[..., None], queue_size: int = 10, slop: float = 0.02):
-        if num_inputs < 1 or queue_size < 1 or not slop >= 0:
-            raise ValueError(f"ApproximateTimeSync needs num_inputs >= 1, queue_size >= 1 and slop >= 0, "
-                             f"got {num_inputs}, {queue_size}, {slop}")
-        self.callback, self.queue_size, self.slop = callback, queue_size, slop
-        self._queues: list[dict[float, object]] = [{} for _ in range(num_inputs)]
-        self._last_matched = [float("-inf")] * num_inputs
+    def __init__(self, names: Sequence[str], callback: Callable[..., None], queue_size: int = 10,
+                 slop: float = 0.02, on_drop: Callable[[int, str, str], None] = lambda i, reason, detail: None):
+        if len(names) < 1 or queue_size < 1 or not slop >= 0:
+            raise ValueError(f"ApproximateTimeSync needs at least one input, queue_size >= 1 and slop >= 0, "
+                             f"got {list(names)}, {queue_size}, {slop}")
+        self.names = list(names)
+        self.callback, self.queue_size, self.slop, self.on_drop = callback, queue_size, slop, on_drop
         self._lock = threading.Lock()
-        self.dropped: Counter[str] = Counter()
-        self.matched = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every queued message, the stamp watermarks and the counts (a new sequence starts)."""
+        with self._lock:
+            self._queues: list[dict[float, object]] = [{} for _ in self.names]
+            self._last_matched = [float("-inf")] * len(self.names)
+            self.received = [0] * len(self.names)
+            self.dropped: Counter[tuple[str, str]] = Counter()
+            self.matched = 0
+
+    def pending(self, index: int) -> int:
+        """Messages of input ``index`` queued, waiting for a match."""
+        return len(self._queues[index])
 
     def add(self, index: int, stamp: float, msg) -> None:
         """Queue ``msg`` stamped ``stamp`` seconds on input ``index``; emit a match if it completes one."""
+        if not 0 <= index < len(self._queues):
+            raise ValueError(f"input index {index} out of range 0..{len(self._queues) - 1}")
+        drops: list[tuple[int, str, str]] = []
         with self._lock:
-            match = self._add(index, stamp, msg)
+            self.received[index] += 1
+            match = self._add(index, stamp, msg, drops)
+            for i, reason, _ in drops:
+                self.dropped[(self.names[i], reason)] += 1
+        for drop in drops:
+            self.on_drop(*drop)
         if match is not None:
             self.callback(*match)
 
-    def _add(self, index: int, stamp: float, msg):
-        if not 0 <= index < len(self._queues):
-            raise ValueError(f"input index {index} out of range 0..{len(self._queues) - 1}")
-        queue = self._queues[index]
+    def _add(self, index: int, stamp: float, msg, drops: list):
+        queue, name = self._queues[index], self.names[index]
         if stamp <= self._last_matched[index]:
-            self.dropped["stale"] += 1
+            drops.append((index, "backwards", f"{name} stamped {stamp:.6f} s is not after the last matched one "
+                                              f"({self._last_matched[index]:.6f} s)"))
             return None
         if stamp in queue:
-            self.dropped["duplicate"] += 1
+            drops.append((index, "duplicate", f"{name} stamped {stamp:.6f} s arrived twice; the first is kept"))
             return None
         queue[stamp] = msg
         if len(queue) > self.queue_size:
-            del queue[min(queue)]
-            self.dropped["overflow"] += 1
+            self._evict(index, min(queue), drops)
             if stamp not in queue:
                 return None
         stamps = self._best_match(index, stamp)
-        return None if stamps is None else self._take(stamps)
+        return None if stamps is None else self._take(stamps, drops)
 
     def _best_match(self, index: int, stamp: float) -> tuple[float, ...] | None:
         candidates = [[stamp] if i == index else [s for s in q if abs(s - stamp) <= self.slop]
@@ -68,23 +92,40 @@ class ApproximateTimeSync:
         best = min(itertools.product(*candidates), key=lambda c: max(c) - min(c), default=None)
         return best if best is not None and max(best) - min(best) <= self.slop else None
 
-    def _take(self, stamps: tuple[float, ...]) -> list:
+    def _take(self, stamps: tuple[float, ...], drops: list) -> list:
         msgs = []
         for i, (queue, matched) in enumerate(zip(self._queues, stamps)):
             msgs.append(queue.pop(matched))
-            for s in [s for s in queue if s <= matched]:
-                del queue[s]
-                self.dropped["stale"] += 1
+            for s in sorted(s for s in queue if s <= matched):
+                self._evict(i, s, drops)
             self._last_matched[i] = matched
         self.matched += 1
         return msgs
+
+    def _evict(self, index: int, stamp: float, drops: list) -> None:
+        del self._queues[index][stamp]
+        drops.append((index, "unmatched", f"{self.names[index]} stamped {stamp:.6f} s: {self._nearest(index, stamp)}"))
+
+    def _nearest(self, index: int, stamp: float) -> str:
+        """The nearest stamp offset seen on every other input (a silent input is named)."""
+        parts = []
+        for i, (name, queue) in enumerate(zip(self.names, self._queues)):
+            if i == index:
+                continue
+            if not self.received[i]:
+                parts.append(f"no {name} received at all")
+                continue
+            seen = list(queue) + [self._last_matched[i]]
+            offset = min(abs(s - stamp) for s in seen)
+            parts.append(f"nearest {name} {offset:.3f} s away")
+        return ", ".join(parts) + f" (slop {self.slop} s)"
 
 
 @dataclass
 class SynchronizedInputs:
     """Keeps the subscriptions and the synchroniser of ``make_synchronizer`` alive."""
 
-    synchronizer: object
+    synchronizer: ApproximateTimeSync
     subscriptions: list
 
 
@@ -92,22 +133,13 @@ def _feed(sync: ApproximateTimeSync, index: int, msg) -> None:
     sync.add(index, header_seconds(msg.header), msg)
 
 
-def make_synchronizer(node, inputs: Sequence[tuple[type, str]], callback: Callable[..., None], qos, *,
-                      queue_size: int = 10, slop: float = 0.02, prefer_message_filters: bool = True
-                      ) -> SynchronizedInputs:
-    """Subscribe ``node`` to ``inputs`` ((msg type, topic) pairs, stamped messages) and call ``callback(*msgs)``
+def make_synchronizer(node, inputs: Sequence[tuple[str, type, str]], callback: Callable[..., None], qos, *,
+                      queue_size: int = 10, slop: float = 0.02,
+                      on_drop: Callable[[int, str, str], None] = lambda i, reason, detail: None,
+                      callback_group=None) -> SynchronizedInputs:
+    """Subscribe ``node`` to ``inputs`` ((name, msg type, topic), stamped messages) and call ``callback(*msgs)``
     with approximately synchronised messages, in the order of ``inputs``."""
-    if prefer_message_filters:
-        try:
-            import message_filters
-        except ImportError:
-            pass
-        else:
-            subs = [message_filters.Subscriber(node, msg_type, topic, qos_profile=qos) for msg_type, topic in inputs]
-            sync = message_filters.ApproximateTimeSynchronizer(subs, queue_size, slop)
-            sync.registerCallback(callback)
-            return SynchronizedInputs(sync, subs)
-    sync = ApproximateTimeSync(len(inputs), callback, queue_size, slop)
-    subs = [node.create_subscription(msg_type, topic, partial(_feed, sync, i), qos)
-            for i, (msg_type, topic) in enumerate(inputs)]
+    sync = ApproximateTimeSync([name for name, _, _ in inputs], callback, queue_size, slop, on_drop)
+    subs = [node.create_subscription(msg_type, topic, partial(_feed, sync, i), qos, callback_group=callback_group)
+            for i, (_, msg_type, topic) in enumerate(inputs)]
     return SynchronizedInputs(sync, subs)

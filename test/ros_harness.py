@@ -6,8 +6,9 @@ import time
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
+
+from gausem_ros.executor import NodeExecutor
 
 # Few iterations, few Gaussians, one keyframe: a frame of 80x60 takes well under a second on a CPU core.
 FAST_SLAM = {"tracking.iterations": 3, "mapping.iterations": 2, "mapping.init_iterations": 3,
@@ -25,10 +26,11 @@ def ros_param_args(values: dict) -> list[str]:
 
 @contextlib.contextmanager
 def ros_session(domain_id: int):
-    """(context, executor); every node added to the executor is destroyed before the context shuts down."""
+    """(context, executor); every node added to the executor is destroyed before the context shuts down. The
+    executor is multi-threaded, as in every GauSem entry point: nodes' callback groups run in parallel."""
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain_id)
-    executor = SingleThreadedExecutor(context=ctx)
+    executor = NodeExecutor(num_threads=4, context=ctx)
     try:
         yield ctx, executor
     finally:

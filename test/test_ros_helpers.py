@@ -31,7 +31,7 @@ class Collector:
 def test_jittered_streams_match_frame_by_frame():
     rng = np.random.default_rng(0)
     out = Collector()
-    s = sync.ApproximateTimeSync(3, out, queue_size=5, slop=0.015)
+    s = sync.ApproximateTimeSync(["rgb", "depth", "labels"], out, queue_size=5, slop=0.015)
     for frame in range(30):
         t = 1.0 + frame / 30
         arrivals = [(i, t + rng.uniform(-0.005, 0.005), (i, frame)) for i in range(3)]
@@ -39,52 +39,73 @@ def test_jittered_streams_match_frame_by_frame():
             s.add(*arrivals[i])
     assert [tuple(m[1] for m in match) for match in out.matches] == [(f, f, f) for f in range(30)]
     assert all([m[0] for m in match] == [0, 1, 2] for match in out.matches)
-    assert s.matched == 30 and sum(s.dropped.values()) == 0
+    assert s.matched == 30 and sum(s.dropped.values()) == 0 and s.received == [30, 30, 30]
 
 
-def test_unmatched_and_late_messages_are_dropped_as_stale():
-    out = Collector()
-    s = sync.ApproximateTimeSync(2, out, queue_size=10, slop=0.01)
+class Drops(list):
+    def __call__(self, index, reason, detail):
+        self.append((index, reason, detail))
+
+
+def test_unmatched_and_late_messages_are_dropped_and_reported_with_the_offset_seen():
+    out, drops = Collector(), Drops()
+    s = sync.ApproximateTimeSync(["rgb", "depth"], out, queue_size=10, slop=0.01, on_drop=drops)
     s.add(0, 1.000, "rgb1")     # its depth never arrives in time
-    s.add(0, 1.033, "rgb2")
-    s.add(1, 1.034, "depth2")   # matches rgb2; rgb1 is now stale
-    assert out.matches == [("rgb2", "depth2")] and s.dropped["stale"] == 1
+    s.add(1, 1.050, "depth0")   # 50 ms away from rgb1: no match
+    s.add(0, 1.100, "rgb2")
+    s.add(1, 1.101, "depth2")   # matches rgb2; rgb1 and depth0 are left behind
+    assert out.matches == [("rgb2", "depth2")]
+    assert [(i, reason) for i, reason, _ in drops] == [(0, "unmatched"), (1, "unmatched")]
+    assert "nearest depth 0.050 s away" in drops[0][2]
     s.add(1, 1.001, "depth1")   # out of order, older than the last match on its input
-    assert s.dropped["stale"] == 2 and len(out.matches) == 1
+    assert drops[-1][:2] == (1, "backwards") and len(out.matches) == 1
+    assert s.dropped == {("rgb", "unmatched"): 1, ("depth", "unmatched"): 1, ("depth", "backwards"): 1}
+    # every message is matched, pending or dropped
+    assert all(s.received[i] == s.matched + s.pending(i) + sum(n for (name, _), n in s.dropped.items()
+                                                                 if name == s.names[i]) for i in range(2))
 
 
-def test_out_of_order_arrivals_within_the_queue_still_match_the_closest():
-    out = Collector()
-    s = sync.ApproximateTimeSync(2, out, queue_size=10, slop=0.02)
-    s.add(0, 2.00, "a2")
-    s.add(0, 1.99, "a1")        # arrives late but is still queued
-    s.add(1, 1.992, "b1")       # closest is a1 (spread 0.002), not a2 (0.008)
-    assert out.matches == [("a1", "b1")]
-    s.add(1, 2.001, "b2")
-    assert out.matches[-1] == ("a2", "b2")
+def test_an_input_that_never_arrives_is_named():
+    drops = Drops()
+    s = sync.ApproximateTimeSync(["rgb", "depth", "labels"], Collector(), queue_size=2, slop=0.01, on_drop=drops)
+    for k in range(3):
+        s.add(0, k, f"rgb{k}")
+        s.add(1, k, f"depth{k}")
+    assert drops[0][:2] == (0, "unmatched") and "no labels received at all" in drops[0][2]
+    assert s.pending(0) == 2
 
 
 def test_duplicates_keep_the_first_and_overflow_evicts_the_oldest():
     out = Collector()
-    s = sync.ApproximateTimeSync(2, out, queue_size=2, slop=0.01)
+    s = sync.ApproximateTimeSync(["rgb", "depth"], out, queue_size=2, slop=0.01)
     s.add(0, 1.0, "first")
     s.add(0, 1.0, "second")
-    assert s.dropped["duplicate"] == 1
+    assert s.dropped[("rgb", "duplicate")] == 1
     s.add(1, 1.0, "depth")
     assert out.matches == [("first", "depth")]
     for t in (2.0, 3.0, 4.0):
         s.add(0, t, f"rgb{t}")
-    assert s.dropped["overflow"] == 1
+    assert s.dropped[("rgb", "unmatched")] == 1
     s.add(1, 2.0, "depth2")      # rgb2.0 was evicted
     s.add(1, 3.0, "depth3")
     assert out.matches[1:] == [("rgb3.0", "depth3")]
 
 
+def test_reset_lets_a_replay_of_the_same_stamps_match_again():
+    out = Collector()
+    s = sync.ApproximateTimeSync(["rgb", "depth"], out, slop=0.01)
+    for _ in range(2):
+        s.add(0, 1.0, "rgb")
+        s.add(1, 1.0, "depth")
+        s.reset()
+    assert out.matches == [("rgb", "depth")] * 2 and s.received == [0, 0]
+
+
 def test_sync_rejects_bad_arguments():
     with pytest.raises(ValueError):
-        sync.ApproximateTimeSync(0, print)
+        sync.ApproximateTimeSync([], print)
     with pytest.raises(ValueError, match="out of range"):
-        sync.ApproximateTimeSync(2, print).add(2, 1.0, None)
+        sync.ApproximateTimeSync(["rgb", "depth"], print).add(2, 1.0, None)
 
 
 class FakeNode:
@@ -93,7 +114,7 @@ class FakeNode:
     def __init__(self):
         self.subscriptions, self.publishers, self.warnings = [], [], []
 
-    def create_subscription(self, msg_type, topic, callback, qos_profile):
+    def create_subscription(self, msg_type, topic, callback, qos_profile, callback_group=None):
         self.subscriptions.append((msg_type, topic, callback, qos_profile))
         return len(self.subscriptions)
 
@@ -107,10 +128,10 @@ class FakeNode:
         return types.SimpleNamespace(warning=self.warnings.append)
 
 
-def test_make_synchronizer_without_message_filters_feeds_header_stamps():
+def test_make_synchronizer_feeds_header_stamps():
     node, out = FakeNode(), Collector()
-    handle = sync.make_synchronizer(node, [(Image, "rgb/image"), (Image, "depth/image")], out, qos.IMAGE_QOS,
-                                    queue_size=3, slop=0.01, prefer_message_filters=False)
+    handle = sync.make_synchronizer(node, [("rgb", Image, "rgb/image"), ("depth", Image, "depth/image")], out,
+                                    qos.IMAGE_QOS, queue_size=3, slop=0.01)
     assert [(t, topic, q) for t, topic, _, q in node.subscriptions] == [(Image, "rgb/image", qos.IMAGE_QOS),
                                                                        (Image, "depth/image", qos.IMAGE_QOS)]
     rgb = ma.rgb_to_image(np.zeros((2, 2, 3), np.uint8), ma.make_header(5.000, "cam"))
@@ -118,26 +139,6 @@ def test_make_synchronizer_without_message_filters_feeds_header_stamps():
     node.subscriptions[1][2](depth)
     node.subscriptions[0][2](rgb)
     assert out.matches == [(rgb, depth)] and handle.synchronizer.matched == 1
-
-
-def test_make_synchronizer_prefers_message_filters(monkeypatch):
-    made = {}
-    fake = types.ModuleType("message_filters")
-    fake.Subscriber = lambda node, msg_type, topic, qos_profile: (msg_type, topic, qos_profile)
-
-    class FakeSynchronizer:
-        def __init__(self, subs, queue_size, slop):
-            made.update(subs=subs, queue_size=queue_size, slop=slop)
-
-        def registerCallback(self, callback):  # noqa: N802 (message_filters' name)
-            made["callback"] = callback
-
-    fake.ApproximateTimeSynchronizer = FakeSynchronizer
-    monkeypatch.setitem(sys.modules, "message_filters", fake)
-    node, out = FakeNode(), Collector()
-    handle = sync.make_synchronizer(node, [(Image, "rgb/image")], out, qos.IMAGE_QOS, queue_size=4, slop=0.03)
-    assert isinstance(handle.synchronizer, FakeSynchronizer) and not node.subscriptions
-    assert made == {"subs": [(Image, "rgb/image", qos.IMAGE_QOS)], "queue_size": 4, "slop": 0.03, "callback": out}
 
 
 # --- TF ---------------------------------------------------------------------------------------------------------------

@@ -111,7 +111,8 @@ def test_tracking_node_in_lockstep_with_the_player(tmp_path):
         assert len(cloud) == len(tracking.slam.global_cloud()) > 0
         assert labels.min() >= 0 and labels.max() < len(SYNTHETIC_CLASSES)
         label_msgs = recorder.messages["semantic/labels"]
-        assert len(label_msgs) == frames and {m.encoding for m in label_msgs} == {"mono16"}
+        assert len(label_msgs) >= frames - 1  # the recorder may subscribe after the first frame went out
+        assert {m.encoding for m in label_msgs} == {"mono16"}
         keyframe = ma.pointcloud2_to_records(recorder.messages["gausem/keyframes"][0], ma.KeyframeRecord)[0]
         assert (keyframe.keyframe_id, keyframe.submap_id) == (0, 0)
         created = ma.pointcloud2_to_records(recorder.messages["gausem/submaps"][0], ma.SubmapEvent)[0]
@@ -175,16 +176,13 @@ def test_bad_input_is_dropped_and_reported_and_the_node_keeps_running():
         def dropped(reason, count=1):
             return lambda: tracking.drops.counts[reason] == count
 
-        def stale(count):
-            return lambda: tracking._inputs.synchronizer.dropped["stale"] >= count
-
         send(_frame_messages(1.0), dropped("no_camera_info"))
         info_pub.publish(ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam")))
         spin_for(executor, 0.3)
         uncalibrated = ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam"))
         uncalibrated.k = np.zeros(9)
         info_pub.publish(uncalibrated)  # dropped: the valid camera_info before it stays in use
-        assert spin_until(executor, dropped("bad_camera_info"), 5.0)
+        assert spin_until(executor, lambda: tracking.drops.rejected["bad_camera_info"] == 1, 5.0)
         send(_frame_messages(1.1, rgb_encoding="mono16"), dropped("bad_encoding"))
         send(_frame_messages(1.2, size=(20, 30)), dropped("size_mismatch"))  # all three differ from camera_info
         send(_frame_messages(1.21, depth=np.full((30, 20), 2.0)), dropped("size_mismatch", 2))  # rgb vs depth
@@ -192,23 +190,25 @@ def test_bad_input_is_dropped_and_reported_and_the_node_keeps_running():
             send(_frame_messages(1.3 + i / 100, depth=np.full((30, 40), value)), dropped("invalid_depth", i + 1))
         send(_frame_messages(1.35, label=len(SYNTHETIC_CLASSES)), dropped("bad_labels"))
         send(_frame_messages(1.4), lambda: tracking.frames_processed == 1)
-        send(_frame_messages(1.4), stale(3))  # duplicate stamp
+        send(_frame_messages(1.4), dropped("stale_stamp"))  # a repeated stamp
         send(_frame_messages(1.5), lambda: tracking.frames_processed == 2)
-        send(_frame_messages(1.45), stale(6))  # out of order: older than the last processed frame
+        send(_frame_messages(1.45), dropped("stale_stamp", 2))  # out of order: older than the last processed frame
 
         process = tracking.slam.process  # a core whose estimate diverges on the next frame
         tracking.slam.process = lambda obs: dataclasses.replace(process(obs), cam_to_world=torch.full((4, 4), np.nan))
         send(_frame_messages(1.6), dropped("tracking_diverged"))
         tracking.slam.process = process
-        send(_frame_messages(1.7), lambda: tracking.frames_processed == 4)
+        send(_frame_messages(1.7), lambda: tracking.frames_processed == 3)
         assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == 3, 5.0)
-        assert spin_until(executor, lambda: _diagnostics(recorder).get("frames_processed") == "4", 5.0)
+        assert spin_until(executor, lambda: _diagnostics(recorder).get("frames_processed") == "3", 5.0)
         report = _diagnostics(recorder)
-    expected = {"no_camera_info": 1, "bad_camera_info": 1, "bad_encoding": 1, "size_mismatch": 2, "invalid_depth": 4,
-                "bad_labels": 1, "tracking_diverged": 1}
+    expected = {"no_camera_info": 1, "bad_encoding": 1, "size_mismatch": 2, "invalid_depth": 4, "bad_labels": 1,
+                "stale_stamp": 2, "tracking_diverged": 1}
     assert {k: int(v) for k, v in report.items() if k.startswith("dropped.")} == {
         f"dropped.{k}": v for k, v in expected.items()}
-    assert int(report["sync.stale"]) >= 6
+    assert report["rejected.bad_camera_info"] == "1"
+    assert report["sync.depth.backwards"] == report["sync.labels.backwards"] == "2"
+    assert int(report["frames_in"]) == 15 == 3 + sum(expected.values()) and report["frames_pending"] == "0"
     assert [ma.header_seconds(o.header) for o in recorder.messages["gausem/odometry"]] == [1.4, 1.5, 1.7]
 
 

@@ -169,6 +169,7 @@ class GauSemSLAM:
         self.cfg = cfg
         self.device = torch.device(device)
         select_backend(cfg.backend, self.device)  # builds or loads the compiled CPU kernel now, not in the first frame
+        torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # the first optimiser imports torch._dynamo (seconds)
         self.num_classes = num_classes
         self.tracker = Tracker(cfg.tracking, cfg.backend)
         self.mapper = Mapper(cfg.mapping, cfg.backend, cfg.seed)

@@ -2,6 +2,7 @@
 dropped-input reporting, a one-slot newest-frame queue and the ``main`` runner."""
 from __future__ import annotations
 
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -16,6 +17,7 @@ from gausem_core.config import SlamConfig, flatten, from_flat
 from gausem_core.data.classes import NYU40_CLASSES, SCANNET20_CLASSES, SYNTHETIC_CLASSES, ClassTable
 from msg_adapters import make_header
 
+from ..executor import NodeExecutor
 from ..qos import EVENT_QOS
 
 CLASS_TABLES = {"synthetic": SYNTHETIC_CLASSES, "nyu40": NYU40_CLASSES, "scannet20": SCANNET20_CLASSES}
@@ -60,7 +62,9 @@ class FrameRejected(ValueError):
 class DropReport:
     """Counts dropped inputs by reason, logs each reason's first drop and then at most one per ``log_period`` s, and
     publishes the counts (plus the node's ``status()`` values) as ``diagnostic_msgs/DiagnosticArray`` on
-    gausem/diagnostics, after every drop and whenever the node calls ``publish``."""
+    gausem/diagnostics, after every drop and whenever the node calls ``publish``. Dropped frames (``frame=True``:
+    the node's main input, e.g. a synchronised rgb-d frame) are ``dropped.<reason>``; other rejected messages
+    (camera_info, records) are ``rejected.<reason>``. Thread-safe."""
 
     def __init__(self, node, log_period: float = 5.0, status: Callable[[], dict] = dict):
         self._node = node
@@ -68,64 +72,107 @@ class DropReport:
         self._pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, EVENT_QOS)
         self._last_logged: dict[str, float] = {}
         self._log_period = log_period
-        self.counts: Counter[str] = Counter()
+        self._lock = threading.RLock()
+        self.counts: Counter[str] = Counter()  # dropped frames by reason
+        self.rejected: Counter[str] = Counter()  # other rejected messages by reason
 
-    def drop(self, reason: str, detail: str) -> None:
-        self.counts[reason] += 1
-        now = time.monotonic()
-        if now - self._last_logged.get(reason, -float("inf")) >= self._log_period:
-            self._last_logged[reason] = now
-            self._node.get_logger().warning(f"dropped input ({reason}, {self.counts[reason]} so far): {detail}")
-        self.publish()
+    def drop(self, reason: str, detail: str, frame: bool = True) -> None:
+        with self._lock:
+            counter = self.counts if frame else self.rejected
+            counter[reason] += 1
+            now = time.monotonic()
+            if now - self._last_logged.get(reason, -float("inf")) >= self._log_period:
+                self._last_logged[reason] = now
+                what = "input" if frame else "message"
+                self._node.get_logger().warning(f"dropped {what} ({reason}, {counter[reason]} so far): {detail}")
+            self.publish()
+
+    def clear(self) -> None:
+        with self._lock:
+            self.counts.clear()
+            self.rejected.clear()
+
+    def values(self) -> dict:
+        """The counts and the node's status values, as published."""
+        with self._lock:
+            return {**{f"dropped.{k}": v for k, v in sorted(self.counts.items())},
+                    **{f"rejected.{k}": v for k, v in sorted(self.rejected.items())}, **self._status()}
 
     def publish(self) -> None:
-        values = {**{f"dropped.{k}": v for k, v in sorted(self.counts.items())}, **self._status()}
-        level = DiagnosticStatus.WARN if self.counts else DiagnosticStatus.OK
-        status = DiagnosticStatus(level=level, name=self._node.get_fully_qualified_name(),
-                                  message=f"{sum(self.counts.values())} inputs dropped",
-                                  values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
-        stamp = self._node.get_clock().now().nanoseconds / 1e9
-        self._pub.publish(DiagnosticArray(header=make_header(stamp, ""), status=[status]))
+        with self._lock:
+            values = self.values()
+            dropped = sum(self.counts.values()) + sum(self.rejected.values())
+            level = DiagnosticStatus.WARN if dropped else DiagnosticStatus.OK
+            status = DiagnosticStatus(level=level, name=self._node.get_fully_qualified_name(),
+                                      message=f"{dropped} inputs dropped",
+                                      values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+            stamp = self._node.get_clock().now().nanoseconds / 1e9
+            self._pub.publish(DiagnosticArray(header=make_header(stamp, ""), status=[status]))
 
 
 class NewestFrameQueue:
-    """One pending frame: a newer one replaces it (``on_superseded`` is called with the old one). Processing runs
-    from a guard condition, so the executor delivers the messages that arrived meanwhile before the next frame is
-    processed, and a node that falls behind skips to the newest synchronised frame instead of queueing."""
+    """One pending frame: a newer one replaces it (``on_superseded`` is called with the old one). ``put`` may be
+    called from an input callback group while a frame is being processed in another: processing runs from a guard
+    condition, so a node that falls behind skips to the newest synchronised frame instead of queueing.
+    ``process(item, arrived)`` gets the monotonic time the item was put."""
 
-    def __init__(self, node, process: Callable, on_superseded: Callable):
+    def __init__(self, node, process: Callable, on_superseded: Callable, callback_group=None):
         self._process, self._on_superseded = process, on_superseded
-        self._pending = None
-        self._guard = node.create_guard_condition(self._run)
+        self._pending: tuple[object, float] | None = None
+        self._running = 0
+        self._lock = threading.Lock()
+        self._guard = node.create_guard_condition(self._run, callback_group=callback_group)
+
+    @property
+    def pending(self) -> int:
+        """Frames waiting to be processed (not the one in progress)."""
+        return int(self._pending is not None)
 
     def put(self, item) -> None:
-        if self._pending is not None:
-            self._on_superseded(self._pending)
-        self._pending = item
-        self._guard.trigger()
+        with self._lock:
+            old, self._pending = self._pending, (item, time.monotonic())
+            idle = not self._running
+        if old is not None:
+            self._on_superseded(old[0])
+        if idle:  # else _run triggers when done: a guard condition ready in a busy group would spin the executor
+            self._guard.trigger()
 
     def clear(self) -> None:
-        self._pending = None
+        with self._lock:
+            self._pending = None
 
     def _run(self) -> None:
-        item, self._pending = self._pending, None
-        if item is not None:
-            self._process(item)
+        with self._lock:
+            entry, self._pending = self._pending, None
+            self._running += entry is not None
+        if entry is None:
+            return
+        try:
+            self._process(*entry)
+        finally:
+            with self._lock:
+                self._running -= 1
+                again = self._pending is not None
+            if again:
+                self._guard.trigger()
 
 
 def run_node(factory: Callable, args=None) -> int:
-    """``rclpy.init(args)``, build the node, spin until Ctrl-C or shutdown; 1 when the node cannot be built."""
+    """``rclpy.init(args)``, build the node, spin it on a multi-threaded executor (its callback groups decide what
+    runs in parallel) until Ctrl-C or shutdown (a normal end: 0); 1 when the node cannot be built."""
     rclpy.init(args=args)
-    node = None
+    node, executor = None, NodeExecutor(num_threads=2)
     try:
         node = factory()
-        rclpy.spin(node)
+        executor.add_node(node)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as err:  # a configuration the node cannot run with; the message says which
         rclpy.logging.get_logger("gausem").error(str(err))
         return 1
     finally:
+        executor.shutdown()  # waits for the callback in progress
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

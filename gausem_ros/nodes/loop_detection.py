@@ -11,6 +11,9 @@ is a re-publication, whose corrected pose is kept, and otherwise ignored); ``loo
 ``loop.exclude_recent`` and ``loop.proximity_radius`` (keyframes near in the latest published poses are candidates
 too) configure the detector.
 
+A keyframe id seen before with another stamp means the tracker started a new map (it was restarted or reset): the
+node then forgets every keyframe and starts over, logging it.
+
 Landmark scores (Eq. 7) need the class of every Gaussian of a submap and which ones a frame observes; this node does
 not hold the map, so the keyframes' label pixels (every ``label_stride``-th row and column) stand in for the Gaussians:
 a submap's Gaussian-IDF is computed over the pixels of its keyframes so far and a keyframe observes its own pixels.
@@ -46,20 +49,25 @@ class LoopDetectionNode(Node):
         self.table = class_table(p.classes)
         self.extractor = make_descriptor(cfg.semantics.descriptor, cfg.semantics.dinov2_weights or None,
                                          device=resolve_device(cfg.device))
-        self.detector = LoopDetector.from_config(cfg.loop, self.extractor.kind, descriptor_dim=self.extractor.dim)
         self.drops = DropReport(self)
         self.candidates: list[ma.LoopCandidateRecord] = []
-        self.keyframes_checked = 0
         self._labels: OrderedDict[float, object] = OrderedDict()  # stamp -> label image message
-        self._keyframes: OrderedDict[float, ma.KeyframeRecord] = OrderedDict()  # waiting for their labels
-        self._seen: set[int] = set()  # keyframe ids received
-        self._world_poses: dict[int, torch.Tensor] = {}  # keyframe id -> latest map-from-camera (for proximity)
-        self._submap_pixels: dict[int, list[torch.Tensor]] = defaultdict(list)
+        self._start_map()
         self._pub = self.create_publisher(PointCloud2, "gausem/loop_candidates", EVENT_QOS)
         self.create_subscription(PointCloud2, "gausem/keyframes", self._on_keyframes, EVENT_QOS)
         self.create_subscription(Image, "semantic/labels", self._on_labels, input_qos(p.input_qos))
         if not cfg.loop.enabled:
             self.get_logger().info("loop.enabled is false: keyframes are ignored")
+
+    def _start_map(self) -> None:
+        """Forget every keyframe (a new map)."""
+        self.detector = LoopDetector.from_config(self.cfg.loop, self.extractor.kind,
+                                                 descriptor_dim=self.extractor.dim)
+        self.keyframes_checked = 0
+        self._keyframes: OrderedDict[float, ma.KeyframeRecord] = OrderedDict()  # waiting for their labels
+        self._stamps: dict[int, float] = {}  # keyframe id -> its stamp
+        self._world_poses: dict[int, torch.Tensor] = {}  # keyframe id -> latest map-from-camera (for proximity)
+        self._submap_pixels: dict[int, list[torch.Tensor]] = defaultdict(list)
 
     def _on_labels(self, msg: Image) -> None:
         self._remember(self._labels, ma.header_seconds(msg.header), msg, "labels")
@@ -74,9 +82,14 @@ class LoopDetectionNode(Node):
             self.drops.drop("bad_keyframes", str(err))
             return
         for record in records:
+            known = self._stamps.get(record.keyframe_id)
+            if known is not None and known != record.stamp:
+                self.get_logger().info(f"keyframe {record.keyframe_id} arrived with a new stamp ({record.stamp:.6f} s, "
+                                       f"was {known:.6f} s): the tracker started a new map; starting over")
+                self._start_map()
             self._world_poses[record.keyframe_id] = torch.from_numpy(record.anchor_pose @ record.pose)
-            if record.keyframe_id not in self._seen:  # re-published keyframes (corrected poses) are not new
-                self._seen.add(record.keyframe_id)
+            if record.keyframe_id not in self._stamps:  # re-published keyframes (corrected poses) are not new
+                self._stamps[record.keyframe_id] = record.stamp
                 self._remember(self._keyframes, record.stamp, record, "keyframe")
         self._pair()
 

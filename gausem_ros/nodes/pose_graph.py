@@ -3,7 +3,8 @@
 
 It keeps every keyframe's pose in its submap frame (the latest record of it wins: tracking_mapping re-publishes a
 submap's keyframes before an intra-submap constraint, as bundle adjustment moves them) and every submap's anchor
-pose in the map. Each loop constraint re-optimises one level (paper §III-C) with the core's graph
+pose in the map. A keyframe id seen before with another stamp means the tracker started a new map (restarted or
+reset): the graph is then emptied. Each loop constraint re-optimises one level (paper §III-C) with the core's graph
 (:func:`~gausem_core.slam.pose_graph.optimise_chain`, as ``gausem run`` does): an intra-submap loop the keyframes of
 that submap, an inter-submap loop the anchors, each with odometry edges between consecutive nodes (sigmas from
 ``loop.odometry_sigma_*``, grown with the keyframes in between), the first node fixed, and every loop of that level so
@@ -36,14 +37,18 @@ class PoseGraphNode(Node):
         # fails now, not at the first loop, on bad odometry sigmas or kernel:
         PoseGraph(odometry_sigmas=odometry_sigmas(self.cfg.loop, 1), robust_kernel=self.cfg.loop.robust_kernel)
         self.drops = DropReport(self)
-        self.keyframes: dict[int, tuple[int, object]] = {}  # keyframe id -> (submap id, pose in the submap frame)
-        self.anchors: dict[int, object] = {}  # submap id -> anchor pose in the map
-        self.loops: list[LoopConstraint] = []
         self.updates_published = 0
+        self._start_map()
         self._pub = self.create_publisher(PointCloud2, "gausem/pose_graph", EVENT_QOS)
         self.create_subscription(PointCloud2, "gausem/keyframes", self._on_keyframes, EVENT_QOS)
         self.create_subscription(PointCloud2, "gausem/submaps", self._on_submaps, EVENT_QOS)
         self.create_subscription(PointCloud2, "gausem/loop_constraints", self._on_loops, EVENT_QOS)
+
+    def _start_map(self) -> None:
+        self.keyframes: dict[int, tuple[int, object]] = {}  # keyframe id -> (submap id, pose in the submap frame)
+        self.anchors: dict[int, object] = {}  # submap id -> anchor pose in the map
+        self.loops: list[LoopConstraint] = []
+        self._stamps: dict[int, float] = {}  # keyframe id -> its stamp
 
     def _records(self, msg: PointCloud2, record_type):
         try:
@@ -54,6 +59,11 @@ class PoseGraphNode(Node):
 
     def _on_keyframes(self, msg: PointCloud2) -> None:
         for r in self._records(msg, ma.KeyframeRecord):
+            if self._stamps.setdefault(r.keyframe_id, r.stamp) != r.stamp:
+                self.get_logger().info(f"keyframe {r.keyframe_id} arrived with a new stamp: the tracker started a new "
+                                       "map; the pose graph starts over")
+                self._start_map()
+                self._stamps[r.keyframe_id] = r.stamp
             self.keyframes[r.keyframe_id] = (r.submap_id, r.pose)
             self.anchors.setdefault(r.submap_id, r.anchor_pose)
 

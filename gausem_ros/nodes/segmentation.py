@@ -9,6 +9,7 @@ counted on gausem/diagnostics.
 """
 from __future__ import annotations
 
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 
@@ -52,9 +53,11 @@ class SegmentationNode(Node):
         self._color_pub = self.create_publisher(Image, "semantic/color", IMAGE_QOS)
         self._queue = NewestFrameQueue(self, self._segment, lambda _: self.drops.drop(
             "superseded", "a newer image arrived before this one was segmented"))
-        self.create_subscription(Image, "rgb/image", self._queue.put, input_qos(p.input_qos))
+        self.create_subscription(Image, "rgb/image", self._queue.put, input_qos(p.input_qos),
+                                 callback_group=MutuallyExclusiveCallbackGroup())  # images arrive while segmenting
 
-    def _segment(self, msg: Image) -> None:
+    def _segment(self, msg: Image, arrived: float) -> None:
+        del arrived
         try:
             rgb = ma.image_to_rgb(msg)
         except ValueError as err:

@@ -15,11 +15,19 @@ Services (std_srvs/Trigger): ``gausem/save_map`` writes ``map.ply`` and ``trajec
 ``gausem/finish`` ends the sequence with the global refinement (as the offline pipeline does after the last frame);
 ``gausem/reset`` starts a new map.
 
-Frames are processed one at a time, the newest synchronised one first (``NewestFrameQueue``); superseded frames and
-bad input (wrong encodings, size mismatches, too little valid depth, no camera_info yet, stamps not after the last
-processed one, labels outside the class table) are dropped with a warning and counted, never raised; so are the
-outputs of a frame whose pose estimate is not finite (``tracking_diverged``). Published poses are projected onto
-SE(3) in float64.
+Live input: the image subscriptions run in their own callback group, so with a multi-threaded executor (as every
+GauSem entry point uses) inputs keep arriving while a frame is processed; frames are processed one at a time, the
+newest synchronised one first (``NewestFrameQueue``), so a tracker that falls behind skips frames instead of building
+a backlog. Every rgb image received is accounted for: processed (a pose published), pending, or dropped and counted
+by reason on gausem/diagnostics (``dropped.<reason>``) with a warning: ``superseded`` (a newer frame arrived while
+busy), ``unmatched`` (no depth/labels within ``sync_slop``; the warning gives the offset seen), ``no_depth`` /
+``no_labels`` (that input never arrived: with ``use_labels`` true and no labels, the warning names the parameter),
+``stale_stamp`` / ``duplicate_stamp`` (stamps going backwards or repeated), bad input (wrong encodings, size
+mismatches, too little valid depth, no camera_info yet, labels outside the class table) and ``tracking_diverged`` (a
+pose estimate that is not finite: nothing is published for it). ``frames_in``, ``frames_processed``,
+``frames_pending`` and the latency from a synchronised frame's arrival to its pose's publication (``latency_ms.median``
+/ ``.p95`` over the last 100 frames) are published with the counts; :meth:`TrackingMappingNode.summary` gives them
+for the whole run. Published poses are projected onto SE(3) in float64.
 Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
 
 - ``nodes`` (default; DESIGN.md §3): loop_detection detects (``gausem/loop_candidates``); this node registers each
@@ -42,6 +50,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from nav_msgs.msg import Odometry, Path as PathMsg
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
@@ -71,8 +80,12 @@ NODE_DEFAULTS = {
     "min_valid_depth": 0.05,     # fraction of pixels with a valid depth below which a frame is dropped
     "output_dir": "gausem_output",
     "loop_closure": "nodes",     # or "core": see the module docstring
+    "save_on_exit": False,       # write map.ply and trajectory.txt to output_dir when the node shuts down
 }
 LOOP_CLOSURE_MODES = ("nodes", "core")
+SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched"}
+NO_LABELS_HINT = ("; use_labels is true but no semantic/labels arrived: set -p use_labels:=false for data without "
+                  "labels, or run the segmentation node (semantics.segmenter: dinov2)")
 
 
 def _numpy_pose(pose: torch.Tensor) -> np.ndarray:
@@ -100,16 +113,20 @@ class TrackingMappingNode(Node):
         self.loop_candidates: list[ma.LoopCandidateRecord] = []
         self.pose_graph_updates: list[ma.PoseGraphUpdate] = []
         self.camera = None  # the latest valid rgb/camera_info (PinholeCamera)
+        self.latencies: list[float] = []  # seconds from a frame's arrival to its pose's publication
+        self._in_progress = False  # a frame is being processed
         self._reset_state()
 
-        inputs = [(Image, "rgb/image"), (Image, "depth/image")] + ([(Image, "semantic/labels")] if p.use_labels
-                                                                    else [])
+        inputs = [("rgb", Image, "rgb/image"), ("depth", Image, "depth/image")] + (
+            [("labels", Image, "semantic/labels")] if p.use_labels else [])
         qos = input_qos(p.input_qos)
+        input_group = MutuallyExclusiveCallbackGroup()  # inputs arrive while a frame is processed
         self._inputs = make_synchronizer(self, inputs, self._on_frame, qos, queue_size=p.sync_queue_size,
-                                         slop=p.sync_slop)
+                                         slop=p.sync_slop, on_drop=self._on_sync_drop, callback_group=input_group)
         self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
             "superseded", "a newer synchronised frame arrived before this one was processed"))
-        self.create_subscription(CameraInfo, "rgb/camera_info", self._on_camera_info, qos)
+        self.create_subscription(CameraInfo, "rgb/camera_info", self._on_camera_info, qos,
+                                 callback_group=input_group)
         if self.loop_nodes:
             self.create_subscription(PointCloud2, "gausem/loop_candidates", self._on_loop_candidates, EVENT_QOS)
             self.create_subscription(PointCloud2, "gausem/pose_graph", self._on_pose_graph, EVENT_QOS)
@@ -145,10 +162,22 @@ class TrackingMappingNode(Node):
         try:
             self.camera = ma.camera_info_to_camera(msg)
         except ValueError as err:
-            self.drops.drop("bad_camera_info", str(err))
+            self.drops.drop("bad_camera_info", str(err), frame=False)
 
     def _on_frame(self, *msgs: Image) -> None:
         self._queue.put(msgs)
+
+    def _on_sync_drop(self, index: int, reason: str, detail: str) -> None:
+        """The synchroniser dropped a message: an rgb image is a lost frame (counted by reason); depth and label
+        messages without a frame are only counted (``sync.<input>.<reason>`` in the diagnostics)."""
+        if index:
+            return
+        sync = self._inputs.synchronizer
+        silent = [name for name, received in zip(sync.names, sync.received) if not received]
+        if reason == "unmatched" and silent:
+            reason = f"no_{silent[0]}"
+            detail += NO_LABELS_HINT if silent[0] == "labels" else ""
+        self.drops.drop(SYNC_REASONS.get(reason, reason), detail)
 
     def _observation(self, rgb_msg: Image, depth_msg: Image, labels_msg: Image | None = None) -> Observation:
         """Validated observation of one synchronised frame, or FrameRejected saying why not."""
@@ -189,30 +218,35 @@ class TrackingMappingNode(Node):
         last one: the ROS counterpart of the offline pipeline's loop time (0 before any frame)."""
         return self._busy[1] - self._busy[0] if self._busy else 0.0
 
-    def _process(self, msgs: tuple[Image, ...]) -> None:
+    def _process(self, msgs: tuple[Image, ...], arrived: float) -> None:
         start = time.perf_counter()
         self._handled_ns = ma.time_to_ns(msgs[0].header.stamp)
+        self._in_progress = True  # until the frame is counted as processed or dropped
         try:
             obs = self._observation(*msgs)
         except FrameRejected as err:
+            self._in_progress = False
             self.drops.drop(err.reason, str(err))
             return
-        self._track_and_publish(obs, msgs[0].header.frame_id)
+        self._track_and_publish(obs, msgs[0].header.frame_id, arrived)
         self._busy = (self._busy[0] if self._busy else start, time.perf_counter())
 
-    def _track_and_publish(self, obs: Observation, image_frame: str) -> None:
+    def _track_and_publish(self, obs: Observation, image_frame: str, arrived: float) -> None:
         submaps_before = len(self.slam.submaps)
         result = self.slam.process(obs)
         self._last_stamp = obs.timestamp
-        self.frames_processed += 1
         pose = _numpy_pose(result.cam_to_world)
         if not np.isfinite(pose).all():
+            self._in_progress = False
             self.drops.drop("tracking_diverged", f"frame stamped {obs.timestamp:.6f} s: the estimated pose is not "
                                                  "finite; nothing is published for it (reset with gausem/reset)")
             return
         self._camera_frame = self.params.camera_frame or image_frame or "camera"
         header = ma.make_header(obs.timestamp, self.params.map_frame)
         self._odometry_pub.publish(ma.matrix_to_odometry(pose, header, self._camera_frame))
+        self.frames_processed += 1
+        self._in_progress = False
+        self.latencies.append(time.monotonic() - arrived)
         self._tf.sendTransform(ma.matrix_to_transform(pose, header, self._camera_frame))
         self._publish_path()
         self._publish_submap_events(submaps_before, header)
@@ -223,11 +257,26 @@ class TrackingMappingNode(Node):
         self.drops.publish()
 
     def _status(self) -> dict:
-        """Diagnostics besides the drop counts: frames processed, the last handled frame (lock-step players take
-        it as the answer for a frame that produced no odometry) and the synchroniser's drops."""
-        sync = getattr(self._inputs.synchronizer, "dropped", {})
-        return {"frames_processed": self.frames_processed, LAST_FRAME_KEY: self._handled_ns,
-                **{f"sync.{k}": v for k, v in sync.items()}}
+        """Diagnostics besides the drop counts: frames in, processed and pending, the latency over the last 100
+        frames, the last handled frame (lock-step players take it as the answer for a frame that produced no
+        odometry) and the depth and label messages the synchroniser dropped."""
+        sync = self._inputs.synchronizer
+        return {"frames_in": sync.received[0], "frames_processed": self.frames_processed,
+                "frames_pending": self._frames_pending(), LAST_FRAME_KEY: self._handled_ns,
+                **latency_stats(self.latencies[-100:]),
+                **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(sync.dropped.items())
+                   if name != sync.names[0]}}
+
+    def summary(self) -> dict:
+        """The whole run's input accounting: frames in = processed + dropped (by reason) + pending; latency."""
+        sync = self._inputs.synchronizer
+        return {"frames_in": sync.received[0], "frames_processed": self.frames_processed,
+                "dropped": dict(sorted(self.drops.counts.items())),
+                "frames_pending": self._frames_pending(), **latency_stats(self.latencies)}
+
+    def _frames_pending(self) -> int:
+        """Frames received and not yet processed or dropped: unmatched in the synchroniser, queued, in progress."""
+        return self._inputs.synchronizer.pending(0) + self._queue.pending + self._in_progress
 
     def _publish_path(self) -> None:
         poses = [(t, m) for t, m in ((t, _numpy_pose(p)) for t, p in self.slam.trajectory()) if np.isfinite(m).all()]
@@ -272,15 +321,14 @@ class TrackingMappingNode(Node):
         try:
             candidates = ma.pointcloud2_to_records(msg, ma.LoopCandidateRecord)
         except ValueError as err:
-            self.drops.drop("bad_loop_candidates", str(err))
+            self.drops.drop("bad_loop_candidates", str(err), frame=False)
             return
-        self.loop_candidates += candidates
         for c in candidates:
             name = f"loop candidate {c.query_keyframe_id}->{c.match_keyframe_id}"
             try:
                 constraint = self.slam.register_loop(ma.record_to_loop_candidate(c))
             except ValueError as err:  # unknown keyframes (e.g. from before a reset), inconsistent record
-                self.drops.drop("bad_loop_candidate", f"{name}: {err}")
+                self.drops.drop("bad_loop_candidate", f"{name}: {err}", frame=False)
                 continue
             record = self.slam.loop_closure.records[-1]
             self.get_logger().info(f"{name} (submaps {c.query_submap_id}, {c.match_submap_id}, descriptor distance "
@@ -294,14 +342,14 @@ class TrackingMappingNode(Node):
                                         None, header)
             self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(constraint)],
                                                                    header))
+        self.loop_candidates += candidates  # handled
 
     def _on_pose_graph(self, msg: PointCloud2) -> None:
         try:
             update = ma.pointcloud2_to_pose_graph_update(msg)
         except ValueError as err:
-            self.drops.drop("bad_pose_graph", str(err))
+            self.drops.drop("bad_pose_graph", str(err), frame=False)
             return
-        self.pose_graph_updates.append(update)
         anchors = self.slam.move_anchors({n.node_id: n.pose for n in update.nodes
                                           if n.kind == ma.PoseGraphNodeKind.ANCHOR})
         owner = {k.frame_id: s.submap_id for s in self.slam.submaps for k in s.keyframes}
@@ -315,6 +363,7 @@ class TrackingMappingNode(Node):
         if anchors or keyframes:
             self._publish_path()
             self._map_dirty = True
+        self.pose_graph_updates.append(update)  # applied
 
     def finish(self) -> None:
         """End of the sequence: the global refinement (``loop.global_refinement``), counted in ``seconds``; the
@@ -360,9 +409,31 @@ class TrackingMappingNode(Node):
         self.slam.close()  # deletes the old map's spilled submaps now
         self._reset_state()
         self._queue.clear()
+        self._inputs.synchronizer.reset()  # a replay of the same stamps must not look stale
+        self.drops.clear()
+        self.latencies.clear()
         self._publish_path()
         response.success, response.message = True, "map and trajectory cleared"
         return response
+
+
+    def destroy_node(self) -> None:
+        """With ``save_on_exit``, the map and trajectory are written to ``output_dir`` first."""
+        if self.params.save_on_exit and self.frames_processed:
+            try:
+                ply, trajectory = self.save_map(self.params.output_dir)
+                self.get_logger().info(f"wrote {ply} and {trajectory}")
+            except OSError as err:
+                self.get_logger().error(f"save_on_exit: could not write to {self.params.output_dir}: {err}")
+        super().destroy_node()
+
+
+def latency_stats(latencies: list[float]) -> dict:
+    """Median and 95th percentile of latencies in seconds, as ms (empty without any)."""
+    if not latencies:
+        return {}
+    median, p95 = np.percentile(latencies, [50, 95])
+    return {"latency_ms.median": round(1e3 * float(median), 1), "latency_ms.p95": round(1e3 * float(p95), 1)}
 
 
 def main(args=None) -> int:

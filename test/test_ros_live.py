@@ -1,0 +1,212 @@
+"""The node suite live: real-time replay with and without sim time, a tracker slower than its input, every input
+accounted for, reset and replay, restarts of the tracker seen by loop_detection and pose_graph, the launcher's
+crash isolation and respawn."""
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("rosbags")
+
+from nav_msgs.msg import Odometry  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+import msg_adapters as ma  # noqa: E402
+from gausem_ros.launcher import Launcher  # noqa: E402
+from gausem_ros.nodes.loop_detection import LoopDetectionNode  # noqa: E402
+from gausem_ros.nodes.pose_graph import PoseGraphNode  # noqa: E402
+from gausem_ros.nodes.tracking_mapping import TrackingMappingNode  # noqa: E402
+from gausem_ros.player import Player, open_source  # noqa: E402
+from gausem_ros.qos import EVENT_QOS, IMAGE_QOS  # noqa: E402
+from ros_harness import FAST_SLAM, Recorder, overrides, ros_param_args, ros_session, spin_until  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def _localhost(monkeypatch):
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+
+def test_the_player_paces_on_the_wall_clock_even_when_told_to_use_sim_time():
+    """It publishes /clock itself: on sim time its timer would wait for a clock that never comes."""
+    with ros_session(130) as (ctx, executor):
+        player = Player(open_source("synthetic", size=(16, 12), max_frames=4), rate=1.0, wait_subscribers=0.0,
+                        context=ctx, parameter_overrides=[Parameter("use_sim_time", value=True)])
+        executor.add_node(player)
+        start = time.monotonic()
+        assert spin_until(executor, lambda: player.done, 5.0)
+    assert player.published == 4 and time.monotonic() - start < 2.0
+    assert player.get_parameter("use_sim_time").value is False
+
+
+def test_a_slow_tracker_skips_to_the_newest_frame_and_accounts_for_every_input():
+    """30 frames at 30 Hz into a tracker that needs >= 0.2 s a frame: the player is not starved, the tracker never
+    builds a backlog (latency within two processing times plus a frame period), and frames in = processed + dropped
+    + pending."""
+    frames = 30
+    durations = []
+    with ros_session(131) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
+        process = tracking.slam.process
+
+        def slow(obs):
+            start = time.monotonic()
+            time.sleep(0.2)
+            result = process(obs)
+            durations.append(time.monotonic() - start)
+            return result
+
+        tracking.slam.process = slow
+        player = Player(open_source("synthetic", size=(40, 30), max_frames=frames), rate=1.0, context=ctx)
+        recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS)])
+        for node in (tracking, player, recorder.node):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: player.done, 20.0)
+        assert spin_until(executor, lambda: tracking.summary()["frames_pending"] == 0, 10.0)
+        summary = tracking.summary()
+        assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == summary["frames_processed"],
+                          5.0)
+    # 29 frame periods (~1 s) of recorded time: the player is not starved by the tracker (with one executor thread
+    # for all, each frame waited for the tracker's: ~7 s)
+    assert player.published == frames and player.playback_seconds < 4.0
+    assert summary["frames_in"] == frames, summary
+    dropped = summary["dropped"]
+    assert summary["frames_processed"] + sum(dropped.values()) == frames
+    assert 2 <= summary["frames_processed"] <= frames // 2 and dropped["superseded"] >= frames // 2
+    assert set(dropped) == {"superseded"}
+    assert summary["latency_ms.p95"] / 1e3 <= 2 * max(durations) + 1 / 30 + 0.1
+
+
+def _trajectory(tracking):
+    return [(t, p.clone()) for t, p in tracking.slam.trajectory()]
+
+
+def test_reset_then_replaying_the_same_frames_gives_the_same_trajectory():
+    frames = list(open_source("synthetic", size=(40, 30), max_frames=4))
+    with ros_session(132) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
+        client_node = Recorder(ctx, []).node
+        reset = client_node.create_client(Trigger, "gausem/reset")
+        executor.add_node(tracking)
+        executor.add_node(client_node)
+        runs = []
+        for _ in range(2):
+            player = Player(frames, rate=0.0, lockstep=True, timeout=30.0, context=ctx)
+            executor.add_node(player)
+            assert spin_until(executor, lambda: player.done, 60.0)
+            executor.remove_node(player)
+            player.destroy_node()
+            runs.append(_trajectory(tracking))
+            future = reset.call_async(Trigger.Request())
+            assert spin_until(executor, future.done, 10.0) and future.result().success
+    first, second = runs
+    assert len(first) == len(second) == 4
+    assert [t for t, _ in first] == [t for t, _ in second]
+    assert all(np.array_equal(a.numpy(), b.numpy()) for (_, a), (_, b) in zip(first, second))
+
+
+def _keyframe_msg(keyframe_id: int, stamp: float, submap_id: int = 0) -> PointCloud2:
+    pose = np.eye(4)
+    pose[0, 3] = 0.1 * keyframe_id
+    record = ma.KeyframeRecord(keyframe_id, stamp, submap_id, pose, np.eye(4), np.zeros(0, np.float32))
+    return ma.records_to_pointcloud2([record], ma.make_header(stamp, "map"))
+
+
+def test_loop_detection_and_pose_graph_start_over_when_the_tracker_restarts():
+    """A tracker restart shows as keyframe ids that start again at 0 with new stamps: both nodes start over instead
+    of dying (the database refused the repeated id)."""
+    labels = np.repeat(np.arange(8) % 3, 8).reshape(8, 8)
+    with ros_session(133) as (ctx, executor):
+        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides({"label_stride": 1}))
+        graph = PoseGraphNode(context=ctx)
+        recorder = Recorder(ctx, [])
+        kf_pub = recorder.node.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
+        labels_pub = recorder.node.create_publisher(Image, "semantic/labels", IMAGE_QOS)
+        for node in (loop, graph, recorder.node):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: kf_pub.get_subscription_count() == 2
+                          and labels_pub.get_subscription_count(), 5.0)
+        stamps = [1.0, 2.0, 3.0, 10.0, 11.0]  # the tracker restarts after keyframe 10: ids 0, 5 again
+        for keyframe_id, stamp in zip([0, 5, 10, 0, 5], stamps):
+            labels_pub.publish(ma.labels_to_image(labels, ma.make_header(stamp, "cam")))
+            kf_pub.publish(_keyframe_msg(keyframe_id, stamp))
+            checked = loop.keyframes_checked
+            assert spin_until(executor, lambda: loop.keyframes_checked == checked + 1 or (
+                keyframe_id == 0 and loop.keyframes_checked == 1), 5.0)
+        assert spin_until(executor, lambda: sorted(graph.keyframes) == [0, 5] and graph._stamps[0] == 10.0, 5.0)
+    assert loop.keyframes_checked == 2 and sorted(loop._stamps.items()) == [(0, 10.0), (5, 11.0)]
+
+
+def _child(code: str) -> list[str]:
+    return [sys.executable, "-c", code]
+
+
+def _run_launcher(launcher: Launcher) -> tuple[threading.Thread, list]:
+    result = []
+    thread = threading.Thread(target=lambda: result.append(launcher.wait()), daemon=True)
+    thread.start()
+    return thread, result
+
+
+def _until(condition, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while not condition() and time.monotonic() < end:
+        time.sleep(0.05)
+    return condition()
+
+
+@pytest.mark.skipif(threading.current_thread() is not threading.main_thread(), reason="needs the main thread")
+def test_the_launcher_keeps_the_other_nodes_when_one_is_killed_and_respawns_on_request(capfd, monkeypatch):
+    # signal handlers are installed by wait(), which runs in a thread here: stand them in
+    monkeypatch.setattr(signal, "signal", lambda signum, handler: None)
+    sleeper = _child("import signal, sys, time\n"  # a node: SIGINT and SIGTERM end it cleanly
+                     "for s in (signal.SIGINT, signal.SIGTERM): signal.signal(s, lambda *_: sys.exit(0))\n"
+                     "time.sleep(60)")
+    launcher = Launcher({"tracking_mapping": sleeper, "loop_detection": sleeper}, grace=5.0)
+    thread, result = _run_launcher(launcher)
+    victim = launcher.nodes[1].process
+    victim.send_signal(signal.SIGKILL)
+    assert _until(lambda: launcher.nodes[1].ended, 5.0)
+    time.sleep(0.5)
+    assert launcher.nodes[0].process.poll() is None and thread.is_alive()  # the others go on
+    launcher._forward(signal.SIGTERM, None)
+    thread.join(10.0)
+    assert result == [137]  # the crash counts in the exit code
+    assert "loop_detection ended with signal SIGKILL (exit code 137); the other nodes go on" in capfd.readouterr().err
+
+    launcher = Launcher({"tracking_mapping": sleeper, "loop_detection": sleeper}, respawn=True, respawn_delay=0.1)
+    thread, result = _run_launcher(launcher)
+    first = launcher.nodes[1].process
+    first.send_signal(signal.SIGKILL)
+    assert _until(lambda: launcher.nodes[1].restarts == 1 and launcher.nodes[1].process is not first, 5.0)
+    assert launcher.nodes[1].process.poll() is None and launcher.nodes[0].process.poll() is None
+    launcher._forward(signal.SIGTERM, None)
+    thread.join(10.0)
+    assert not thread.is_alive() and all(c.process.poll() is not None for c in launcher.nodes)
+    assert "loop_detection restarted (1 so far)" in capfd.readouterr().err
+
+
+@pytest.mark.slow
+def test_gausem_ros_replays_in_real_time_with_sim_time(tmp_path):
+    """The README's real-time command: one process, --rate 1, the nodes on sim time."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "ROS_DOMAIN_ID": "134", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    cmd = [sys.executable, "-m", "gausem_ros.run_all", "synthetic", "--size", "40x30", "--max-frames", "30",
+           "--rate", "1", "--quiet", "--save", str(tmp_path / "out"), "--ros-args",
+           *ros_param_args({**FAST_SLAM, "loop.enabled": False, "use_sim_time": True})]
+    result = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=180)
+    assert result.returncode == 0, result.stderr[-3000:]
+    line = next(line for line in result.stderr.splitlines() if "frames in" in line)
+    assert "frames in 30, processed" in line and "player published 30 frames" in line
+    processed = int(line.split("processed ")[1].split(",")[0])
+    assert processed >= 5
+    assert len((tmp_path / "out" / "trajectory.txt").read_text().splitlines()) == processed + 1
