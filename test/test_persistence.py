@@ -10,21 +10,21 @@ from gausem_core.config import from_flat
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.geometry import invert_pose, so3_log
 from gausem_core.slam.allocation import Decision
+from gausem_core.slam.loop_closure import LoopConstraint, LoopRecord
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.persistence import SESSION_FILE, SessionError, _state_tree, _TensorWriter
 from gausem_core.slam.system import GauSemSLAM
 
-SETTINGS = {"backend": "torch", "mapping.every": 2, "mapping.iterations": 3, "mapping.init_iterations": 20,
-            "mapping.init_samples_fraction": 0.5, "submaps.boundary_iterations": 2, "submaps.memory_budget_mb": 0.0,
-            "loop.global_refinement": False, "tracking.pyramid_levels": 2}
+SETTINGS = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 60,
+            "submaps.boundary_iterations": 2, "submaps.memory_budget_mb": 0.0, "loop.global_refinement": False}
 SWITCH_AT = (6, 12)  # frames that start a new submap: three submaps, the first two offloaded to disk
 SAVED, NEXT = 16, 4
 
 
 @pytest.fixture(scope="module")
 def sequence():
-    """Every 5th frame of the default synthetic sequence at 80x60 and its world poses (first frame = identity)."""
-    data = SyntheticDataset("default", resolution=(80, 60), stride=5)
+    """Every 2nd frame of the default synthetic sequence at 80x60 and its world poses (first frame = identity)."""
+    data = SyntheticDataset("default", resolution=(80, 60), stride=2)
     frames = [data[i] for i in range(len(data))]
     first = torch.tensor(frames[0].gt_pose)
     observations = [Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
@@ -159,3 +159,19 @@ def test_unreadable_sessions_are_named(saved, tmp_path):
     (truncated / SESSION_FILE).write_text((folder / SESSION_FILE).read_text()[:100])
     with pytest.raises(SessionError, match=SESSION_FILE):
         GauSemSLAM.load(truncated)
+
+
+def test_loop_records_and_constraints_survive(saved, tmp_path):
+    _, folder = saved
+    system = GauSemSLAM.load(folder, relocalise=False)
+    loop = system.loop_closure
+    loop.records.append(LoopRecord(14, 2, 2, 0, False, True, 0.91, 0.5))
+    loop.constraints.append(LoopConstraint(2, 14, 0, 2, torch.eye(4, dtype=torch.float64) * 1.5, (0.01, 0.02), 0.91,
+                                           False))
+    system.save(tmp_path / "loops")
+    back = GauSemSLAM.load(tmp_path / "loops").loop_closure
+    assert back.records == loop.records
+    (a,), (b,) = loop.constraints, back.constraints
+    assert torch.equal(a.relative, b.relative) and a.relative.dtype == b.relative.dtype
+    assert (a.keyframe_a, a.submap_b, a.sigmas, a.fitness, a.intra) == (b.keyframe_a, b.submap_b, b.sigmas,
+                                                                        b.fitness, b.intra)

@@ -38,8 +38,8 @@ from gausem_core.config import LoopConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_log
 from gausem_core.semantics.descriptors import DescriptorExtractor, make_descriptor
-from gausem_core.slam.loop import (DescriptorDatabase, LoopCandidate, LoopDetector, gaussian_idf, landmark_scores, nearby_keyframes,
-                                   observed_gaussians)
+from gausem_core.slam.loop import (DescriptorDatabase, LoopCandidate, LoopDetector, gaussian_idf, landmark_scores,
+                                   nearby_keyframes, observed_gaussians)
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.pose_graph import optimise_chain
 from gausem_core.slam.registration import align_keyframes, semantic_guided_registration
@@ -181,7 +181,8 @@ class LoopClosure:
         return {
             "palette": self.palette.colors,
             "descriptors": [[frame_id, d] for frame_id, d in self._descriptors.items()],
-            "database": {"ids": torch.from_numpy(database.ids.copy()), "vectors": torch.from_numpy(database.vectors.copy())},
+            "database": {"ids": torch.from_numpy(database.ids.copy()),
+                         "vectors": torch.from_numpy(database.vectors.copy())},
             "landmarks": [[frame_id, submap_id, scores] for frame_id, (submap_id, scores)
                           in self.detector._keyframes.items()],
             "records": [dataclasses.asdict(r) for r in self.records],
