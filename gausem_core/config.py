@@ -158,7 +158,8 @@ class RelocalisationConfig:
     """Placing the first frame after a restart (a loaded session) against the saved map."""
 
     candidates: int = 5  # start poses: the last tracked pose plus this many keyframes nearest by global descriptor
-    inlier_depth: float = 0.05  # metres: a pixel is an inlier when the map renders there within this of its depth
+    inlier_depth: float = 0.05  # metres: a pixel is an inlier when the map renders there within this of its depth ...
+    inlier_alpha: float = 0.5  # ... with at least this silhouette (opacity)
     min_inlier_fraction: float = 0.6  # accept the best start when this fraction of the valid-depth pixels are inliers
 
 

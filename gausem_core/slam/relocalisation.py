@@ -3,7 +3,7 @@
 Start poses are the last tracked pose and keyframe poses (the keyframes nearest to the frame by global descriptor,
 completed by the active submap's keyframes). The frame is tracked from each start with the map frozen, against the
 Gaussians of the start's submap, and the result explaining the most pixels wins: an inlier is a pixel with a valid
-depth where the map renders (alpha above the tracker's silhouette threshold) within ``inlier_depth`` of it. The winner
+depth where the map renders (alpha above ``inlier_alpha``) within ``inlier_depth`` of it. The winner
 is accepted when its inlier fraction reaches ``min_inlier_fraction``.
 """
 from __future__ import annotations
@@ -56,16 +56,16 @@ def relocalisation_starts(submaps: Sequence, last: tuple[object, torch.Tensor] |
     return starts + [Start(owner[f][0], owner[f][1].cam_to_world, f"keyframe {f}") for f in chosen]
 
 
-def inlier_fraction(cloud, obs: Observation, cam_to_world: torch.Tensor, inlier_depth: float, silhouette: float,
+def inlier_fraction(cloud, obs: Observation, cam_to_world: torch.Tensor, cfg: RelocalisationConfig,
                     backend: str) -> float:
     """Fraction of the frame's valid-depth pixels that the map rendered at ``cam_to_world`` covers within
-    ``inlier_depth`` metres (0 for a frame without valid depth)."""
+    ``cfg.inlier_depth`` metres with an alpha above ``cfg.inlier_alpha`` (0 for a frame without valid depth)."""
     valid = obs.valid_depth
     if not bool(valid.any()):
         return 0.0
     with torch.no_grad():
         out = render(cloud, invert_pose(cam_to_world.to(cloud.dtype)), obs.camera, backend=backend)
-    inliers = valid & (out.alpha > silhouette) & ((out.expected_depth - obs.depth).abs() < inlier_depth)
+    inliers = valid & (out.alpha > cfg.inlier_alpha) & ((out.expected_depth - obs.depth).abs() < cfg.inlier_depth)
     return float(inliers.sum()) / float(valid.sum())
 
 
@@ -82,8 +82,7 @@ def track_from_starts(obs: Observation, starts: Sequence[Start], tracker: Tracke
             clouds[submap.submap_id] = submap.load_cloud(device)
         cloud = clouds[submap.submap_id]
         tracked = tracker.track(cloud, obs, start.cam_to_world.to(device))
-        fraction = inlier_fraction(cloud, obs, tracked.cam_to_world, cfg.inlier_depth,
-                                   tracker.cfg.silhouette_threshold, tracker.backend)
+        fraction = inlier_fraction(cloud, obs, tracked.cam_to_world, cfg, tracker.backend)
         key = (fraction, -tracked.loss)
         if best is None or key > best[0]:
             best = (key, start, tracked)
