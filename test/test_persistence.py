@@ -17,7 +17,7 @@ from gausem_core.slam.system import GauSemSLAM
 
 SETTINGS = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 60,
             "submaps.boundary_iterations": 2, "submaps.memory_budget_mb": 0.0, "loop.global_refinement": False}
-SWITCH_AT = (6, 12)  # frames that start a new submap: three submaps, the first two offloaded to disk
+SWITCH_AT = (6, 12, 18)  # frames that start a new submap: three submaps when saved, the first two on disk; one more
 SAVED, NEXT = 16, 4
 
 
@@ -87,7 +87,7 @@ def test_a_loaded_session_goes_on_bit_identically(sequence, saved):
         a, b = original.process(obs), loaded.process(obs)
         assert (a.frame_id, a.submap_id, a.is_keyframe) == (b.frame_id, b.submap_id, b.is_keyframe)
         assert torch.equal(a.cam_to_world, b.cam_to_world) and a.tracking_loss == b.tracking_loss
-    assert loaded.frames[-1].frame_id == SAVED + NEXT - 1
+    assert loaded.frames[-1].frame_id == SAVED + NEXT - 1 and b.submap_id == 3  # ids go on after the saved ones
     assert_same_state(original, loaded)
     for x, y in zip(original.global_cloud().tensors().values(), loaded.global_cloud().tensors().values()):
         assert torch.equal(x, y)

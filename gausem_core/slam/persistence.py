@@ -29,13 +29,12 @@ from gausem_core.geometry import PinholeCamera
 from gausem_core.slam.allocation import Frustum, FrustumUnion, SubmapExtent
 from gausem_core.slam.mapper import Keyframe
 from gausem_core.slam.observation import Observation
-from gausem_core.slam.system import FrameRecord, GauSemSLAM, Submap
+from gausem_core.slam.system import _IMAGES, FrameRecord, GauSemSLAM, Submap
 
 FORMAT = "gausem-session"
 VERSION = 1
 SESSION_FILE = "session.json"
 STATE_FILE = "state.pt"
-IMAGES = ("rgb", "depth", "semantic", "labels")
 
 
 class SessionError(ValueError):
@@ -99,16 +98,12 @@ class _TensorReader:
 
 
 # --- the system's state as a tree -----------------------------------------------------------------------------------
-def _camera(camera: PinholeCamera) -> dict:
-    return dataclasses.asdict(camera)
-
-
 def _extent_tree(extent: SubmapExtent | None) -> dict | None:
     if extent is None:
         return None
     return {"first_pose": extent.first_pose, "anchor_counts": extent.anchor_counts, "num_classes": extent.num_classes,
-            "frusta": [{"camera": _camera(f.camera), "cam_to_world": f.cam_to_world, "near": f.near, "far": f.far}
-                       for f in extent.volume.frusta]}
+            "frusta": [{"camera": dataclasses.asdict(f.camera), "cam_to_world": f.cam_to_world, "near": f.near,
+                        "far": f.far} for f in extent.volume.frusta]}
 
 
 def _submap_file(submap_id: int) -> str:
@@ -121,8 +116,9 @@ def _submap_tree(submap: Submap, writer: _TensorWriter) -> dict:
     for kf in submap.keyframes:
         obs = submap.observation(kf)
         keyframes.append({"frame_id": kf.frame_id, "fixed": kf.fixed, "timestamp": obs.timestamp,
-                          "camera": _camera(obs.camera), "cam_to_world": writer.pack(kf.cam_to_world, STATE_FILE),
-                          "images": writer.pack({name: getattr(obs, name) for name in IMAGES}, file)})
+                          "camera": dataclasses.asdict(obs.camera),
+                          "cam_to_world": writer.pack(kf.cam_to_world, STATE_FILE),
+                          "images": writer.pack({name: getattr(obs, name) for name in _IMAGES}, file)})
     return {"id": submap.submap_id, "active": submap.is_active, "anchor": writer.pack(submap.anchor, STATE_FILE),
             "extent": writer.pack(_extent_tree(submap.extent), STATE_FILE),
             "cloud": writer.pack(submap.load_cloud().tensors(), file), "keyframes": keyframes}

@@ -163,9 +163,9 @@ class GauSemSLAM:
     collected.
 
     :meth:`save` writes the whole state to a folder and :meth:`load` restores it (see ``slam.persistence``). A loaded
-    system is :attr:`lost`: the first frame given to :meth:`process` is relocalised against the map (:meth:`relocalise`)
-    instead of tracked from the last pose; when relocalisation fails the frame is dropped (not recorded, the map
-    untouched, ``FrameResult.relocalisation.accepted`` False) and the next frame tries again.
+    system is :attr:`lost`: the first frame given to :meth:`process` is relocalised against the map
+    (:meth:`relocalise`) instead of tracked from the last pose; when relocalisation fails the frame is dropped (not
+    recorded, the map untouched, ``FrameResult.relocalisation.accepted`` False) and the next frame tries again.
     """
 
     def __init__(self, cfg: SlamConfig, device: torch.device | str = "cpu", num_classes: int = 1,
@@ -197,24 +197,19 @@ class GauSemSLAM:
         return self.submaps[-1]
 
     def process(self, obs: Observation) -> FrameResult:
-        """Track the frame against the active submap; at a keyframe, start a new submap when the allocation policy
-        says so, else map the keyframe into the active one."""
+        """Track the frame against the active submap (while :attr:`lost`: relocalise it, or drop it when that
+        fails); at a keyframe, start a new submap when the allocation policy says so, else map the keyframe into the
+        active one."""
         frame_id = len(self.frames)
         if not self.submaps:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
             self._close_loops()
             return self._result(None, True, loss, None)
-        relocalised = self.relocalise(obs) if self.lost else None
-        if relocalised is not None and not relocalised.accepted:
+        tracked, relocalised = self._place(obs, frame_id)
+        if tracked is None:  # lost and not relocalised: the frame is dropped
             return FrameResult(frame_id, relocalised.cam_to_world, False, relocalised.tracking_loss,
                                relocalised.iterations, None, self.active.num_gaussians, self.active.submap_id, None,
                                relocalised)
-        if relocalised is not None:
-            self.lost, self.segment_start = False, frame_id
-            tracked = TrackingResult(invert_pose(self.active.anchor) @ relocalised.cam_to_world,
-                                     relocalised.tracking_loss, relocalised.iterations)
-        else:
-            tracked = self._track(obs)
         pose = tracked.cam_to_world.detach()
         if frame_id % self.cfg.mapping.every:
             reference = self.active.keyframes[-1]
@@ -231,6 +226,18 @@ class GauSemSLAM:
         self._close_loops()
         return self._result(tracked, True, loss, decision, relocalised)
 
+    def _place(self, obs: Observation, frame_id: int) -> tuple[TrackingResult | None, RelocalisationResult | None]:
+        """The frame's pose in the active submap: tracked, or relocalised while :attr:`lost` (None when that fails;
+        on success a new tracking segment starts at the frame)."""
+        if not self.lost:
+            return self._track(obs), None
+        relocalised = self.relocalise(obs)
+        if not relocalised.accepted:
+            return None, relocalised
+        self.lost, self.segment_start = False, frame_id
+        local = invert_pose(self.active.anchor) @ relocalised.cam_to_world
+        return TrackingResult(local, relocalised.tracking_loss, relocalised.iterations), relocalised
+
     def _track(self, obs: Observation) -> TrackingResult:
         previous = self._local_pose(-1)
         before = (self._local_pose(-2) if len(self.frames) > 1 and self.frames[-2].frame_id >= self.segment_start
@@ -243,6 +250,8 @@ class GauSemSLAM:
         """Place a frame against the map without the motion model (``slam.relocalisation``): tracked from the last
         pose and from the ``relocalisation.candidates`` keyframes nearest by global descriptor (or the active
         submap's keyframes), the best start kept. Changes nothing; :meth:`process` uses it while :attr:`lost`."""
+        if not self.frames:
+            raise ValueError("relocalise: the map is empty (no frame processed or loaded)")
         cfg = self.cfg.relocalisation
         last = self.frames[-1]
         ranked = (self.loop_closure.nearest_keyframes(obs.semantic, cfg.candidates)
