@@ -154,6 +154,16 @@ class LoopConfig:
 
 
 @dataclass
+class RelocalisationConfig:
+    """Placing the first frame after a restart (a loaded session) against the saved map."""
+
+    candidates: int = 5  # start poses: the last tracked pose plus this many keyframes nearest by global descriptor
+    inlier_depth: float = 0.05  # metres: a pixel is an inlier when the map renders there within this of its depth ...
+    inlier_alpha: float = 0.5  # ... with at least this silhouette (opacity)
+    min_inlier_fraction: float = 0.6  # accept the best start when this fraction of the valid-depth pixels are inliers
+
+
+@dataclass
 class SlamConfig:
     backend: str = "auto"  # renderer back-end: "auto", "torch", "cpu" or "gsplat"
     device: str = "auto"  # "auto" (CUDA when available), "cpu" or "cuda"
@@ -163,6 +173,7 @@ class SlamConfig:
     submaps: SubmapConfig = field(default_factory=SubmapConfig)
     semantics: SemanticsConfig = field(default_factory=SemanticsConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
+    relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
 
 
 def flatten(cfg: Any, prefix: str = "") -> dict[str, Any]:

@@ -65,14 +65,20 @@ class Pipeline:
         return Observation.from_arrays(frame.rgb, frame.depth, labels, frame.camera, self.palette,
                                        frame.timestamp, self.device)
 
-    def run(self) -> RunResult:
-        slam = GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
+    def run(self, slam: GauSemSLAM | None = None, save_session: Path | None = None) -> RunResult:
+        """Process the dataset with ``slam`` (a loaded session to go on with; default: a new system). The result
+        holds this run's frames, less those a loaded system could not relocalise (dropped). ``save_session``: the
+        session is saved there after the last frame, before the global refinement (not timed)."""
+        slam = slam or GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
+        first = len(slam.frames)
         gt, ids, stats = [], [], []
         start = time.perf_counter()
         bar = tqdm(range(len(self.dataset)), desc="gausem", unit="frame", disable=not self.progress)
         for i in bar:
             frame = self.dataset[i]
             result = slam.process(self.observation(frame))
+            if result.relocalisation is not None and not result.relocalisation.accepted:
+                continue
             gt.append(frame.gt_pose)
             ids.append(frame.index)
             stats.append({"frame": frame.index, "tracking_loss": result.tracking_loss,
@@ -81,8 +87,12 @@ class Pipeline:
             elapsed = time.perf_counter() - start
             bar.set_postfix(fps=f"{(i + 1) / elapsed:.2f}", loss=f"{result.tracking_loss:.4f}",
                             gaussians=result.num_gaussians)
+        if save_session is not None:
+            saving = time.perf_counter()
+            slam.save(save_session)
+            start += time.perf_counter() - saving
         slam.finish()  # global refinement after the last frame (part of the system's time)
         seconds = time.perf_counter() - start
-        trajectory = slam.trajectory()
+        trajectory = slam.trajectory()[first:]
         poses = np.stack([p.detach().cpu().double().numpy() for _, p in trajectory])
         return RunResult(slam, [t for t, _ in trajectory], poses, gt, ids, seconds, stats)

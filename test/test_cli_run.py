@@ -29,3 +29,19 @@ def test_gausem_run_writes_the_outputs(tmp_path, capsys):
     assert math.isfinite(metrics["ate"]["rmse"]) and metrics["ate"]["rmse"] < 0.2
     assert metrics["rendering"]["psnr"] > 10 and metrics["rendering"]["frames"] == 2
     assert 0 < metrics["rendering"]["miou"] <= 1
+
+
+def test_gausem_run_saves_and_resumes_a_session(tmp_path):
+    common = ["--dataset", "synthetic", "--size", "80x60", *FAST, "--quiet", "--eval-every", "10"]
+    session = tmp_path / "session"
+    assert main(["run", *common, "--frames", "6", "--set", "device=cpu", "--save-session", str(session),
+                 "--out", str(tmp_path / "first")]) == 0
+    assert (session / "session.json").is_file()
+    out = tmp_path / "resumed"
+    assert main(["run", *common, "--start", "6", "--frames", "5", "--resume", str(session), "--out", str(out)]) == 0
+    first = read_tum_trajectory(tmp_path / "first" / "trajectory.txt")
+    resumed = read_tum_trajectory(out / "trajectory.txt")
+    assert len(resumed) == 5 and resumed.stamps[0] > first.stamps[-1]  # this run's frames, none dropped
+    assert len(read_tum_trajectory(out / "keyframes.txt")) == 3  # the session's (frames 0, 5) and frame 10
+    metrics = json.loads((out / "metrics.json").read_text())["metrics"]
+    assert metrics["frames"] == 5 and metrics["ate"]["rmse"] < 0.2

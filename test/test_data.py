@@ -111,6 +111,15 @@ def test_tum_stride_max_frames_and_resize(tmp_path):
     assert len(TumDataset(make_tum(tmp_path / "seq5", n=5), stride=2)) == 3
 
 
+def test_start_skips_the_first_source_frames(tmp_path):
+    root = make_tum(tmp_path / "seq", n=5)
+    ds = TumDataset(root, start=1, stride=2)
+    assert len(ds) == 2 and [f.index for f in ds] == [1, 3]
+    assert len(TumDataset(root, start=5)) == 0
+    with pytest.raises(ValueError, match="start"):
+        TumDataset(root, start=-1)
+
+
 def test_resize_frame_area_colour_nearest_depth_labels():
     rgb = np.zeros((4, 4, 3), np.uint8)
     rgb[:2, :2] = 200  # the top-left 2x2 block averages to 200

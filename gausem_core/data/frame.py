@@ -78,23 +78,28 @@ class Dataset(ABC):
     """A sequence of frames: ``len(ds)``, ``ds[i] -> Frame``, iteration, ``name`` and ``class_table`` (or None).
 
     Options shared by every reader: ``size`` (width, height) resizes every frame (see :func:`resize_frame`),
-    ``stride`` keeps every stride-th frame of the source, ``max_frames`` caps the length. A reader implements
+    ``start`` is the first source frame, ``stride`` keeps every stride-th frame from there, ``max_frames`` caps the
+    length. A reader implements
     :meth:`_source_length` and :meth:`_load` (source index -> frame at its native resolution).
     """
 
     name: str = "dataset"
     class_table: ClassTable | None = None
 
-    def __init__(self, *, size: tuple[int, int] | None = None, stride: int = 1, max_frames: int | None = None):
+    def __init__(self, *, size: tuple[int, int] | None = None, stride: int = 1, max_frames: int | None = None,
+                 start: int = 0):
         if size is not None and (len(size) != 2 or min(size) <= 0):
             raise ValueError(f"size must be (width, height) with positive entries, got {size}")
         if stride < 1:
             raise ValueError(f"stride must be >= 1, got {stride}")
         if max_frames is not None and max_frames < 1:
             raise ValueError(f"max_frames must be >= 1 or None, got {max_frames}")
+        if start < 0:
+            raise ValueError(f"start must be >= 0, got {start}")
         self.size = None if size is None else (int(size[0]), int(size[1]))
         self.stride = int(stride)
         self.max_frames = max_frames
+        self.start = int(start)
 
     @abstractmethod
     def _source_length(self) -> int:
@@ -105,14 +110,14 @@ class Dataset(ABC):
         """Frame ``index`` of the source sequence at native resolution."""
 
     def __len__(self) -> int:
-        n = math.ceil(self._source_length() / self.stride)
+        n = max(0, math.ceil((self._source_length() - self.start) / self.stride))
         return n if self.max_frames is None else min(n, self.max_frames)
 
     def __getitem__(self, i: int) -> Frame:
         n = len(self)
         if not -n <= i < n:
             raise IndexError(f"{self.name}: frame {i} out of range (length {n})")
-        source_index = (i % n) * self.stride
+        source_index = self.start + (i % n) * self.stride
         try:
             frame = self._load(source_index)
         except (ValueError, FileNotFoundError) as exc:

@@ -38,8 +38,8 @@ from gausem_core.config import LoopConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_log
 from gausem_core.semantics.descriptors import DescriptorExtractor, make_descriptor
-from gausem_core.slam.loop import (LoopCandidate, LoopDetector, gaussian_idf, landmark_scores, nearby_keyframes,
-                                   observed_gaussians)
+from gausem_core.slam.loop import (DescriptorDatabase, LoopCandidate, LoopDetector, gaussian_idf, landmark_scores,
+                                   nearby_keyframes, observed_gaussians)
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.pose_graph import optimise_chain
 from gausem_core.slam.registration import align_keyframes, semantic_guided_registration
@@ -160,6 +160,46 @@ class LoopClosure:
         record = dataclasses.replace(self.records[-1], seconds=time.perf_counter() - start)
         self.records[-1] = record
         return record
+
+    def nearest_keyframes(self, semantic: torch.Tensor, k: int) -> list[int]:
+        """Frame ids of the ``k`` described keyframes whose global descriptors are nearest (L2 between unit
+        vectors, as the loop database) to that of a semantic image (H, W, 3); nearest first."""
+        if not self._descriptors or k <= 0:
+            return []
+        ids = list(self._descriptors)
+        query = torch.from_numpy(np.asarray(self.descriptor.describe(semantic.detach().cpu()))).double()
+        stack = torch.stack([self._descriptors[i] for i in ids]).double()
+        unit = torch.nn.functional.normalize
+        distances = (unit(stack, dim=1) - unit(query, dim=0)).norm(dim=1)
+        return [ids[i] for i in torch.argsort(distances, stable=True)[:k].tolist()]
+
+    # --- persistence ----------------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Everything learned so far (palette, keyframe descriptors, loop database, records, accepted constraints)
+        as plain values and CPU tensors; :meth:`load_state_dict` restores it bit-identically."""
+        database = self.detector.database
+        return {
+            "palette": self.palette.colors,
+            "descriptors": [[frame_id, d] for frame_id, d in self._descriptors.items()],
+            "database": {"ids": torch.from_numpy(database.ids.copy()),
+                         "vectors": torch.from_numpy(database.vectors.copy())},
+            "landmarks": [[frame_id, submap_id, scores] for frame_id, (submap_id, scores)
+                          in self.detector._keyframes.items()],
+            "records": [dataclasses.asdict(r) for r in self.records],
+            "constraints": [{**dataclasses.asdict(c), "sigmas": list(c.sigmas)} for c in self.constraints],
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore what :meth:`state_dict` returned (onto a loop closure built with the same configuration)."""
+        self.palette.colors = state["palette"]
+        self._descriptors = {int(frame_id): d for frame_id, d in state["descriptors"]}
+        database = self.detector.database = DescriptorDatabase(self.detector.database.dim,
+                                                               self.detector.database.backend)
+        for frame_id, vector in zip(state["database"]["ids"].tolist(), state["database"]["vectors"].numpy()):
+            database._append(frame_id, vector)  # stored unit vectors, not normalised again (bit-identical)
+        self.detector._keyframes = {int(f): (int(s), scores) for f, s, scores in state["landmarks"]}
+        self.records = [LoopRecord(**r) for r in state["records"]]
+        self.constraints = [LoopConstraint(**{**c, "sigmas": tuple(c["sigmas"])}) for c in state["constraints"]]
 
     # --- detection inputs ---------------------------------------------------------------------------------------
     def _descriptor(self, submap, keyframe: Keyframe) -> torch.Tensor:

@@ -29,6 +29,7 @@ from gausem_core.slam.loop_closure import LoopClosure, LoopConstraint
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.refinement import global_refinement
 from gausem_core.slam.observation import Observation
+from gausem_core.slam.relocalisation import RelocalisationResult, relocalisation_starts, track_from_starts
 from gausem_core.slam.submap_store import SubmapStore
 from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity
 
@@ -149,6 +150,7 @@ class FrameResult:
     num_gaussians: int  # in the active submap
     submap_id: int  # the submap the frame belongs to
     allocation: Decision | None  # the allocation decision (keyframes after the first)
+    relocalisation: RelocalisationResult | None = None  # when the frame was relocalised (the system was lost)
 
 
 class GauSemSLAM:
@@ -159,6 +161,11 @@ class GauSemSLAM:
     loop_detection node) and handed in through :meth:`register_loop`; keyframes are still described for registration.
     Call :meth:`close` (or use ``with``) to delete spilled submaps at once; otherwise that happens when the object is
     collected.
+
+    :meth:`save` writes the whole state to a folder and :meth:`load` restores it (see ``slam.persistence``). A loaded
+    system is :attr:`lost`: the first frame given to :meth:`process` is relocalised against the map
+    (:meth:`relocalise`) instead of tracked from the last pose; when relocalisation fails the frame is dropped (not
+    recorded, the map untouched, ``FrameResult.relocalisation.accepted`` False) and the next frame tries again.
     """
 
     def __init__(self, cfg: SlamConfig, device: torch.device | str = "cpu", num_classes: int = 1,
@@ -178,6 +185,8 @@ class GauSemSLAM:
         self._close = weakref.finalize(self, self.store.close)
         self.submaps: list[Submap] = []
         self.frames: list[FrameRecord] = []
+        self.lost = False  # the next frame is relocalised (set by load; a caller may set it after a tracking failure)
+        self.segment_start = 0  # first frame id of the current tracking segment (the motion model stays inside it)
         self.detect_loops = detect_loops
         self.descriptor = make_descriptor(cfg.semantics.descriptor, cfg.semantics.dinov2_weights,
                                           device=self.device) if cfg.loop.enabled or cfg.loop.global_refinement else None
@@ -189,20 +198,25 @@ class GauSemSLAM:
         return self.submaps[-1]
 
     def process(self, obs: Observation) -> FrameResult:
-        """Track the frame against the active submap; at a keyframe, start a new submap when the allocation policy
-        says so, else map the keyframe into the active one."""
+        """Track the frame against the active submap (while :attr:`lost`: relocalise it, or drop it when that
+        fails); at a keyframe, start a new submap when the allocation policy says so, else map the keyframe into the
+        active one."""
         frame_id = len(self.frames)
         if not self.submaps:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
             self._close_loops()
             return self._result(None, True, loss, None)
-        tracked = self._track(obs)
+        tracked, relocalised = self._place(obs, frame_id)
+        if tracked is None:  # lost and not relocalised: the frame is dropped
+            return FrameResult(frame_id, relocalised.cam_to_world, False, relocalised.tracking_loss,
+                               relocalised.iterations, None, self.active.num_gaussians, self.active.submap_id, None,
+                               relocalised)
         pose = tracked.cam_to_world.detach()
         if frame_id % self.cfg.mapping.every:
             reference = self.active.keyframes[-1]
             self.frames.append(FrameRecord(frame_id, obs.timestamp, self.active, reference,
                                            invert_pose(reference.cam_to_world) @ pose))
-            return self._result(tracked, False, None, None)
+            return self._result(tracked, False, None, None, relocalised)
         decision = self.allocation.should_start_new(self.active.extent, obs, pose)
         if decision.new:
             anchor = rigid_product(self.active.anchor, pose)
@@ -211,14 +225,54 @@ class GauSemSLAM:
         else:
             loss = self._map_keyframe(obs, frame_id, pose)
         self._close_loops()
-        return self._result(tracked, True, loss, decision)
+        return self._result(tracked, True, loss, decision, relocalised)
+
+    def _place(self, obs: Observation, frame_id: int) -> tuple[TrackingResult | None, RelocalisationResult | None]:
+        """The frame's pose in the active submap: tracked, or relocalised while :attr:`lost` (None when that fails;
+        on success a new tracking segment starts at the frame)."""
+        if not self.lost:
+            return self._track(obs), None
+        relocalised = self.relocalise(obs)
+        if not relocalised.accepted:
+            return None, relocalised
+        self.lost, self.segment_start = False, frame_id
+        local = invert_pose(self.active.anchor) @ relocalised.cam_to_world
+        return TrackingResult(local, relocalised.tracking_loss, relocalised.iterations), relocalised
 
     def _track(self, obs: Observation) -> TrackingResult:
         previous = self._local_pose(-1)
-        before = self._local_pose(-2) if len(self.frames) > 1 and self.cfg.tracking.constant_velocity else None
+        before = (self._local_pose(-2) if len(self.frames) > 1 and self.frames[-2].frame_id >= self.segment_start
+                  and self.cfg.tracking.constant_velocity else None)
         if before is None:
             return self.tracker.track(self.active.cloud, obs, previous)
         return self.tracker.track(self.active.cloud, obs, constant_velocity(previous, before), [previous])
+
+    def relocalise(self, obs: Observation) -> RelocalisationResult:
+        """Place a frame against the map without the motion model (``slam.relocalisation``): tracked from the last
+        pose and from the ``relocalisation.candidates`` keyframes nearest by global descriptor (or the active
+        submap's keyframes), the best start kept. Changes nothing; :meth:`process` uses it while :attr:`lost`."""
+        if not self.frames:
+            raise ValueError("relocalise: the map is empty (no frame processed or loaded)")
+        cfg = self.cfg.relocalisation
+        last = self.frames[-1]
+        ranked = (self.loop_closure.nearest_keyframes(obs.semantic, cfg.candidates)
+                  if self.loop_closure is not None else [])
+        local = invert_pose(last.submap.anchor) @ last.cam_to_world
+        starts = relocalisation_starts(self.submaps, (last.submap, local), ranked, cfg.candidates)
+        return track_from_starts(obs, starts, self.tracker, cfg, self.device)
+
+    def save(self, folder) -> None:
+        """Write the whole state into ``folder`` (see :func:`gausem_core.slam.persistence.save_session`)."""
+        from gausem_core.slam.persistence import save_session
+        save_session(self, folder)
+
+    @staticmethod
+    def load(folder, device: torch.device | str = "cpu", cfg: SlamConfig | None = None,
+             relocalise: bool = True) -> "GauSemSLAM":
+        """A saved system on ``device``, :attr:`lost` with ``relocalise`` (see
+        :func:`gausem_core.slam.persistence.load_session`)."""
+        from gausem_core.slam.persistence import load_session
+        return load_session(folder, cfg, device, relocalise)
 
     def _map_keyframe(self, obs: Observation, frame_id: int, pose: torch.Tensor) -> float | None:
         """Add a keyframe to the active submap: densify, then BA over the recent keyframes."""
@@ -251,12 +305,12 @@ class GauSemSLAM:
         submap.offload(self.store)
 
     def _result(self, tracked: TrackingResult | None, is_keyframe: bool, mapping_loss: float | None,
-                allocation: Decision | None) -> FrameResult:
+                allocation: Decision | None, relocalised: RelocalisationResult | None = None) -> FrameResult:
         """The last frame's result (``tracked`` is None for the first frame, which defines the world frame)."""
         record = self.frames[-1]
         loss, iterations = (tracked.loss, tracked.iterations) if tracked else (0.0, 0)
         return FrameResult(record.frame_id, record.cam_to_world, is_keyframe, loss, iterations, mapping_loss,
-                           self.active.num_gaussians, self.active.submap_id, allocation)
+                           self.active.num_gaussians, self.active.submap_id, allocation, relocalised)
 
     def _local_pose(self, index: int) -> torch.Tensor:
         """A recent frame's pose in the active submap's frame."""

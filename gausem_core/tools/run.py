@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 
-from gausem_core.config import load_config
+from gausem_core.config import SlamConfig, from_flat, load_config
 
 DATASET_HELP = "synthetic[:default|loop], tum:PATH, scannet:PATH or replica:PATH"
 
@@ -37,9 +37,15 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="NAME=VALUE", help="override one parameter, e.g. --set tracking.iterations=20")
     parser.add_argument("--frames", type=int, help="process at most this many frames")
     parser.add_argument("--stride", type=int, default=1, help="use every n-th frame (default: 1)")
+    parser.add_argument("--start", type=int, default=0, help="first frame of the sequence (default: 0)")
     parser.add_argument("--size", type=parse_size, help="resize input to WxH, e.g. 160x120")
     parser.add_argument("--eval-every", type=int, default=5, help="evaluate rendering on every n-th frame")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--resume", type=Path, metavar="FOLDER",
+                        help="go on with the session saved in FOLDER, with its parameters (--set still applies); "
+                             "the first frame is relocalised against its map")
+    parser.add_argument("--save-session", type=Path, metavar="FOLDER",
+                        help="save the session into FOLDER after the last frame (before the global refinement)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,16 +62,32 @@ def default_params_file(dataset: str) -> Path | None:
     return None
 
 
+def session_config(folder: Path, overrides: dict) -> SlamConfig:
+    """The parameters of the session saved in ``folder`` with dotted-name ``overrides`` on top."""
+    from gausem_core.slam.persistence import read_document
+
+    return from_flat(overrides, from_flat(read_document(folder)["config"]))
+
+
 def run_pipeline(args: argparse.Namespace, out: Path) -> dict:
     """Open the dataset, run the pipeline, write the outputs; returns the metrics."""
     from gausem_core.data import open_dataset
     from gausem_core.pipeline import Pipeline
     from gausem_core.report import write_outputs
+    from gausem_core.slam.system import GauSemSLAM
 
-    params = args.params or default_params_file(args.dataset)
-    cfg = load_config(params, dict(args.overrides))
-    dataset = open_dataset(args.dataset, size=args.size, stride=args.stride, max_frames=args.frames)
-    result = Pipeline(dataset, cfg, progress=not args.quiet).run()
+    if args.resume is not None and args.params is not None:
+        raise ValueError("--resume goes on with the session's parameters; --params cannot change them (--set can)")
+    if args.resume is None:
+        params = args.params or default_params_file(args.dataset)
+        cfg = load_config(params, dict(args.overrides))
+    else:
+        params, cfg = None, session_config(args.resume, dict(args.overrides))
+    dataset = open_dataset(args.dataset, size=args.size, stride=args.stride, max_frames=args.frames,
+                           start=args.start)
+    pipeline = Pipeline(dataset, cfg, progress=not args.quiet)
+    slam = GauSemSLAM.load(args.resume, pipeline.device, cfg) if args.resume else None
+    result = pipeline.run(slam, args.save_session)
     return write_outputs(result, dataset, cfg, out, eval_every=args.eval_every, params_file=params)
 
 

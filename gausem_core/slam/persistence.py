@@ -1,0 +1,218 @@
+"""Save a SLAM session to a folder and load it to go on (a restarted tracker keeps its map).
+
+The folder (format ``gausem-session``, version :data:`VERSION`) is self-contained:
+
+- ``session.json``: format and version, the configuration (dotted ROS parameter names), ``num_classes``,
+  ``detect_loops`` and the state tree: submaps (id, anchor, keyframes with poses, cameras and timestamps, allocation
+  extent), frames (id, timestamp, submap, reference keyframe, relative pose), the tracker's motion segment, the mapper's
+  random generator and the loop closure's :meth:`~gausem_core.slam.loop_closure.LoopClosure.state_dict`. Every tensor
+  in the tree is a reference ``{"$tensor": "FILE:KEY"}`` into one of the tensor files. Written last: a folder without
+  it holds no (complete) session.
+- ``state.pt``: the small tensors of the tree (poses, descriptors, ...).
+- ``submap_NNNN.pt``: one submap's Gaussians and keyframe images (an offloaded submap's read back from its store).
+
+Tensor files are ``torch.save`` dicts of CPU tensors, read with ``torch.load(weights_only=True)``. Ids go on after the
+saved ones (frame ids count the recorded frames, submap ids the submaps), and every value comes back bit-identical.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import torch
+
+from gausem_core.config import SlamConfig, flatten, from_flat
+from gausem_core.gaussians import GaussianCloud
+from gausem_core.geometry import PinholeCamera
+from gausem_core.slam.allocation import Frustum, FrustumUnion, SubmapExtent
+from gausem_core.slam.mapper import Keyframe
+from gausem_core.slam.observation import Observation
+from gausem_core.slam.system import _IMAGES, FrameRecord, GauSemSLAM, Submap
+
+FORMAT = "gausem-session"
+VERSION = 1
+SESSION_FILE = "session.json"
+STATE_FILE = "state.pt"
+
+
+class SessionError(ValueError):
+    """A session folder that cannot be read (wrong format or version, a missing or truncated file)."""
+
+
+# --- tensors in a JSON tree -----------------------------------------------------------------------------------------
+class _TensorWriter:
+    """Replaces the tensors of a tree by references and collects them per file."""
+
+    def __init__(self):
+        self.files: dict[str, dict[str, torch.Tensor]] = {}
+
+    def pack(self, tree, file: str):
+        if isinstance(tree, torch.Tensor):
+            tensors = self.files.setdefault(file, {})
+            key = str(len(tensors))
+            tensors[key] = tree.detach().cpu()
+            return {"$tensor": f"{file}:{key}"}
+        if isinstance(tree, dict):
+            return {key: self.pack(value, file) for key, value in tree.items()}
+        if isinstance(tree, (list, tuple)):
+            return [self.pack(value, file) for value in tree]
+        return tree
+
+
+class _TensorReader:
+    """Resolves the references of a tree, reading each tensor file once (until :meth:`forget`)."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self._files: dict[str, dict[str, torch.Tensor]] = {}
+
+    def unpack(self, tree):
+        if isinstance(tree, dict):
+            if set(tree) == {"$tensor"}:
+                return self._tensor(tree["$tensor"])
+            return {key: self.unpack(value) for key, value in tree.items()}
+        if isinstance(tree, list):
+            return [self.unpack(value) for value in tree]
+        return tree
+
+    def forget(self, name: str) -> None:
+        """Drop a tensor file read before (its tensors stay wherever the tree put them)."""
+        self._files.pop(name, None)
+
+    def _tensor(self, reference: str) -> torch.Tensor:
+        name, _, key = reference.rpartition(":")
+        if name not in self._files:
+            path = self.folder / name
+            try:
+                self._files[name] = torch.load(path, map_location="cpu", weights_only=True)
+            except (OSError, RuntimeError, EOFError, ValueError) as err:
+                raise SessionError(f"{path}: cannot read the session's tensors (missing or truncated file?): {err}") \
+                    from err
+        try:
+            return self._files[name][key]
+        except (KeyError, TypeError):
+            raise SessionError(f"{self.folder / name}: no tensor {key!r} (the file does not match {SESSION_FILE})") \
+                from None
+
+
+# --- the system's state as a tree -----------------------------------------------------------------------------------
+def _extent_tree(extent: SubmapExtent | None) -> dict | None:
+    if extent is None:
+        return None
+    return {"first_pose": extent.first_pose, "anchor_counts": extent.anchor_counts, "num_classes": extent.num_classes,
+            "frusta": [{"camera": dataclasses.asdict(f.camera), "cam_to_world": f.cam_to_world, "near": f.near,
+                        "far": f.far} for f in extent.volume.frusta]}
+
+
+def _submap_file(submap_id: int) -> str:
+    return f"submap_{submap_id:04d}.pt"
+
+
+def _submap_tree(submap: Submap, writer: _TensorWriter) -> dict:
+    file = _submap_file(submap.submap_id)
+    keyframes = []
+    for kf in submap.keyframes:
+        obs = submap.observation(kf)
+        keyframes.append({"frame_id": kf.frame_id, "fixed": kf.fixed, "timestamp": obs.timestamp,
+                          "camera": dataclasses.asdict(obs.camera),
+                          "cam_to_world": writer.pack(kf.cam_to_world, STATE_FILE),
+                          "images": writer.pack({name: getattr(obs, name) for name in _IMAGES}, file)})
+    return {"id": submap.submap_id, "active": submap.is_active, "anchor": writer.pack(submap.anchor, STATE_FILE),
+            "extent": writer.pack(_extent_tree(submap.extent), STATE_FILE),
+            "cloud": writer.pack(submap.load_cloud().tensors(), file), "keyframes": keyframes}
+
+
+def _state_tree(slam: GauSemSLAM, writer: _TensorWriter) -> dict:
+    frames = [{"frame_id": f.frame_id, "timestamp": f.timestamp, "submap": f.submap.submap_id,
+               "reference": f.reference.frame_id, "relative": f.relative} for f in slam.frames]
+    loop = slam.loop_closure.state_dict() if slam.loop_closure is not None else None
+    return {"submaps": [_submap_tree(s, writer) for s in slam.submaps],
+            **writer.pack({"frames": frames, "segment_start": slam.segment_start,
+                           "mapper_generator": slam.mapper.generator.get_state(), "loop_closure": loop}, STATE_FILE)}
+
+
+def save_session(slam: GauSemSLAM, folder: str | Path) -> Path:
+    """Write ``slam``'s whole state into ``folder`` (created; files of an earlier save are replaced). Returns the
+    path of ``session.json``, written last."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    writer = _TensorWriter()
+    document = {"format": FORMAT, "version": VERSION, "config": flatten(slam.cfg), "num_classes": slam.num_classes,
+                "detect_loops": slam.detect_loops, "state": _state_tree(slam, writer)}
+    for name, tensors in writer.files.items():
+        torch.save(tensors, folder / name)
+    path = folder / SESSION_FILE
+    partial = path.with_suffix(".json.partial")
+    partial.write_text(json.dumps(document))
+    os.replace(partial, path)
+    return path
+
+
+# --- loading --------------------------------------------------------------------------------------------------------
+def read_document(folder: str | Path) -> dict:
+    """The checked ``session.json`` of a session folder (:class:`SessionError` or FileNotFoundError otherwise)."""
+    path = Path(folder) / SESSION_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"no saved session in {folder}: {path} does not exist")
+    try:
+        document = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise SessionError(f"{path}: not a readable session file (truncated?): {err}") from err
+    if not isinstance(document, dict) or document.get("format") != FORMAT:
+        raise SessionError(f"{path}: not a {FORMAT} file")
+    if document.get("version") != VERSION:
+        raise SessionError(f"{path}: session format version {document.get('version')!r}; this GauSem reads "
+                           f"version {VERSION}")
+    return document
+
+
+def _extent(tree: dict | None, device: torch.device) -> SubmapExtent | None:
+    if tree is None:
+        return None
+    frusta = [Frustum(PinholeCamera(**f["camera"]), f["cam_to_world"].to(device), f["near"], f["far"])
+              for f in tree["frusta"]]
+    return SubmapExtent(tree["first_pose"].to(device), tree["anchor_counts"], FrustumUnion(frusta), tree["num_classes"])
+
+
+def _submap(tree: dict, reader: _TensorReader, device: torch.device, slam: GauSemSLAM) -> Submap:
+    """One submap, its tensors on ``device`` when active, else offloaded to ``slam``'s store."""
+    tree = reader.unpack(tree)
+    place = device if tree["active"] else "cpu"
+    keyframes = [Keyframe(kf["frame_id"], Observation(**{n: t.to(place) for n, t in kf["images"].items()},
+                                                      camera=PinholeCamera(**kf["camera"]),
+                                                      timestamp=kf["timestamp"]),
+                          kf["cam_to_world"].to(device), kf["fixed"]) for kf in tree["keyframes"]]
+    cloud = GaussianCloud(**tree["cloud"]).to(place)
+    submap = Submap(tree["id"], tree["anchor"].to(device), cloud, keyframes, _extent(tree["extent"], device))
+    if not tree["active"]:
+        submap.offload(slam.store)
+    reader.forget(_submap_file(submap.submap_id))
+    return submap
+
+
+def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torch.device | str = "cpu",
+                 relocalise: bool = True) -> GauSemSLAM:
+    """The system saved in ``folder``, on ``device``, with its saved configuration unless ``cfg`` is given. With
+    ``relocalise`` (default) it starts :attr:`~GauSemSLAM.lost`: its next frame is placed against the map by
+    relocalisation before tracking goes on; without, it goes on exactly as the saved system would have."""
+    folder = Path(folder)
+    document = read_document(folder)
+    slam = GauSemSLAM(cfg or from_flat(document["config"]), device, document["num_classes"], document["detect_loops"])
+    reader = _TensorReader(folder)
+    tree = document["state"]
+    slam.submaps = [_submap(submap, reader, slam.device, slam) for submap in tree["submaps"]]
+    state = reader.unpack({key: value for key, value in tree.items() if key != "submaps"})
+    by_id = {s.submap_id: s for s in slam.submaps}
+    for f in state["frames"]:
+        submap = by_id[f["submap"]]
+        reference = next(kf for kf in submap.keyframes if kf.frame_id == f["reference"])
+        slam.frames.append(FrameRecord(f["frame_id"], f["timestamp"], submap, reference,
+                                       f["relative"].to(slam.device)))
+    slam.segment_start = state["segment_start"]
+    slam.mapper.generator.set_state(state["mapper_generator"])
+    if slam.loop_closure is not None and state["loop_closure"] is not None:
+        slam.loop_closure.load_state_dict(state["loop_closure"])
+    slam.lost = relocalise and bool(slam.submaps)
+    return slam

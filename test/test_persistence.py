@@ -1,0 +1,177 @@
+"""Saving and loading a SLAM session: a bit-identical round trip, a self-contained folder, clear errors, and
+relocalisation of the first frame after loading."""
+import json
+import math
+
+import pytest
+import torch
+
+from gausem_core.config import from_flat
+from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
+from gausem_core.geometry import invert_pose, so3_log
+from gausem_core.slam.allocation import Decision
+from gausem_core.slam.loop_closure import LoopConstraint, LoopRecord
+from gausem_core.slam.observation import Observation
+from gausem_core.slam.persistence import SESSION_FILE, SessionError, _state_tree, _TensorWriter
+from gausem_core.slam.system import GauSemSLAM
+
+SETTINGS = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 60,
+            "submaps.boundary_iterations": 2, "submaps.memory_budget_mb": 0.0, "loop.global_refinement": False}
+SWITCH_AT = (6, 12, 18)  # frames that start a new submap: three submaps when saved, the first two on disk; one more
+SAVED, NEXT = 16, 4
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    """Every 2nd frame of the default synthetic sequence at 80x60 and its world poses (first frame = identity)."""
+    data = SyntheticDataset("default", resolution=(80, 60), stride=2)
+    frames = [data[i] for i in range(len(data))]
+    first = torch.tensor(frames[0].gt_pose)
+    observations = [Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
+                                             f.timestamp) for f in frames]
+    return observations, [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]
+
+
+class ScriptedPolicy:
+    """Starts a new submap at the keyframes with the given timestamps."""
+
+    def __init__(self, timestamps):
+        self.timestamps = set(timestamps)
+
+    def should_start_new(self, extent, obs, cam_to_world) -> Decision:
+        return Decision(obs.timestamp in self.timestamps, math.nan, math.nan, "scripted")
+
+
+def scripted(slam, observations):
+    slam.allocation = ScriptedPolicy(observations[i].timestamp for i in SWITCH_AT)
+    return slam
+
+
+@pytest.fixture(scope="module")
+def saved(sequence, tmp_path_factory):
+    """A system after SAVED frames (real tracking and loop closure), saved to a folder."""
+    observations, _ = sequence
+    slam = scripted(GauSemSLAM(from_flat(SETTINGS), "cpu", len(SYNTHETIC_CLASSES)), observations)
+    for obs in observations[:SAVED]:
+        slam.process(obs)
+    folder = tmp_path_factory.mktemp("session")
+    slam.save(folder)
+    return slam, folder
+
+
+def state(slam):
+    """Everything a session holds, as (JSON tree, tensors by file)."""
+    writer = _TensorWriter()
+    return _state_tree(slam, writer), writer.files
+
+
+def assert_same_state(a, b):
+    tree_a, files_a = state(a)
+    tree_b, files_b = state(b)
+    assert tree_a == tree_b and files_a.keys() == files_b.keys()
+    for name in files_a:
+        for key, tensor in files_a[name].items():
+            other = files_b[name][key]
+            assert tensor.dtype == other.dtype and torch.equal(tensor, other), f"{name}:{key}"
+
+
+def test_a_loaded_session_goes_on_bit_identically(sequence, saved):
+    observations, _ = sequence
+    original, folder = saved
+    assert len(original.submaps) == 3 and [s.is_active for s in original.submaps] == [False, False, True]
+    assert original.store.on_disk(("cloud", 0)) and original.loop_closure.detector.database.ids.size > 0
+    loaded = scripted(GauSemSLAM.load(folder, relocalise=False), observations)
+    assert_same_state(original, loaded)
+    assert not loaded.submaps[0].is_active and loaded.store.on_disk(("cloud", 0))
+    for obs in observations[SAVED:SAVED + NEXT]:
+        a, b = original.process(obs), loaded.process(obs)
+        assert (a.frame_id, a.submap_id, a.is_keyframe) == (b.frame_id, b.submap_id, b.is_keyframe)
+        assert torch.equal(a.cam_to_world, b.cam_to_world) and a.tracking_loss == b.tracking_loss
+    assert loaded.frames[-1].frame_id == SAVED + NEXT - 1 and b.submap_id == 3  # ids go on after the saved ones
+    assert_same_state(original, loaded)
+    for x, y in zip(original.global_cloud().tensors().values(), loaded.global_cloud().tensors().values()):
+        assert torch.equal(x, y)
+
+
+def test_the_session_folder_is_self_contained(saved, tmp_path):
+    """A system's offloaded submaps (spilled to its temporary store) survive that store's deletion in the save."""
+    _, folder = saved
+    system = GauSemSLAM.load(folder, relocalise=False)
+    assert system.store.on_disk(("cloud", 0))
+    system.save(tmp_path / "again")
+    cloud, trajectory = system.global_cloud(), system.trajectory()
+    images = system.submaps[0].observation(system.submaps[0].keyframes[-1]).rgb
+    system.close()  # deletes the spill folder
+    loaded = GauSemSLAM.load(tmp_path / "again")
+    assert all(torch.equal(x, y) for x, y in zip(cloud.tensors().values(), loaded.global_cloud().tensors().values()))
+    assert all(t == u and torch.equal(p, q) for (t, p), (u, q) in zip(trajectory, loaded.trajectory()))
+    assert torch.equal(loaded.submaps[0].observation(loaded.submaps[0].keyframes[-1]).rgb, images)
+
+
+def test_relocalisation_places_an_earlier_frame(sequence, saved):
+    observations, poses = sequence
+    _, folder = saved
+    loaded = GauSemSLAM.load(folder)
+    assert loaded.lost
+    frames = len(loaded.frames)
+    result = loaded.process(observations[3])  # a frame from the first (offloaded) submap's part of the sequence
+    reloc = result.relocalisation
+    assert reloc is not None and reloc.accepted and not loaded.lost and reloc.starts > 1
+    error = invert_pose(poses[3].double()) @ result.cam_to_world.double()
+    assert float(error[:3, 3].norm()) < 0.02
+    assert math.degrees(float(so3_log(error[:3, :3]).norm())) < 2.0
+    assert len(loaded.frames) == frames + 1 and loaded.segment_start == frames
+    follow = loaded.process(observations[4])  # tracking goes on from there
+    assert follow.relocalisation is None
+
+
+def test_a_frame_that_does_not_fit_the_map_is_dropped(sequence, saved):
+    observations, _ = sequence
+    _, folder = saved
+    loaded = GauSemSLAM.load(folder)
+    before = state(loaded)
+    far = observations[3]
+    wrong = Observation(far.rgb.flip(0), far.depth.flip(1) * 3.0, far.semantic, far.labels, far.camera, far.timestamp)
+    result = loaded.process(wrong)
+    assert result.relocalisation is not None and not result.relocalisation.accepted and loaded.lost
+    tree, files = state(loaded)
+    assert tree == before[0] and all(torch.equal(t, before[1][n][k]) for n in files for k, t in files[n].items())
+
+
+def test_unreadable_sessions_are_named(saved, tmp_path):
+    _, folder = saved
+    with pytest.raises(FileNotFoundError, match="no saved session"):
+        GauSemSLAM.load(tmp_path / "missing")
+    document = json.loads((folder / SESSION_FILE).read_text())
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / SESSION_FILE).write_text(json.dumps({**document, "version": 99}))
+    with pytest.raises(SessionError, match="version 99"):
+        GauSemSLAM.load(bad)
+    truncated = tmp_path / "truncated"
+    truncated.mkdir()
+    for path in folder.iterdir():
+        (truncated / path.name).write_bytes(path.read_bytes())
+    data = (truncated / "submap_0001.pt").read_bytes()
+    (truncated / "submap_0001.pt").write_bytes(data[:len(data) // 2])
+    with pytest.raises(SessionError, match="submap_0001.pt"):
+        GauSemSLAM.load(truncated)
+    (truncated / SESSION_FILE).write_text((folder / SESSION_FILE).read_text()[:100])
+    with pytest.raises(SessionError, match=SESSION_FILE):
+        GauSemSLAM.load(truncated)
+
+
+def test_loop_records_and_constraints_survive(saved, tmp_path):
+    _, folder = saved
+    system = GauSemSLAM.load(folder, relocalise=False)
+    loop = system.loop_closure
+    loop.records.append(LoopRecord(14, 2, 2, 0, False, True, 0.91, 0.5))
+    loop.constraints.append(LoopConstraint(2, 14, 0, 2, torch.eye(4, dtype=torch.float64) * 1.5, (0.01, 0.02), 0.91,
+                                           False))
+    system.save(tmp_path / "loops")
+    back = GauSemSLAM.load(tmp_path / "loops").loop_closure
+    assert back.records == loop.records
+    (a,), (b,) = loop.constraints, back.constraints
+    assert torch.equal(a.relative, b.relative) and a.relative.dtype == b.relative.dtype
+    assert (a.keyframe_a, a.submap_b, a.sigmas, a.fitness, a.intra) == (b.keyframe_a, b.submap_b, b.sigmas,
+                                                                        b.fitness, b.intra)
