@@ -197,7 +197,12 @@ class Player(Node):
         """The playback thread: publish what is due, sleep until the next frame is due or an answer arrives."""
         while not self._stop.is_set() and not self.done:
             self._wake.clear()
-            self._tick()
+            try:
+                self._tick()
+            except Exception:  # noqa: BLE001 (rclpy's RCLError) a publish racing a shutdown (Ctrl-C) ends playback
+                if self.context.ok():
+                    raise
+                return
             self._wake.wait(self._sleep())
 
     def _sleep(self) -> float:

@@ -7,16 +7,19 @@ by a slow frame and the tracker always sees the newest frame.
 
 Which nodes: tracking_mapping always; segmentation unless ``semantics.segmenter`` is ``labels`` (then the labels come
 with the data); loop_detection (needs labels) and pose_graph when ``loop.enabled`` and tracking_mapping's
-``loop_closure`` is ``nodes`` (the default; with ``core`` the tracking node closes loops itself). The ROS arguments (params file,
-``-p``, remappings) apply to every node. With a SOURCE the process ends when the player is done (after ``--save`` and
-``--report``); without, it runs until Ctrl-C. On Ctrl-C or SIGTERM the frame in progress is finished, ``--save`` still
-writes the map, and the input accounting (frames in, processed, dropped by reason, latency) is printed. ``--report DIR`` evaluates the run like ``gausem run`` (ATE, PSNR, SSIM,
-mIoU, fps; trajectories, map, metrics JSON, montage in DIR) against a reference dataset: SOURCE when it is a dataset,
-else ``--reference SPEC`` (for a bag from ``gausem-bag SPEC``: the same SPEC; opened at the processed image size).
+``loop_closure`` is ``nodes`` (the default; with ``core`` the tracking node closes loops itself). The ROS arguments
+(params file, ``-p``, remappings) apply to every node. With a SOURCE the process ends when the player is done (after
+``--save`` and ``--report``); without, it runs until Ctrl-C. On Ctrl-C or SIGTERM the frame in progress is
+finished, ``--save`` still writes the map, and the input accounting (frames in, processed, dropped by reason,
+latency) is logged. ``--report DIR`` evaluates the run like ``gausem run`` (ATE, PSNR, SSIM, mIoU, fps; trajectories,
+map, metrics JSON, montage in DIR; the input accounting in ``input.json``) against a reference dataset: SOURCE when
+it is a dataset, else ``--reference SPEC`` (for a bag from ``gausem-bag SPEC``: the same SPEC; opened at the
+processed image size).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from collections.abc import Callable
@@ -31,7 +34,7 @@ from gausem_core.data import open_dataset
 from gausem_core.report import format_summary
 
 from .evaluation import write_report
-from .executor import NodeExecutor
+from .executor import NodeExecutor, exit_now
 from .nodes.loop_detection import LoopDetectionNode
 from .nodes.pose_graph import PoseGraphNode
 from .nodes.segmentation import SegmentationNode
@@ -84,14 +87,18 @@ def params_file(argv: list[str]) -> str | None:
     return files[-1] if files else None
 
 
-def report(tracking: TrackingMappingNode, ns: argparse.Namespace, argv: list[str]) -> None:
-    """Evaluate the run against the reference dataset, write the outputs to ``ns.report`` and print the summary."""
+def report(tracking: TrackingMappingNode, player, ns: argparse.Namespace, argv: list[str]) -> None:
+    """Evaluate the run against the reference dataset, write the outputs to ``ns.report`` (with the input accounting
+    in ``input.json``) and print the summary."""
     if not tracking.frames_processed:
         raise ValueError("--report: no frame was processed, there is nothing to evaluate")
     camera = tracking.camera
     reference = open_dataset(ns.reference or ns.source, size=(camera.width, camera.height))
     metrics = write_report(tracking.slam, tracking.cfg, reference, ns.report, tracking.seconds,
                            eval_every=ns.eval_every, params_file=params_file(argv))
+    accounting = {**tracking.summary(), "player": {"published": player.published, "timeouts": player.timeouts,
+                                                   "playback_seconds": round(player.playback_seconds, 3)}}
+    (Path(ns.report) / "input.json").write_text(json.dumps(accounting, indent=2) + "\n")
     print(format_summary(metrics))
     print(f"outputs written to {ns.report}/")
 
@@ -146,6 +153,8 @@ def main(args=None) -> int:
             pass
         interrupted = not rclpy.ok()  # SIGINT or SIGTERM shut the context down
         bar.close()
+        if interrupted:
+            tracking.interrupt()
         executor.shutdown()  # waits for the frame in progress
         tracking.get_logger().info(accounting(tracking, player))
         if player is not None and not interrupted:
@@ -154,7 +163,7 @@ def main(args=None) -> int:
             ply, trajectory = tracking.save_map(ns.save)
             tracking.get_logger().info(f"wrote {ply} and {trajectory}")
         if ns.report and not interrupted:
-            report(tracking, ns, argv)
+            report(tracking, player, ns, argv)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as err:
@@ -165,7 +174,10 @@ def main(args=None) -> int:
         for node in nodes + ([player] if player else []):
             node.destroy_node()
         rclpy.try_shutdown()
-    return 1 if player is not None and player.error else 0
+    code = 1 if player is not None and player.error else 0
+    if args is None:  # a command line
+        exit_now(code)
+    return code
 
 
 if __name__ == "__main__":

@@ -4,6 +4,8 @@ Tracking is replaced by an oracle that returns the ground-truth pose (in the act
 exercise the submap machinery and do not depend on tracker accuracy; mapping runs for real, with tiny iteration counts.
 """
 import math
+import threading
+import time
 
 import pytest
 import torch
@@ -188,3 +190,21 @@ def test_anchor_chains_stay_rigid():
 def test_boundary_settings_are_checked():
     with pytest.raises(ValueError, match="boundary_window"):
         GauSemSLAM(from_flat({"submaps.boundary_window": 0}))
+
+
+
+def test_interrupt_cuts_the_frame_in_progress_short_and_leaves_a_consistent_map():
+    """Ctrl-C in a live node: another thread interrupts a long optimisation, which stops at its next iteration; the
+    frame is recorded and the next frame runs unhurried."""
+    cfg = from_flat({**CHEAP, "device": "cpu", "mapping.init_iterations": 100000, "loop.global_refinement": False})
+    slam = GauSemSLAM(cfg, "cpu", num_classes=len(SYNTHETIC_CLASSES))
+    data = SyntheticDataset("default", resolution=(40, 30))
+    obs = [Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette, f.timestamp)
+           for f in (data[0], data[1])]
+    threading.Timer(0.5, slam.interrupt).start()
+    start = time.monotonic()
+    slam.process(obs[0])  # 100000 initial iterations: many minutes, unless cut short
+    assert time.monotonic() - start < 5.0
+    assert len(slam.frames) == 1 and len(slam.active.cloud) > 0
+    slam.process(obs[1])
+    assert len(slam.frames) == 2 and not slam.mapper.hurry.is_set()

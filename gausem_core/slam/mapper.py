@@ -1,6 +1,7 @@
 """Mapping (paper §III-A, Eq. 3-4): semantic-sampling initialisation, densification, keyframe-window bundle adjustment."""
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import torch
@@ -54,6 +55,7 @@ class Mapper:
         self.cfg = cfg
         self.backend = backend
         self.generator = torch.Generator().manual_seed(seed)
+        self.hurry = threading.Event()  # set: optimisations stop at their next iteration (GauSemSLAM.interrupt)
 
     def initialise(self, obs: Observation, cam_to_world: torch.Tensor) -> GaussianCloud:
         """A new submap's Gaussians from one frame by semantic sampling, before any optimisation."""
@@ -94,6 +96,8 @@ class Mapper:
         optimiser = torch.optim.Adam(groups)
         losses = []
         for _ in range(iterations):
+            if self.hurry.is_set():
+                break
             kf = keyframes[int(torch.randint(len(keyframes), (1,), generator=self.generator))]
             w2c = invert_pose(kf.cam_to_world.to(params.dtype))
             if id(kf) in twists:

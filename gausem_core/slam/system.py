@@ -202,6 +202,7 @@ class GauSemSLAM:
         fails); at a keyframe, start a new submap when the allocation policy says so, else map the keyframe into the
         active one."""
         frame_id = len(self.frames)
+        self.mapper.hurry.clear()
         if not self.submaps:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
             self._close_loops()
@@ -246,6 +247,11 @@ class GauSemSLAM:
         if before is None:
             return self.tracker.track(self.active.cloud, obs, previous)
         return self.tracker.track(self.active.cloud, obs, constant_velocity(previous, before), [previous])
+
+    def interrupt(self) -> None:
+        """Ask the frame in progress (in another thread) to finish early, e.g. on Ctrl-C: optimisations stop at their
+        next iteration, so the map stays consistent, only less refined. The next frame clears it."""
+        self.mapper.hurry.set()
 
     def relocalise(self, obs: Observation) -> RelocalisationResult:
         """Place a frame against the map without the motion model (``slam.relocalisation``): tracked from the last

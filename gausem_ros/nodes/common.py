@@ -17,7 +17,7 @@ from gausem_core.config import SlamConfig, flatten, from_flat
 from gausem_core.data.classes import NYU40_CLASSES, SCANNET20_CLASSES, SYNTHETIC_CLASSES, ClassTable
 from msg_adapters import make_header
 
-from ..executor import NodeExecutor
+from ..executor import NodeExecutor, exit_now
 from ..qos import EVENT_QOS
 
 CLASS_TABLES = {"synthetic": SYNTHETIC_CLASSES, "nyu40": NYU40_CLASSES, "scannet20": SCANNET20_CLASSES}
@@ -172,8 +172,12 @@ def run_node(factory: Callable, args=None) -> int:
         rclpy.logging.get_logger("gausem").error(str(err))
         return 1
     finally:
+        if hasattr(node, "interrupt"):  # a frame in progress finishes early
+            node.interrupt()
         executor.shutdown()  # waits for the callback in progress
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if args is None:  # a command line
+        exit_now(0)
     return 0

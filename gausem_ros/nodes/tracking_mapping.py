@@ -11,9 +11,15 @@ Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_f
 ``gausem/submaps`` (SubmapEvent), ``gausem/loop_constraints`` (LoopConstraintRecord, every accepted loop) and
 ``gausem/diagnostics`` (dropped inputs by reason, frames processed, the stamp of
 the last frame handled). ``seconds``: the processing time so far, for fps.
-Services (std_srvs/Trigger): ``gausem/save_map`` writes ``map.ply`` and ``trajectory.txt`` (TUM) to ``output_dir``;
-``gausem/finish`` ends the sequence with the global refinement (as the offline pipeline does after the last frame);
-``gausem/reset`` starts a new map.
+Services (std_srvs/Trigger): ``gausem/save_map`` writes ``map.ply``, ``trajectory.txt`` (TUM) and the whole SLAM
+state (``session/``, :mod:`gausem_core.slam.persistence`) to ``output_dir``; ``gausem/load_map`` replaces the map by
+the session in ``map_path`` (default: ``output_dir/session``); ``gausem/finish`` ends the sequence with the global
+refinement (as the offline pipeline does after the last frame); ``gausem/reset`` starts a new map.
+
+Resuming: with ``map_path`` set, the node starts from that saved session (a restarted tracker goes on with the map it
+saved). A loaded map is re-published (submaps, keyframes, path, map), so pose_graph rebuilds its graph, and the
+next frames are relocalised against it (the robot is not where the last saved frame was): until one is placed, frames
+are dropped as ``relocalisation_failed`` and nothing is published for them.
 
 Live input: the image subscriptions run in their own callback group, so with a multi-threaded executor (as every
 GauSem entry point uses) inputs keep arriving while a frame is processed; frames are processed one at a time, the
@@ -80,7 +86,8 @@ NODE_DEFAULTS = {
     "min_valid_depth": 0.05,     # fraction of pixels with a valid depth below which a frame is dropped
     "output_dir": "gausem_output",
     "loop_closure": "nodes",     # or "core": see the module docstring
-    "save_on_exit": False,       # write map.ply and trajectory.txt to output_dir when the node shuts down
+    "save_on_exit": False,       # write map.ply, trajectory.txt and session/ to output_dir when the node shuts down
+    "map_path": "",              # a saved session folder to start from (and for gausem/load_map)
 }
 LOOP_CLOSURE_MODES = ("nodes", "core")
 SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched"}
@@ -140,16 +147,24 @@ class TrackingMappingNode(Node):
         self.create_timer(p.map_publish_period, self._publish_map)
         self.create_service(Trigger, "gausem/save_map", self._on_save_map)
         self.create_service(Trigger, "gausem/reset", self._on_reset)
+        self.create_service(Trigger, "gausem/load_map", self._on_load_map)
         self.create_service(Trigger, "gausem/finish", self._on_finish)
+        if p.map_path:
+            try:
+                self.load_map(p.map_path)
+            except OSError as err:
+                raise ValueError(f"tracking_mapping: cannot load map_path {p.map_path!r}: {err}") from err
 
     @property
     def loop_nodes(self) -> bool:
         """Whether loops come from the loop_detection and pose_graph nodes (``loop_closure: nodes``)."""
         return self.cfg.loop.enabled and self.params.loop_closure == "nodes"
 
-    def _reset_state(self) -> None:
+    def _reset_state(self, slam: GauSemSLAM | None = None) -> None:
+        """A new map (or ``slam``, a loaded one) with the node's per-map state cleared."""
         torch.manual_seed(self.cfg.seed)
-        self.slam = GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette), detect_loops=not self.loop_nodes)
+        self.slam = slam or GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette),
+                                       detect_loops=not self.loop_nodes)
         self._constraints_published = 0  # of the core's own constraints (loop_closure: core)
         self.frames_processed = 0
         self._busy: tuple[float, float] | None = None  # perf_counter at the first processed frame's start, last end
@@ -235,6 +250,9 @@ class TrackingMappingNode(Node):
         submaps_before = len(self.slam.submaps)
         result = self.slam.process(obs)
         self._last_stamp = obs.timestamp
+        if result.relocalisation is not None:
+            if not self._relocalised(result.relocalisation, obs.timestamp):
+                return
         pose = _numpy_pose(result.cam_to_world)
         if not np.isfinite(pose).all():
             self._in_progress = False
@@ -255,6 +273,18 @@ class TrackingMappingNode(Node):
         self._publish_core_constraints(header)
         self._map_dirty = True
         self.drops.publish()
+
+    def _relocalised(self, reloc, stamp: float) -> bool:
+        """Report a relocalisation against a loaded map; whether it placed the frame."""
+        if not reloc.accepted:
+            self._in_progress = False
+            self.drops.drop("relocalisation_failed", f"frame stamped {stamp:.6f} s could not be placed against the "
+                                                     f"loaded map (inlier fraction {reloc.inlier_fraction:.2f}); the "
+                                                     "next frame tries again")
+            return False
+        self.get_logger().info(f"relocalised against the loaded map (submap {reloc.submap_id}, inlier fraction "
+                               f"{reloc.inlier_fraction:.2f}); tracking goes on")
+        return True
 
     def _status(self) -> dict:
         """Diagnostics besides the drop counts: frames in, processed and pending, the latency over the last 100
@@ -377,9 +407,11 @@ class TrackingMappingNode(Node):
 
     # --- services -----------------------------------------------------------------------------------------------
     def save_map(self, folder: str | Path) -> tuple[Path, Path]:
-        """Write the map (3DGS-style PLY with class ids) and the trajectory (TUM) to ``folder``."""
+        """Write the map (3DGS-style PLY with class ids), the trajectory (TUM) and the session (``session/``, what
+        ``map_path`` loads) to ``folder``."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
+        self.slam.save(folder / "session")
         cloud = self.slam.global_cloud()
         ply, trajectory = folder / "map.ply", folder / "trajectory.txt"
         write_gaussian_ply(ply, cloud, cloud.class_ids(self.palette.to(cloud.means.device)))
@@ -396,6 +428,37 @@ class TrackingMappingNode(Node):
             response.success, response.message = False, f"could not write to {self.params.output_dir}: {err}"
         else:
             response.success, response.message = True, f"wrote {ply} and {trajectory}"
+        return response
+
+    def load_map(self, folder: str | Path) -> None:
+        """Replace the map by a saved session (raises OSError / ValueError when it cannot be read), re-publish it and
+        relocalise the next frames against it."""
+        slam = GauSemSLAM.load(folder, self.device, cfg=self.cfg)
+        slam.detect_loops = not self.loop_nodes
+        self.slam.close()
+        self._reset_state(slam)
+        self._constraints_published = len(slam.loop_closure.constraints) if slam.loop_closure else 0
+        header = ma.make_header(max((f.timestamp for f in slam.frames), default=0.0), self.params.map_frame)
+        events = [ma.SubmapEvent(s.submap_id, s.keyframes[0].frame_id, _numpy_pose(s.anchor),
+                                 ma.SubmapEventKind.CREATED) for s in slam.submaps]
+        if events:
+            self._submap_pub.publish(ma.records_to_pointcloud2(events, header))
+        for submap in slam.submaps:
+            self._publish_keyframes(submap, None, header)
+        self._publish_path()
+        self._map_dirty = True
+        self.get_logger().info(f"loaded the map in {folder}: {len(slam.submaps)} submaps, {len(slam.frames)} frames; "
+                               "the next frames are relocalised against it")
+
+    def _on_load_map(self, request, response):
+        del request
+        folder = self.get_parameter("map_path").value or str(Path(self.params.output_dir) / "session")
+        try:
+            self.load_map(folder)
+        except (OSError, ValueError) as err:  # missing, truncated or foreign folder: the current map stays
+            response.success, response.message = False, f"could not load {folder}: {err}"
+        else:
+            response.success, response.message = True, f"loaded {folder}"
         return response
 
     def _on_finish(self, request, response):
@@ -417,14 +480,19 @@ class TrackingMappingNode(Node):
         return response
 
 
+    def interrupt(self) -> None:
+        """Shutting down: the frame in progress finishes early (its optimisation cut short)."""
+        self.slam.interrupt()
+
     def destroy_node(self) -> None:
-        """With ``save_on_exit``, the map and trajectory are written to ``output_dir`` first."""
+        """With ``save_on_exit``, the map, trajectory and session are written to ``output_dir`` first."""
         if self.params.save_on_exit and self.frames_processed:
             try:
                 ply, trajectory = self.save_map(self.params.output_dir)
                 self.get_logger().info(f"wrote {ply} and {trajectory}")
             except OSError as err:
                 self.get_logger().error(f"save_on_exit: could not write to {self.params.output_dir}: {err}")
+        self.slam.close()  # deletes spilled submaps now (a command-line process skips the interpreter's teardown)
         super().destroy_node()
 
 

@@ -1,0 +1,80 @@
+"""The node suite on a sequence replayed like a live camera (``--rate 1``) against the same sequence in lock-step.
+
+Runs ``gausem-ros SOURCE --report DIR`` twice in fresh processes, both on the same parameters: once in lock-step
+(every frame processed, the reference) and once at the recorded rate (the tracker takes the newest frame and drops
+what it cannot keep up with). Recorded per run: frames in, processed, dropped by reason, pending, latency median and
+p95 (a synchronised frame's arrival to its pose's publication), the player's playback time, and the ATE of the
+processed frames; written to ``benchmarks/results/realtime_<name>.{json,md}``.
+
+    .venv/bin/python benchmarks/realtime.py [--source tum:../shared/data/tum_fr1_rpy] [--size 160x120]
+        [--params params/tum.yaml] [--name tum_fr1_rpy_160x120] [-- ROS_ARGS...]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from gausem_core.io.metrics import git_commit
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+MODES = {"lock-step": ["--lockstep", "--rate", "0", "--timeout", "600"], "rate 1": ["--rate", "1"]}
+
+
+def run(mode: str, args, ros_args: list[str], out: Path) -> dict:
+    cmd = [str(BIN / "gausem-ros"), args.source, "--size", args.size, *MODES[mode], "--quiet", "--report", str(out),
+           "--ros-args", "--params-file", args.params, *ros_args]
+    env = {**os.environ, "ROS_DOMAIN_ID": os.environ.get("ROS_DOMAIN_ID", "57"),
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    start = time.monotonic()
+    result = subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True)
+    if result.returncode:
+        raise SystemExit(f"{mode} run failed ({result.returncode}):\n{result.stderr[-3000:]}")
+    metrics = json.loads((out / "metrics.json").read_text())["metrics"]
+    accounting = json.loads((out / "input.json").read_text())
+    return {"mode": mode, "wall_s": round(time.monotonic() - start, 1), "ate_cm": round(100 * metrics["ate"]["rmse"], 2),
+            "ate_pairs": metrics["ate"]["pairs"], **accounting}
+
+
+def markdown(rows: list[dict], args, ros_args: list[str]) -> str:
+    lines = [f"# Real-time replay: {args.source} at {args.size}", "",
+             f"`.venv/bin/python benchmarks/realtime.py --source {args.source} --size {args.size} --params "
+             f"{args.params} --name {args.name}{' -- ' + ' '.join(ros_args) if ros_args else ''}` at commit "
+             f"{git_commit()} on {platform.node()} ({os.cpu_count()} CPU cores, no GPU).", "",
+             "| mode | frames in | processed | dropped (by reason) | pending | latency median / p95 (ms) | playback (s) "
+             "| ATE (cm, processed frames) |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        dropped = ", ".join(f"{k} {v}" for k, v in r["dropped"].items()) or "none"
+        lines.append(f"| {r['mode']} | {r['frames_in']} | {r['frames_processed']} | {sum(r['dropped'].values())} "
+                     f"({dropped}) | {r['frames_pending']} | {r.get('latency_ms.median', '-')} / "
+                     f"{r.get('latency_ms.p95', '-')} | {r['player']['playback_seconds']} | {r['ate_cm']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    argv = sys.argv[1:]
+    ros_args = argv[argv.index("--") + 1:] if "--" in argv else []
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--source", default="tum:../shared/data/tum_fr1_rpy")
+    parser.add_argument("--size", default="160x120")
+    parser.add_argument("--params", default="params/tum.yaml")
+    parser.add_argument("--name", default="tum_fr1_rpy_160x120")
+    args = parser.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = [run(mode, args, ros_args, Path(tmp) / mode.replace(" ", "_")) for mode in MODES]
+    results = REPO / "benchmarks" / "results"
+    (results / f"realtime_{args.name}.json").write_text(json.dumps(rows, indent=2) + "\n")
+    text = markdown(rows, args, ros_args)
+    (results / f"realtime_{args.name}.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
