@@ -277,7 +277,7 @@ def test_the_slam_system_builds_the_cpu_kernel_before_its_first_frame(monkeypatc
     monkeypatch.setattr(native, "_error", None)
     monkeypatch.setattr(torch.utils.cpp_extension, "load", fake_build)
     GauSemSLAM(from_flat({"backend": "auto"}), "cpu")
-    assert builds == ["gausem_cpu_kernels"] and native._kernel == "kernel"
+    assert builds == [native.KERNEL_NAME] and native._kernel == "kernel"
     GauSemSLAM(from_flat({"backend": "auto"}), "cpu")
     assert len(builds) == 1  # loaded once per process
     monkeypatch.setattr(native, "_kernel", None)

@@ -4,12 +4,14 @@
 
 The extension is compiled with ``torch.utils.cpp_extension`` (needs a C++ compiler with OpenMP, and ninja: the
 ``ninja`` wheel of ``requirements.txt`` is found next to the running Python) into torch's extension cache
-(``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``): tens of seconds once per machine, a fraction of a
-second afterwards. Loops run in parallel on torch's intra-op threads. When it cannot be built, :func:`kernel_error`
+(``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``) under a name keyed by this checkout's folder
+(:data:`KERNEL_NAME`), so two checkouts on one machine do not rebuild each other's build: tens of seconds once per
+checkout, a fraction of a second afterwards. Loops run in parallel on torch's intra-op threads. When it cannot be built, :func:`kernel_error`
 says why and every caller falls back to its torch implementation.
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import sys
 import threading
@@ -17,6 +19,7 @@ from pathlib import Path
 
 _HERE = Path(__file__).parent
 _SOURCES = [str(_HERE / name) for name in ("bindings.cpp", "raster.cpp", "alignment.cpp")]
+KERNEL_NAME = f"gausem_cpu_kernels_{hashlib.sha1(str(_HERE.resolve()).encode()).hexdigest()[:10]}"
 _lock = threading.Lock()
 _kernel = None
 _error: str | None = None
@@ -40,8 +43,8 @@ def _load():
                 from torch.utils.cpp_extension import load
 
                 _ninja_on_path()
-                _kernel = load(name="gausem_cpu_kernels", sources=_SOURCES, extra_cflags=["-O3", "-fopenmp"],
-                               extra_ldflags=["-fopenmp"], extra_include_paths=[str(_HERE)], verbose=False)
+                _kernel = load(name=KERNEL_NAME, sources=_SOURCES, extra_cflags=["-O3", "-fopenmp"],
+                               extra_ldflags=["-fopenmp"], verbose=False)  # kernels.h: beside the sources
             except Exception as exc:  # noqa: BLE001 -- a missing compiler shows up as many different errors
                 _error = f"{type(exc).__name__}: {exc}".strip()
         return _kernel
