@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from gausem_core.data import SYNTHETIC_CLASSES
+from gausem_core.eval.fragmentation import allocation_cohesion
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, make_pose, se3_exp, so3_exp
 from gausem_core.slam.allocation import SubmapExtent
@@ -80,3 +81,15 @@ def test_the_semantic_palette_learns_the_same_colours_on_any_device(device):
         palette.update(image.to(device))
         expected.update(image)
     assert torch.equal(palette.colors, expected.colors) and len(palette) == 5
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_allocation_cohesion_on_the_keyframes_device(device):
+    labels = torch.zeros(24, 32, dtype=torch.long)
+    labels[:, 16:] = 3
+    depth = torch.full((24, 32), 2.0)
+    poses = [torch.eye(4, dtype=torch.float64), se3_exp(torch.tensor([0.3, 0, 0, 0, 0.1, 0], dtype=torch.float64))]
+    keyframes = [(depth, labels, CAMERA, pose) for pose in poses]
+    moved = [(d.to(device), lab.to(device), camera, pose) for d, lab, camera, pose in keyframes]  # CPU poses
+    expected = allocation_cohesion(keyframes, [0, 1], (), min_points=10, revisit_gap=1)
+    assert allocation_cohesion(moved, [0, 1], (), min_points=10, revisit_gap=1).objects == expected.objects
