@@ -113,7 +113,8 @@ class SemanticPalette:
         self.colors = torch.cat([self.colors, found])
 
     def class_ids(self, cloud: GaussianCloud) -> torch.Tensor:
-        return cloud.class_ids(self.colors).cpu()
+        """(N,) class id of each Gaussian (the nearest colour's index), on the cloud's device."""
+        return cloud.class_ids(self.colors)
 
 
 _KEY_BITS = 21  # per channel: 3 x 21 bits fit an int64; colours closer than 2^-21 share a key
@@ -206,13 +207,13 @@ class LoopClosure:
         return self._descriptors[keyframe.frame_id]
 
     def _landmark_scores(self, submap, keyframe: Keyframe) -> torch.Tensor:
-        """Eq. 7 over the submap's Gaussians that the keyframe observes."""
+        """Eq. 7 over the submap's Gaussians that the keyframe observes, computed where they are; (C,) on the CPU."""
         if len(submap.cloud) == 0:
             return torch.zeros(len(self.palette), dtype=torch.float64)
         ids = self.palette.class_ids(submap.cloud)
         seen = observed_gaussians(submap.cloud.means.detach(), keyframe.cam_to_world, keyframe.obs.camera,
-                                  keyframe.obs.depth).cpu()
-        return landmark_scores(ids, seen, gaussian_idf(ids, len(self.palette)))
+                                  keyframe.obs.depth)
+        return landmark_scores(ids, seen, gaussian_idf(ids, len(self.palette))).cpu()
 
     def _nearby(self, submaps: Sequence, cam_to_world: torch.Tensor) -> list[int]:
         """Frame ids of the keyframes near ``cam_to_world`` (world frame) in the current estimates."""
