@@ -96,7 +96,8 @@ class GaussianCloud:
     def transformed(self, pose: torch.Tensor) -> "GaussianCloud":
         """Rigidly move the centres by a 4x4 transform (isotropic kernels need no rotation)."""
         out = self.clone()
-        out.means = self.means.detach() @ pose[:3, :3].T.to(self.dtype) + pose[:3, 3].to(self.dtype)
+        pose = pose.to(self.means)
+        out.means = self.means.detach() @ pose[:3, :3].T + pose[:3, 3]
         return out
 
     @staticmethod

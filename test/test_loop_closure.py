@@ -119,3 +119,19 @@ def test_semantic_palette_learns_colours_in_order():
     cloud = GaussianCloud.from_points(torch.zeros(2, 3), torch.zeros(2, 3), PALETTE[[7, 2]] + 0.01, torch.ones(2))
     ids = palette.class_ids(cloud)
     torch.testing.assert_close(palette.colors[ids], PALETTE[[7, 2]])
+
+
+def test_semantic_palette_learns_what_a_unique_sort_of_all_pixels_learns():
+    """The keyed lookup against the unique sort it replaced: new colours in ascending (r, g, b) order, and a colour
+    within 1e-4 of a known one never added (also when it comes back)."""
+    g = torch.Generator().manual_seed(0)
+    images = [PALETTE[torch.randint(0, classes, (6, 8), generator=g)] for classes in (3, 6, 12)]
+    images.insert(1, torch.cat([images[0], (PALETTE[1] + 5e-5).expand(1, 8, 3)]))
+    palette, expected = SemanticPalette(), torch.zeros(0, 3)
+    for image in images + images[1:2]:
+        palette.update(image)
+        found = torch.unique(image.reshape(-1, 3), dim=0)
+        if len(expected):
+            found = found[torch.cdist(found, expected).min(1).values > 1e-4]
+        expected = torch.cat([expected, found])
+    assert torch.equal(palette.colors, expected) and len(palette) == 12

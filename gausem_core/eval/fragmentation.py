@@ -29,7 +29,7 @@ def keyframe_points(depth: torch.Tensor, labels: torch.Tensor, camera: PinholeCa
                          f"{camera.height}x{camera.width}")
     points = camera.backproject(depth.double())[::stride, ::stride].reshape(-1, 3)
     keep = (depth[::stride, ::stride] > 0).reshape(-1)
-    return transform_points(cam_to_world.double(), points[keep]), labels[::stride, ::stride].reshape(-1)[keep]
+    return transform_points(cam_to_world.to(points), points[keep]), labels[::stride, ::stride].reshape(-1)[keep]
 
 
 def object_instances(points: torch.Tensor, labels: torch.Tensor, voxel: float = 0.1,
@@ -40,8 +40,9 @@ def object_instances(points: torch.Tensor, labels: torch.Tensor, voxel: float = 
                          f"for labels {tuple(labels.shape)}")
     if voxel <= 0:
         raise ValueError(f"object_instances: voxel must be positive, got {voxel}")
-    instance = torch.full((points.shape[0],), -1, dtype=torch.long)
-    kept = ~torch.isin(labels, torch.tensor(ignore_classes, dtype=labels.dtype))
+    device = labels.device
+    instance = torch.full((points.shape[0],), -1, dtype=torch.long, device=device)
+    kept = ~torch.isin(labels, torch.tensor(ignore_classes, dtype=labels.dtype, device=device))
     if not bool(kept.any()):
         return instance
     cells = torch.floor(points[kept] / voxel).long()
@@ -53,18 +54,18 @@ def object_instances(points: torch.Tensor, labels: torch.Tensor, voxel: float = 
         return ((c * extent[0] + xyz[..., 0]) * extent[1] + xyz[..., 1]) * extent[2] + xyz[..., 2]
 
     voxels, point_voxel = torch.unique(encode(classes, cells), return_inverse=True)
-    voxel_class = torch.zeros(len(voxels), dtype=torch.long).scatter_(0, point_voxel, classes)
-    voxel_cell = torch.zeros(len(voxels), 3, dtype=torch.long).index_copy_(0, point_voxel, cells)
+    voxel_class = torch.zeros(len(voxels), dtype=torch.long, device=device).scatter_(0, point_voxel, classes)
+    voxel_cell = torch.zeros(len(voxels), 3, dtype=torch.long, device=device).index_copy_(0, point_voxel, cells)
     # edges between occupied same-class voxels that touch
     src, dst = [], []
-    for offset in _NEIGHBOURS:
+    for offset in _NEIGHBOURS.to(device):
         keys = encode(voxel_class, voxel_cell + offset)
         at = torch.searchsorted(voxels, keys).clamp_max(len(voxels) - 1)
         hit = voxels[at] == keys
         src.append(torch.nonzero(hit).squeeze(1))
         dst.append(at[hit])
     src, dst = torch.cat(src), torch.cat(dst)
-    component = torch.arange(len(voxels))
+    component = torch.arange(len(voxels), device=device)
     while True:  # min-label propagation with pointer jumping
         updated = component.clone()
         updated.scatter_reduce_(0, src, component[dst], "amin")
@@ -92,7 +93,7 @@ def split_visits(instances: torch.Tensor, keyframes: torch.Tensor, revisit_gap: 
     stride = int(keyframes.max()) + 1
     keys = instances[seen] * stride + keyframes[seen]
     pairs = torch.unique(keys)  # sorted: by instance, then keyframe
-    starts = torch.ones(len(pairs), dtype=torch.bool)
+    starts = torch.ones(len(pairs), dtype=torch.bool, device=pairs.device)
     starts[1:] = (pairs[1:] // stride != pairs[:-1] // stride) | (pairs[1:] - pairs[:-1] > revisit_gap)
     visits[seen] = (starts.cumsum(0) - 1)[torch.searchsorted(pairs, keys)]
     return visits
@@ -144,8 +145,8 @@ def allocation_cohesion(keyframes: list[tuple[torch.Tensor, torch.Tensor, Pinhol
         p, lab = keyframe_points(depth, kf_labels, camera, pose, stride)
         points.append(p)
         labels.append(lab)
-        submaps.append(torch.full((len(p),), submap, dtype=torch.long))
-        observers.append(torch.full((len(p),), index, dtype=torch.long))
+        submaps.append(torch.full((len(p),), submap, dtype=torch.long, device=lab.device))
+        observers.append(torch.full((len(p),), index, dtype=torch.long, device=lab.device))
     points, labels, submaps = torch.cat(points), torch.cat(labels), torch.cat(submaps)
     instances = object_instances(points, labels, voxel, ignore_classes)
     if revisit_gap is not None:

@@ -26,6 +26,7 @@ import math
 from dataclasses import dataclass, field
 
 import torch
+import torch.nn.functional as F
 
 from gausem_core.config import SubmapConfig
 from gausem_core.geometry import PinholeCamera, invert_pose, transform_points
@@ -216,8 +217,7 @@ class SubmapExtent:
     def kl_to_anchor(self, labels: torch.Tensor) -> float:
         """r_kl of a keyframe's class ids (H, W) against the anchor keyframe's."""
         classes = max(self.num_classes, len(self.anchor_counts), int(labels.max()) + 1)
-        anchor = torch.zeros(classes, dtype=torch.long)
-        anchor[:len(self.anchor_counts)] = self.anchor_counts
+        anchor = F.pad(self.anchor_counts.to(labels.device), (0, classes - len(self.anchor_counts)))
         return class_kl(class_histogram(labels, classes), smoothed_histogram(anchor))
 
 

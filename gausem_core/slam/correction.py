@@ -27,9 +27,10 @@ def anchor_correction(old_anchor: torch.Tensor, new_anchor: torch.Tensor) -> tor
 
 
 def correct_poses(poses: torch.Tensor | np.ndarray | Sequence, correction: torch.Tensor) -> torch.Tensor:
-    """cam_to_world poses (N, 4, 4) (tensor, array or list of 4x4) -> C @ poses, as a tensor (N, 4, 4)."""
+    """cam_to_world poses (N, 4, 4) (tensor, array or list of 4x4) -> C @ poses, as a tensor (N, 4, 4) on C's
+    device."""
     stack = _pose_stack(poses, "poses")
-    return correction.to(stack.dtype) @ stack
+    return correction.to(stack.dtype) @ stack.to(correction.device)
 
 
 def correct_submap(cloud: GaussianCloud, keyframe_poses, old_anchor: torch.Tensor,

@@ -10,6 +10,7 @@ channels (the feature term of SGR's Eq. 6) enter exactly like colour: per-pixel 
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -104,6 +105,13 @@ def _channel_weights(weights: AlignmentWeights, features: int) -> list[float]:
     return [weights.color] * 3 + [weights.semantic] * 3 + [weights.depth] + [weights.feature] * features
 
 
+@functools.lru_cache(maxsize=32)
+def _channel_weight_column(values: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(C, 1) tensor of channel weights, made once per device: a fresh one would be a host-to-device copy (a wait on
+    the GPU) in every Gauss-Newton step."""
+    return torch.tensor(values, dtype=dtype, device=device)[:, None]
+
+
 def _cost_cap(weights: AlignmentWeights, features: int) -> float:
     """What a model pixel costs at most: a ``max_depth_residual`` depth error and colour, semantic and feature errors
     of ``_MAX_COLOR_RESIDUAL``."""
@@ -163,7 +171,7 @@ def _normal_equations_torch(observed: ObservedImages, motion: torch.Tensor, weig
     jac[6] -= dz  # the observed depth moves with the pixel, and so does z
     res = torch.cat([obs[:6] - ref[:6], depth_res[None], obs[7:] - ref[6:]], 0)
     features = observed.feature_channels
-    chan = torch.tensor(_channel_weights(weights, features), dtype=p.dtype, device=p.device)[:, None]
+    chan = _channel_weight_column(tuple(_channel_weights(weights, features)), p.dtype, p.device)
     irls = chan / res.abs().clamp_min(weights.huber_delta)  # IRLS weights of the L1 norm
     # depth discontinuities: the observed depth's gradient there is no derivative of the surface, leave them out
     slope = (gu[6].abs() * cam.fx + gv[6].abs() * cam.fy) / z

@@ -87,23 +87,60 @@ class SemanticPalette:
 
     Learned from the keyframes' semantic images, so the loop closure needs no class table; classes are only appended,
     which keeps earlier landmark score vectors valid (see :class:`~gausem_core.slam.loop.LoopDetector`).
+
+    Incremental: every colour met is remembered by its key (:func:`colour_keys`), so an image costs one lookup of its
+    pixels' keys among those (a binary search), and only the pixels of colours never met before are sorted. A new
+    image's new colours are appended in ascending (r, g, b) order; one within 1e-4 of a known colour is not added.
     """
 
     def __init__(self):
         self.colors = torch.zeros(0, 3)
+        self._seen = torch.zeros(0, dtype=torch.long)  # sorted keys of every colour met, added or not
 
     def __len__(self) -> int:
         return len(self.colors)
 
     def update(self, semantic: torch.Tensor) -> None:
-        """Add the colours of a semantic image (H, W, 3) not seen before."""
-        found = torch.unique(semantic.detach().reshape(-1, 3).float().cpu(), dim=0)
+        """Add the colours of a semantic image (H, W, 3) in [0, 1] not seen before."""
+        pixels = semantic.detach().reshape(-1, 3).float()
+        keys = colour_keys(pixels)
+        unseen = ~sorted_contains(self._seen.to(keys.device), keys)
+        new_keys, found = distinct_colours(keys[unseen], pixels[unseen])
+        self._seen = torch.sort(torch.cat([self._seen, new_keys.cpu()])).values
+        found = found.cpu()
         if len(self.colors):
             found = found[torch.cdist(found, self.colors).min(1).values > 1e-4]
         self.colors = torch.cat([self.colors, found])
 
     def class_ids(self, cloud: GaussianCloud) -> torch.Tensor:
-        return cloud.class_ids(self.colors).cpu()
+        """(N,) class id of each Gaussian (the nearest colour's index), on the cloud's device."""
+        return cloud.class_ids(self.colors)
+
+
+_KEY_BITS = 21  # per channel: 3 x 21 bits fit an int64; colours closer than 2^-21 share a key
+
+
+def colour_keys(colors: torch.Tensor) -> torch.Tensor:
+    """(N,) int64 keys of colours (N, 3) in [0, 1]: each channel quantised to 21 bits, packed as (r, g, b); ascending
+    keys are ascending (r, g, b) order."""
+    levels = (colors.clamp(0, 1) * (2**_KEY_BITS - 1)).round().long()
+    return (levels[:, 0] << 2 * _KEY_BITS) | (levels[:, 1] << _KEY_BITS) | levels[:, 2]
+
+
+def sorted_contains(sorted_keys: torch.Tensor, keys: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: which ``keys`` occur in the ascending ``sorted_keys`` (binary search, no sort of ``keys``)."""
+    if len(sorted_keys) == 0:
+        return torch.zeros_like(keys, dtype=torch.bool)
+    at = torch.searchsorted(sorted_keys, keys).clamp_max(len(sorted_keys) - 1)
+    return sorted_keys[at] == keys
+
+
+def distinct_colours(keys: torch.Tensor, colors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The distinct ``keys`` (ascending) and, for each, the colour of its first occurrence in ``colors`` (N, 3)."""
+    distinct, inverse = torch.unique(keys, return_inverse=True)
+    order = torch.arange(len(keys), device=keys.device)
+    first = torch.full_like(distinct, len(keys)).scatter_reduce_(0, inverse, order, "amin")
+    return distinct, colors[first]
 
 
 class LoopClosure:
@@ -210,13 +247,13 @@ class LoopClosure:
         return self._descriptors[keyframe.frame_id]
 
     def _landmark_scores(self, submap, keyframe: Keyframe) -> torch.Tensor:
-        """Eq. 7 over the submap's Gaussians that the keyframe observes."""
+        """Eq. 7 over the submap's Gaussians that the keyframe observes, computed where they are; (C,) on the CPU."""
         if len(submap.cloud) == 0:
             return torch.zeros(len(self.palette), dtype=torch.float64)
         ids = self.palette.class_ids(submap.cloud)
         seen = observed_gaussians(submap.cloud.means.detach(), keyframe.cam_to_world, keyframe.obs.camera,
-                                  keyframe.obs.depth).cpu()
-        return landmark_scores(ids, seen, gaussian_idf(ids, len(self.palette)))
+                                  keyframe.obs.depth)
+        return landmark_scores(ids, seen, gaussian_idf(ids, len(self.palette))).cpu()
 
     def _nearby(self, submaps: Sequence, cam_to_world: torch.Tensor) -> list[int]:
         """Frame ids of the keyframes near ``cam_to_world`` (world frame) in the current estimates."""

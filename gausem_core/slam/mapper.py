@@ -107,13 +107,13 @@ class Mapper:
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
-            losses.append(loss.item())
+            losses.append(loss.detach())
         with torch.no_grad():
             for kf in movable:
                 kf.cam_to_world = invert_pose(se3_exp(twists[id(kf)]) @ invert_pose(kf.cam_to_world.to(params.dtype)))
             params.colors.clamp_(0, 1)
             params.semantics.clamp_(0, 1)
-        return self.prune(params.detach()), losses
+        return self.prune(params.detach()), torch.stack(losses).tolist() if losses else []
 
     def prune(self, cloud: GaussianCloud) -> GaussianCloud:
         """Drop transparent and huge Gaussians."""

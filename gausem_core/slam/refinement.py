@@ -76,7 +76,7 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
     pass_losses = []
     step = 0
     for _ in range(passes):
-        total = 0.0
+        losses = []
         for i in torch.randperm(len(keyframes), generator=mapper.generator).tolist():
             for group in optimiser.param_groups:
                 group["lr"] = group["initial"] * group["final"] ** (step / steps)
@@ -92,8 +92,8 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
-            total += loss.item()
-        pass_losses.append(total / max(len(keyframes), 1))
+            losses.append(loss.detach())
+        pass_losses.append(sum(torch.stack(losses).tolist()) / max(len(keyframes), 1) if losses else 0.0)
     with torch.no_grad():
         for kf, twist in zip(keyframes, twists):
             if twist is not None:

@@ -88,7 +88,7 @@ def chordal_mean_alignment(source_poses: torch.Tensor, target_poses: torch.Tenso
     _check_pose_pairs(source_poses, target_poses, "chordal_mean_alignment")
     candidates = target_poses.to(torch.float64) @ invert_pose(source_poses.to(torch.float64))
     u, _, vt = torch.linalg.svd(candidates[:, :3, :3].sum(0))
-    fix = torch.diag(torch.tensor([1.0, 1.0, torch.sign(torch.det(u @ vt)).item()], dtype=torch.float64))
+    fix = torch.diag(torch.cat([torch.ones(2, dtype=u.dtype, device=u.device), torch.sign(torch.det(u @ vt))[None]]))
     return make_pose(u @ fix @ vt, candidates[:, :3, 3].mean(0)).to(source_poses.dtype)
 
 
@@ -106,7 +106,8 @@ def gauss_newton_alignment(source_poses: torch.Tensor, target_poses: torch.Tenso
     src, tgt = source_poses.to(torch.float64), target_poses.to(torch.float64)
     tgt_inv = invert_pose(tgt)
     transform = (chordal_mean_alignment(src, tgt) if init is None else init).to(torch.float64)
-    steps = _JACOBIAN_STEP * torch.cat([torch.eye(6), -torch.eye(6)]).to(torch.float64)
+    eye = torch.eye(6, dtype=torch.float64, device=src.device)
+    steps = _JACOBIAN_STEP * torch.cat([eye, -eye])
 
     def residuals(candidates: torch.Tensor) -> torch.Tensor:  # (..., 4, 4) -> (..., K * 6)
         return se3_log(tgt_inv @ candidates[..., None, :, :] @ src).flatten(-2)
@@ -145,7 +146,7 @@ def coarse_registration(source_descriptors: torch.Tensor, source_poses: torch.Te
                          f"{target_descriptors.shape[0]} vs {target_poses.shape[0]})")
     pairs, _ = top_k_descriptor_pairs(source_descriptors, target_descriptors, k, max_distance)
     if seed is not None:
-        seed_pair = torch.tensor([seed], dtype=pairs.dtype)
+        seed_pair = torch.tensor([seed], dtype=pairs.dtype, device=pairs.device)
         pairs = torch.cat([seed_pair, pairs[(pairs != seed_pair).any(1)]])
     if consensus is not None:
         keep = consistent_pairs(source_poses[pairs[:, 0]], target_poses[pairs[:, 1]], *consensus,
@@ -380,7 +381,7 @@ def fine_views(pairs: torch.Tensor, source_poses: torch.Tensor, count: int) -> t
     centres = source_poses[:, :3, 3].to(torch.float64)
     by_distance = torch.argsort((centres - centres[seen[0]]).norm(dim=1), stable=True).tolist()
     seen += [s for s in by_distance if s not in seen]
-    return torch.tensor(seen[:count], dtype=torch.long)
+    return torch.tensor(seen[:count], dtype=torch.long, device=source_poses.device)
 
 
 def semantic_guided_registration(source_cloud: GaussianCloud, source_poses: torch.Tensor,
