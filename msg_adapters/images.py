@@ -74,10 +74,11 @@ def numpy_to_image(pixels: np.ndarray, encoding: str, header: Header) -> Image:
 
 
 def image_to_rgb(msg: Image) -> np.ndarray:
-    """Colour image -> RGB uint8 (H, W, 3) (BGR reordered, alpha dropped)."""
+    """Colour image -> C-contiguous RGB uint8 (H, W, 3) (BGR reordered, alpha dropped): a reordered view would have
+    negative strides, which torch cannot take."""
     _require(msg.encoding, COLOR_ENCODINGS, "colour image")
     pixels = image_to_numpy(msg)
-    return pixels[..., 2::-1] if msg.encoding.startswith("bgr") else pixels[..., :3]
+    return np.ascontiguousarray(pixels[..., 2::-1] if msg.encoding.startswith("bgr") else pixels[..., :3])
 
 
 def rgb_to_image(rgb: np.ndarray, header: Header, encoding: str = "rgb8") -> Image:

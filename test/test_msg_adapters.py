@@ -99,6 +99,31 @@ def test_bgr_and_alpha_become_rgb():
     np.testing.assert_array_equal(ma.image_to_rgb(ma.numpy_to_image(bgra, "bgra8", HEADER)), rgb)
 
 
+def _readers(encoding):
+    """The typed readers that accept ``encoding`` (rgb, depth, labels)."""
+    return [read for read, kinds in ((ma.image_to_rgb, ma.images.COLOR_ENCODINGS),
+                                     (ma.image_to_depth, ma.images.DEPTH_ENCODINGS),
+                                     (ma.image_to_labels, ma.images.LABEL_ENCODINGS)) if encoding in kinds]
+
+
+@pytest.mark.parametrize("pad", [0, 3])
+@pytest.mark.parametrize("bigendian", [False, True])
+@pytest.mark.parametrize("encoding", sorted(ma.images.ENCODINGS))
+def test_every_documented_encoding_reads_into_contiguous_arrays_torch_takes(encoding, bigendian, pad):
+    """Issue 24: bgr8/bgra8 came back as negative-stride views that torch refused; every encoding, byte order and
+    row padding reads back as C-contiguous arrays with the right values."""
+    pixels = _pixels(encoding, np.random.default_rng(3))
+    msg = _padded(pixels, encoding, pad=pad, bigendian=bigendian)
+    np.testing.assert_array_equal(ma.image_to_numpy(msg), pixels)
+    for read in _readers(encoding):
+        out = read(msg)
+        assert out.flags.c_contiguous and torch.as_tensor(out).shape == out.shape
+        assert out.shape == pixels.shape[:2] + ((3,) if read is ma.image_to_rgb else ())
+    if encoding in ma.images.COLOR_ENCODINGS:
+        rgb = pixels[..., 2::-1] if encoding.startswith("bgr") else pixels[..., :3]
+        np.testing.assert_array_equal(ma.image_to_rgb(msg), rgb)
+
+
 def test_depth_16uc1_millimetres_to_metres():
     msg = ma.numpy_to_image(np.array([[0, 1234, 65535]], np.uint16), "16UC1", HEADER)
     depth = ma.image_to_depth(msg)
@@ -175,6 +200,11 @@ def test_camera_info_round_trip_and_pixel_centre_shift():
     ([0.0] * 9, (640, 480), "invalid K"),
     ([525.0, 0, 319.5, 0, math.nan, 239.5, 0, 0, 1], (640, 480), "invalid K"),
     ([525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (0, 480), "image size 0x480"),
+    ([525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (640, 0), "image size 640x0"),
+    ([math.inf, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (640, 480), "invalid K"),
+    ([525.0, 0, math.nan, 0, 525.0, 239.5, 0, 0, 1], (640, 480), "invalid K"),
+    ([-525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (640, 480), "invalid K"),
+    ([525.0, 0, 319.5, 0, 0.0, 239.5, 0, 0, 1], (640, 480), "invalid K"),
 ])
 def test_camera_info_errors(k, size, match):
     with pytest.raises(ValueError, match=match):
