@@ -29,7 +29,7 @@ from gausem_core.semantics import make_descriptor
 from gausem_core.slam.loop import LoopDetector, gaussian_idf, landmark_scores, nearby_keyframes
 
 from ..qos import EVENT_QOS, input_qos
-from .common import DropReport, class_table, declare_parameters, declare_slam_config, run_node
+from .common import DropReport, class_table, declare_parameters, declare_slam_config, run_node, survives_errors
 
 NODE_DEFAULTS = {"classes": "synthetic", "input_qos": "reliable", "stamp_tolerance": 0.02, "cache_size": 60,
                  "label_stride": 4}
@@ -61,10 +61,12 @@ class LoopDetectionNode(Node):
         if not cfg.loop.enabled:
             self.get_logger().info("loop.enabled is false: keyframes are ignored")
 
+    @survives_errors
     def _on_labels(self, msg: Image) -> None:
         self._remember(self._labels, ma.header_seconds(msg.header), msg, "labels")
         self._pair()
 
+    @survives_errors
     def _on_keyframes(self, msg: PointCloud2) -> None:
         if not self.cfg.loop.enabled:
             return
