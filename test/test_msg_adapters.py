@@ -304,6 +304,20 @@ def test_pointcloud2_big_endian_and_padded_points_read():
     np.testing.assert_array_equal(out["b"], [7, 300])
 
 
+@pytest.mark.parametrize("offset, count", [(2**31 - 1, 16), (16, 2**29), (200, 16)])
+def test_pointcloud2_fields_beyond_the_point_are_rejected(offset, count):
+    """Issue 24 (found by the fuzz test): numpy segfaulted on a field offset near 2**31."""
+    record = ma.KeyframeRecord(1, 1.0, 0, np.eye(4), np.eye(4), np.zeros(2, np.float32))
+    msg = ma.records_to_pointcloud2([record], HEADER)  # the pose: 16 float64 at offset 16 of a 280-byte point
+    msg.fields[3].offset, msg.fields[3].count = offset, count
+    with pytest.raises(ValueError, match=f"'pose' \\({count} x float64 at offset {offset}\\) ends at byte "
+                                         f"{offset + 8 * count}, beyond point_step 280"):
+        ma.pointcloud2_to_records(msg, ma.KeyframeRecord)
+    msg.point_step = 2**31
+    with pytest.raises(ValueError, match="point_step 2147483648 exceeds"):
+        pointcloud2_to_structured(msg)
+
+
 # --- typed records --------------------------------------------------------------------------------------------------
 def _records(rng):
     info = np.diag(rng.random(6) + 1)
