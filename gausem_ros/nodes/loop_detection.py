@@ -99,6 +99,8 @@ class LoopDetectionNode(Node):
     def _check(self, record: ma.KeyframeRecord, labels_msg: Image) -> None:
         try:
             labels = ma.image_to_labels(labels_msg)
+            if not labels.size:
+                raise ValueError(f"the label image is empty ({labels_msg.width}x{labels_msg.height})")
             semantic = self.table.colorize(labels)
         except ValueError as err:
             self.drops.drop("bad_labels", f"keyframe {record.keyframe_id}: {err}")
