@@ -164,3 +164,180 @@ def test_an_exception_while_handling_an_input_is_counted_and_the_node_goes_on():
         assert spin_until(executor, lambda: session.recorder.messages["gausem/odometry"], 5.0)
         report = {kv.key: kv.value for kv in session.recorder.messages["gausem/diagnostics"][-1].status[0].values}
     assert report["dropped.processing_error"] == "1"
+
+
+# --- fuzz -----------------------------------------------------------------------------------------------------------
+FUZZ_SECONDS = 3.0  # per node
+SIDES = (0, 1, 2, 3, 7, 15, 16, 17, 33)
+UNKNOWN_ENCODINGS = ("", "yuv422", "32FC3", "bgr16", "8UC3", "mono8 ")
+RECORD_TYPES = {"gausem/keyframes": ma.KeyframeRecord, "gausem/submaps": ma.SubmapEvent,
+                "gausem/loop_candidates": ma.LoopCandidateRecord, "gausem/loop_constraints": ma.LoopConstraintRecord,
+                "gausem/pose_graph": ma.PoseGraphNode}
+FUZZED_INPUTS = {  # node -> the topics fuzzed while it is the target
+    "tracking_mapping": ("rgb/camera_info", *FRAME_TOPICS, "gausem/loop_candidates", "gausem/pose_graph"),
+    "loop_detection": ("gausem/keyframes", "semantic/labels"),
+    "pose_graph": ("gausem/keyframes", "gausem/submaps", "gausem/loop_constraints"),
+    "segmentation": ("seg/rgb/image",),
+}
+
+
+class _BrightnessSegmenter(Segmenter):
+    """A stand-in that needs no weights (the node's DINOv2 segmenter does): class 1 where red exceeds 127."""
+
+    num_classes = len(SYNTHETIC_CLASSES)
+
+    def segment(self, rgb, labels=None):
+        return (rgb[..., 0] > 127).astype(np.int64)
+
+
+class _Fuzzer:
+    """Random messages of the right types: any size (0x0, 1x1, huge declared sizes with short data), encodings
+    known and unknown, random steps, byte orders and data, NaN/inf depth, CameraInfo with zero/NaN/negative K, records
+    with random or corrupted fields and data."""
+
+    def __init__(self, seed: int):
+        self.rng = np.random.default_rng(seed)
+
+    def chance(self, p: float) -> bool:
+        return self.rng.random() < p
+
+    def image(self, stamp: float, family: tuple[str, ...]) -> Image:
+        rng = self.rng
+        if self.chance(0.3):  # well-formed, of the camera's size: random content gets past the checks
+            encoding = str(rng.choice(family))
+            dtype, channels = ma.images.ENCODINGS[encoding]
+            size = CAMERA.width * CAMERA.height * channels * dtype.itemsize
+            data = self.pixels(dtype, size) if family != ma.images.COLOR_ENCODINGS else rng.bytes(size)
+            return Image(header=ma.make_header(stamp, "cam"), height=CAMERA.height, width=CAMERA.width,
+                         encoding=encoding, step=size // CAMERA.height, data=data)
+        encoding = str(rng.choice(family if self.chance(0.8) else (*ma.images.ENCODINGS, *UNKNOWN_ENCODINGS)))
+        dtype, channels = ma.images.ENCODINGS.get(encoding, (np.dtype(np.uint8), int(rng.integers(1, 5))))
+        w, h = (CAMERA.width, CAMERA.height) if self.chance(0.7) else rng.choice(SIDES, 2)
+        if self.chance(0.05):
+            w, h = rng.integers(2**16, 2**32, 2)  # a huge declared size; the data stays short
+        row = int(w) * channels * dtype.itemsize
+        step = row + int(rng.choice([0, 0, 0, 1, 3, -1])) if self.chance(0.95) else int(rng.integers(0, 2**32))
+        step = max(step, 0)
+        size = int(h) * step if int(h) * step <= 200_000 else int(rng.integers(0, 4096))
+        if self.chance(0.1):
+            size = max(size + int(rng.integers(-8, 9)), 0)
+        data = self.pixels(dtype, size) if family != ma.images.COLOR_ENCODINGS else rng.bytes(size)
+        return Image(header=ma.make_header(stamp, "cam"), height=int(h), width=int(w), encoding=encoding,
+                     is_bigendian=int(self.chance(0.3)), step=step, data=data)
+
+    def pixels(self, dtype: np.dtype, size: int) -> bytes:
+        """``size`` bytes: depth-like floats mixed with NaN, inf, zero and negative ones, small integers (class ids
+        of the table), or random bytes."""
+        if self.chance(0.3):
+            return self.rng.bytes(size)
+        if dtype == np.float32:
+            values = self.rng.choice([np.nan, np.inf, -np.inf, 0.0, -1.0, 1.5, 2.0, 3.0], size // 4 + 1)
+        else:
+            values = self.rng.integers(0, len(SYNTHETIC_CLASSES), size // dtype.itemsize + 1)
+        return values.astype(dtype.newbyteorder("<")).tobytes()[:size]
+
+    def camera_info(self, stamp: float) -> CameraInfo:
+        rng = self.rng
+        w, h = (CAMERA.width, CAMERA.height) if self.chance(0.5) else rng.choice(SIDES, 2)
+        k = ma.camera_to_camera_info(CAMERA, ma.make_header(stamp, "cam")).k.copy()
+        k[rng.integers(0, 9, int(rng.integers(0, 3)))] = rng.choice([0.0, np.nan, np.inf, -np.inf, -40.0, 1e30])
+        if self.chance(0.1):
+            k[:] = 0.0
+        return CameraInfo(header=ma.make_header(stamp, "cam"), width=int(w), height=int(h), k=k)
+
+    def pose(self) -> np.ndarray:
+        q, _ = np.linalg.qr(self.rng.normal(size=(3, 3)))
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = q * np.sign(np.linalg.det(q)), self.rng.normal(scale=0.3, size=3)
+        return pose
+
+    def record(self, record_type, stamp: float, descriptor_length: int):
+        rng, ids = self.rng, lambda: int(rng.integers(0, 4))
+        if record_type is ma.KeyframeRecord:
+            return ma.KeyframeRecord(int(rng.integers(0, 1000)), stamp, ids(), self.pose(), self.pose(),
+                                     rng.normal(size=descriptor_length).astype(np.float32))
+        if record_type is ma.SubmapEvent:
+            return ma.SubmapEvent(ids(), ids(), self.pose(), ma.SubmapEventKind(ids() % 2))
+        if record_type is ma.LoopCandidateRecord:
+            return ma.LoopCandidateRecord(ids(), ids(), ids(), ids(), float(rng.random()), float(rng.random()),
+                                          self.chance(0.5))
+        if record_type is ma.LoopConstraintRecord:
+            a = rng.normal(size=(6, 6))
+            return ma.LoopConstraintRecord(ids(), ids(), ids(), ids(), self.pose(), float(rng.random()),
+                                           a @ a.T + np.eye(6), self.chance(0.5))
+        return ma.PoseGraphNode(ma.PoseGraphNodeKind(ids() % 2), ids(), self.pose())
+
+    def cloud(self, record_type, stamp: float) -> PointCloud2:
+        """Records of ``record_type``, then maybe corrupted: data, declared size or fields."""
+        rng = self.rng
+        length = int(rng.integers(0, 4))
+        msg = ma.records_to_pointcloud2([self.record(record_type, stamp, length)
+                                         for _ in range(int(rng.integers(0, 3)))],
+                                        ma.make_header(stamp, "map"), record_type)
+        corruption = rng.choice(["none", "none", "data", "short", "size", "fields"])
+        if corruption == "data":
+            msg.data = rng.bytes(len(msg.data))
+        elif corruption == "short":
+            msg.data = bytes(msg.data)[:int(rng.integers(0, len(msg.data) + 1))]
+        elif corruption == "size":
+            msg.width, msg.point_step, msg.row_step = (int(v) for v in rng.integers(0, 2**32, 3))
+        elif corruption == "fields":
+            field = msg.fields[int(rng.integers(0, len(msg.fields)))]
+            field.datatype, field.count, field.offset = (int(v) for v in (rng.integers(0, 12), rng.integers(0, 2**31),
+                                                                          rng.integers(0, 2**31)))
+        return msg
+
+    def message(self, topic: str, stamp: float):
+        if topic in RECORD_TYPES:
+            return self.cloud(RECORD_TYPES[topic], stamp)
+        if topic == "rgb/camera_info":
+            return self.camera_info(stamp)
+        family = {"depth/image": ma.images.DEPTH_ENCODINGS,
+                  "semantic/labels": ma.images.LABEL_ENCODINGS}.get(topic, ma.images.COLOR_ENCODINGS)
+        return self.image(stamp, family)
+
+
+def _fuzz(executor, publishers: dict, fuzzer: _Fuzzer, topics, stamp: float, seconds: float) -> float:
+    """Publish random messages on ``topics`` (one stamp per round) for ``seconds``, spinning between rounds; any
+    exception a node raises propagates from the executor and fails the test. The last stamp used."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        stamp += 0.01
+        for topic in topics:
+            if fuzzer.chance(0.8):
+                publishers[topic].publish(fuzzer.message(topic, stamp))
+        for _ in range(5):
+            executor.spin_once(timeout_sec=0.001)
+        assert executor.context.ok()
+    return stamp
+
+
+@pytest.mark.slow
+def test_fuzzed_inputs_never_kill_a_node_and_tracking_goes_on():
+    with ros_session(144) as (ctx, executor):
+        session = _Session(ctx, executor)
+        nodes = {"tracking_mapping": session.node,
+                 "loop_detection": LoopDetectionNode(context=ctx, parameter_overrides=overrides(
+                     {"loop.exclude_recent": 1, "label_stride": 1})),
+                 "pose_graph": PoseGraphNode(context=ctx),
+                 "segmentation": SegmentationNode(_BrightnessSegmenter(), context=ctx, namespace="seg")}
+        for node in list(nodes.values())[1:]:
+            executor.add_node(node)
+        types = {**{t: PointCloud2 for t in RECORD_TYPES}, "rgb/camera_info": CameraInfo}
+        publishers = {topic: session.recorder.node.create_publisher(types.get(topic, Image), topic, EVENT_QOS)
+                      for topic in {t for topics in FUZZED_INPUTS.values() for t in topics}}
+        assert spin_until(executor, lambda: all(p.get_subscription_count() for p in publishers.values()), 5.0)
+        fuzzer, stamp = _Fuzzer(24), 1.0
+        for name, topics in FUZZED_INPUTS.items():
+            stamp = _fuzz(executor, publishers, fuzzer, topics, stamp, FUZZ_SECONDS)
+            assert spin_until(executor, lambda: nodes[name].drops.counts, 5.0), f"{name} dropped nothing"
+
+        session.camera_info(CAMERA)
+        processed = session.node.frames_processed  # fuzzed frames that got past every check
+        stamps = [round(stamp) + 1.0 + i / 10 for i in range(3)]  # exact on the wire (ns)
+        for i, good in enumerate(stamps):
+            session.send(_good_frame(good, seed=i), session.processed(processed + i + 1))
+        odometry = session.recorder.messages["gausem/odometry"]
+        assert spin_until(executor, lambda: [ma.header_seconds(o.header) for o in odometry][-3:] == stamps, 5.0)
+        drops = {name: dict(node.drops.counts) for name, node in nodes.items()}
+    print(f"fuzzed frames processed: {processed}; drops: {drops}")  # what the fuzz hit (pytest -s)
