@@ -166,6 +166,46 @@ def test_an_exception_while_handling_an_input_is_counted_and_the_node_goes_on():
     assert report["dropped.processing_error"] == "1"
 
 
+
+def _fail_once(owner, name: str):
+    """Make ``owner.name`` raise RuntimeError on its next call only."""
+    original = getattr(owner, name)
+
+    def fail(*args, **kwargs):
+        setattr(owner, name, original)
+        raise RuntimeError(f"injected failure in {name}")
+    setattr(owner, name, fail)
+
+
+def test_loop_detection_pose_graph_and_segmentation_count_an_exception_and_go_on():
+    with ros_session(147) as (ctx, executor):
+        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides({"label_stride": 1}))
+        graph = PoseGraphNode(context=ctx, namespace="pg")  # only submap events reach it
+        seg = SegmentationNode(_BrightnessSegmenter(), context=ctx)
+        recorder = Recorder(ctx, [(Image, "semantic/color", IMAGE_QOS)])
+        pubs = {topic: recorder.node.create_publisher(msg_type, topic, qos) for topic, msg_type, qos in (
+            ("gausem/keyframes", PointCloud2, EVENT_QOS), ("pg/gausem/submaps", PointCloud2, EVENT_QOS),
+            ("semantic/labels", Image, IMAGE_QOS), ("rgb/image", Image, IMAGE_QOS))}
+        for node in (loop, graph, seg, recorder.node):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: all(p.get_subscription_count() for p in pubs.values()), 5.0)
+        _fail_once(loop.extractor, "describe")
+        _fail_once(graph, "_records")
+        _fail_once(seg.segmenter, "segment")
+        for i, stamp in enumerate((1.0, 2.0)):
+            header = ma.make_header(stamp, "cam")
+            pubs["gausem/keyframes"].publish(ma.records_to_pointcloud2([ma.KeyframeRecord(
+                i, stamp, 0, np.eye(4), np.eye(4), np.zeros(0, np.float32))], header))
+            pubs["semantic/labels"].publish(ma.labels_to_image(np.zeros((30, 40), np.int64), header))
+            pubs["pg/gausem/submaps"].publish(ma.records_to_pointcloud2([ma.SubmapEvent(
+                i, i, np.eye(4), ma.SubmapEventKind.CREATED)], header))
+            pubs["rgb/image"].publish(ma.rgb_to_image(np.zeros((30, 40, 3), np.uint8), header))
+            assert spin_until(executor, lambda: all(n.drops.counts["processing_error"] == 1 for n in (loop, graph, seg))
+                              and loop.keyframes_checked == i and len(graph.anchors) == i
+                              and seg.frames_segmented == i, 5.0), [dict(n.drops.counts) for n in (loop, graph, seg)]
+        assert spin_until(executor, lambda: len(recorder.messages["semantic/color"]) == 1, 5.0)
+    assert all(dict(n.drops.counts) == {"processing_error": 1} for n in (loop, graph, seg))
+
 # --- fuzz -----------------------------------------------------------------------------------------------------------
 FUZZ_SECONDS = 3.0  # per node
 SIDES = (0, 1, 2, 3, 7, 15, 16, 17, 33)
