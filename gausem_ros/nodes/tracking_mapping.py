@@ -74,7 +74,7 @@ NODE_DEFAULTS = {
     "map_publish_period": 2.0,   # seconds
     "min_valid_depth": 0.05,     # fraction of pixels with a valid depth below which a frame is dropped
     "min_image_size": 16,        # pixels: frames with a smaller side are dropped (bad_size); >= the pyramids' need
-    "max_image_pixels": 640 * 480,  # larger frames are downscaled to at most this many pixels (aspect kept)
+    "max_image_pixels": 1280 * 720,  # larger frames are downscaled to at most this many pixels (aspect kept)
     "output_dir": "gausem_output",
     "loop_closure": "nodes",     # or "core": see the module docstring
 }
