@@ -132,9 +132,9 @@ def test_depth_16uc1_millimetres_to_metres():
 
 
 def test_depth_32fc1_invalid_values_become_zero():
-    raw = np.array([[1.5, np.nan, np.inf, -2.0, 0.0, -np.inf]], np.float32)
+    raw = np.array([[1.5, np.nan, np.inf, -2.0, 0.0, -np.inf, 9999.0, 2e4, 3e38]], np.float32)
     np.testing.assert_array_equal(ma.image_to_depth(ma.numpy_to_image(raw, "32FC1", HEADER)),
-                                  [[1.5, 0, 0, 0, 0, 0]])
+                                  [[1.5, 0, 0, 0, 0, 0, 9999.0, 0, 0]])  # 3e38 (random bytes) crashed the renderer
 
 
 def test_depth_builders():

@@ -106,8 +106,8 @@ def test_tracking_node_takes_every_documented_encoding_byte_order_and_row_paddin
             order = {"rgb8": [0, 1, 2], "bgr8": [2, 1, 0], "rgba8": [0, 1, 2, 3], "bgra8": [2, 1, 0, 3]}[colour]
             rgbx = np.concatenate([rgb, np.full(rgb.shape[:2] + (1,), 255, np.uint8)], 2)[..., order]
             raw_depth = np.rint(depth * 1000).astype(np.uint16) if depth_enc == "16UC1" else depth.copy()
-            if depth_enc == "32FC1":  # invalid readings become 0, never NaN or inf in the core
-                raw_depth[0, :4], depth[0, :4] = [np.nan, np.inf, -np.inf, -1.0], 0.0
+            if depth_enc == "32FC1":  # invalid readings become 0, never NaN, inf or absurd distances in the core
+                raw_depth[0, :5], depth[0, :5] = [np.nan, np.inf, -np.inf, -1.0, 3e38], 0.0
             label_dtype = np.uint8 if label_enc == "mono8" else np.uint16
             session.send([_encode(rgbx, colour, stamp, big_c, pad_c),
                           _encode(raw_depth, depth_enc, stamp, big_d, pad_d),
