@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-pytest.importorskip("rclpy")
+rclpy = pytest.importorskip("rclpy")
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
@@ -209,6 +209,27 @@ def test_loop_detection_pose_graph_and_segmentation_count_an_exception_and_go_on
                               and seg.frames_segmented == i, 5.0), [dict(n.drops.counts) for n in (loop, graph, seg)]
         assert spin_until(executor, lambda: len(recorder.messages["semantic/color"]) == 1, 5.0)
     assert all(dict(n.drops.counts) == {"processing_error": 1} for n in (loop, graph, seg))
+
+
+def test_loop_detection_drops_a_keyframe_older_than_the_newest_as_out_of_order():
+    """Found by the fuzz test: the detector raised on it, after the keyframe's labels were already counted."""
+    with ros_session(148) as (ctx, executor):
+        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides({"label_stride": 1}))
+        node = rclpy.create_node("publisher", context=ctx)
+        kf_pub = node.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
+        labels_pub = node.create_publisher(Image, "semantic/labels", IMAGE_QOS)
+        executor.add_node(loop)
+        executor.add_node(node)
+        assert spin_until(executor, lambda: kf_pub.get_subscription_count() and labels_pub.get_subscription_count(),
+                          5.0)
+        for keyframe_id, stamp in ((5, 1.0), (3, 2.0)):
+            header = ma.make_header(stamp, "cam")
+            kf_pub.publish(ma.records_to_pointcloud2([ma.KeyframeRecord(
+                keyframe_id, stamp, 0, np.eye(4), np.eye(4), np.zeros(0, np.float32))], header))
+            labels_pub.publish(ma.labels_to_image(np.zeros((30, 40), np.int64), header))
+        assert spin_until(executor, lambda: loop.drops.counts["keyframe_out_of_order"] == 1, 5.0)
+        assert spin_until(executor, lambda: loop.keyframes_checked == 1, 5.0)
+    assert dict(loop.drops.counts) == {"keyframe_out_of_order": 1}
 
 # --- fuzz -----------------------------------------------------------------------------------------------------------
 FUZZ_SECONDS = 3.0  # per node

@@ -6,7 +6,8 @@ first waits, at most ``cache_size`` of each). The keyframe's global descriptor i
 colour image (the class table's colours of the labels) with ``semantics.descriptor`` (DINOv2 CLS with
 ``semantics.dinov2_weights``, else the colour-layout fallback), so labels are needed. Every keyframe the tracker
 publishes is a loop keyframe (the tracker already keeps one every ``mapping.every`` frames; a keyframe id seen before
-is a re-publication, whose corrected pose is kept, and otherwise ignored); ``loop.check_every``,
+is a re-publication, whose corrected pose is kept, and otherwise ignored; a new id below the newest one is dropped as
+``keyframe_out_of_order``); ``loop.check_every``,
 ``loop.max_descriptor_distance`` (DINOv2) or ``loop.max_fallback_descriptor_distance`` (the fallback descriptor),
 ``loop.exclude_recent`` and ``loop.proximity_radius`` (keyframes near in the latest published poses are candidates
 too) configure the detector.
@@ -76,6 +77,11 @@ class LoopDetectionNode(Node):
             self.drops.drop("bad_keyframes", str(err))
             return
         for record in records:
+            newest = max(self._seen, default=-1)
+            if record.keyframe_id < newest and record.keyframe_id not in self._seen:
+                self.drops.drop("keyframe_out_of_order", f"new keyframe {record.keyframe_id} arrived after keyframe "
+                                                         f"{newest}; the detector needs increasing ids")
+                continue
             self._world_poses[record.keyframe_id] = torch.from_numpy(record.anchor_pose @ record.pose)
             if record.keyframe_id not in self._seen:  # re-published keyframes (corrected poses) are not new
                 self._seen.add(record.keyframe_id)
