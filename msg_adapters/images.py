@@ -24,6 +24,7 @@ COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8")
 DEPTH_ENCODINGS = ("16UC1", "32FC1")
 LABEL_ENCODINGS = ("mono8", "8UC1", "mono16", "16UC1")
 _MAX_DEPTH_MM = np.iinfo(np.uint16).max
+MAX_DEPTH_M = 1e4  # 32FC1 readings beyond are corrupt data, not distances (near 1e38 the renderer's float32 overflows)
 
 
 class ImageEncodingError(ValueError):
@@ -74,10 +75,11 @@ def numpy_to_image(pixels: np.ndarray, encoding: str, header: Header) -> Image:
 
 
 def image_to_rgb(msg: Image) -> np.ndarray:
-    """Colour image -> RGB uint8 (H, W, 3) (BGR reordered, alpha dropped)."""
+    """Colour image -> C-contiguous RGB uint8 (H, W, 3) (BGR reordered, alpha dropped): a reordered view would have
+    negative strides, which torch cannot take."""
     _require(msg.encoding, COLOR_ENCODINGS, "colour image")
     pixels = image_to_numpy(msg)
-    return pixels[..., 2::-1] if msg.encoding.startswith("bgr") else pixels[..., :3]
+    return np.ascontiguousarray(pixels[..., 2::-1] if msg.encoding.startswith("bgr") else pixels[..., :3])
 
 
 def rgb_to_image(rgb: np.ndarray, header: Header, encoding: str = "rgb8") -> Image:
@@ -88,12 +90,14 @@ def rgb_to_image(rgb: np.ndarray, header: Header, encoding: str = "rgb8") -> Ima
 
 
 def image_to_depth(msg: Image) -> np.ndarray:
-    """Depth image -> float32 metres (H, W); 0 marks invalid (0 mm; NaN, inf or negative metres)."""
+    """Depth image -> float32 metres (H, W); 0 marks invalid (0 mm; NaN, inf, negative or beyond ``MAX_DEPTH_M``
+    metres)."""
     _require(msg.encoding, DEPTH_ENCODINGS, "depth image")
     raw = image_to_numpy(msg)
     if msg.encoding == "16UC1":
         return raw.astype(np.float32) * np.float32(1e-3)
-    return np.where(np.isfinite(raw) & (raw > 0), raw, np.float32(0)).astype(np.float32, copy=False)
+    valid = np.isfinite(raw) & (raw > 0) & (raw <= MAX_DEPTH_M)
+    return np.where(valid, raw, np.float32(0)).astype(np.float32, copy=False)
 
 
 def depth_to_image(depth: np.ndarray, header: Header, encoding: str = "32FC1") -> Image:

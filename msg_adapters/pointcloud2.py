@@ -15,6 +15,7 @@ _DTYPES = {
     PointField.FLOAT64: np.float64,
 }
 _DATATYPES = {np.dtype(v): k for k, v in _DTYPES.items()}
+_MAX_POINT_STEP = np.iinfo(np.int32).max  # numpy's largest itemsize
 
 
 def structured_to_pointcloud2(points: np.ndarray, header: Header) -> PointCloud2:
@@ -38,11 +39,17 @@ def pointcloud2_to_structured(msg: PointCloud2) -> np.ndarray:
     """PointCloud2 -> 1-D structured array (rows of all ``height`` rows concatenated), native byte order."""
     order = ">" if msg.is_bigendian else "<"
     names, formats, offsets = [], [], []
+    if msg.point_step > _MAX_POINT_STEP:
+        raise ValueError(f"PointCloud2 point_step {msg.point_step} exceeds {_MAX_POINT_STEP} bytes")
     for f in msg.fields:
         if f.datatype not in _DTYPES:
             raise ValueError(f"PointCloud2 field {f.name!r} has unknown datatype {f.datatype}")
-        names.append(f.name)
         base = np.dtype(_DTYPES[f.datatype]).newbyteorder(order)
+        end = f.offset + base.itemsize * f.count
+        if end > msg.point_step:  # checked here: numpy overflows (and crashes) on offsets near 2**31
+            raise ValueError(f"PointCloud2 field {f.name!r} ({f.count} x {base.name} at offset {f.offset}) ends at "
+                             f"byte {end}, beyond point_step {msg.point_step}")
+        names.append(f.name)
         formats.append(base if f.count == 1 else (base, (f.count,)))
         offsets.append(f.offset)
     dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": msg.point_step})

@@ -99,6 +99,31 @@ def test_bgr_and_alpha_become_rgb():
     np.testing.assert_array_equal(ma.image_to_rgb(ma.numpy_to_image(bgra, "bgra8", HEADER)), rgb)
 
 
+def _readers(encoding):
+    """The typed readers that accept ``encoding`` (rgb, depth, labels)."""
+    return [read for read, kinds in ((ma.image_to_rgb, ma.images.COLOR_ENCODINGS),
+                                     (ma.image_to_depth, ma.images.DEPTH_ENCODINGS),
+                                     (ma.image_to_labels, ma.images.LABEL_ENCODINGS)) if encoding in kinds]
+
+
+@pytest.mark.parametrize("pad", [0, 3])
+@pytest.mark.parametrize("bigendian", [False, True])
+@pytest.mark.parametrize("encoding", sorted(ma.images.ENCODINGS))
+def test_every_documented_encoding_reads_into_contiguous_arrays_torch_takes(encoding, bigendian, pad):
+    """Issue 24: bgr8/bgra8 came back as negative-stride views that torch refused; every encoding, byte order and
+    row padding reads back as C-contiguous arrays with the right values."""
+    pixels = _pixels(encoding, np.random.default_rng(3))
+    msg = _padded(pixels, encoding, pad=pad, bigendian=bigendian)
+    np.testing.assert_array_equal(ma.image_to_numpy(msg), pixels)
+    for read in _readers(encoding):
+        out = read(msg)
+        assert out.flags.c_contiguous and torch.as_tensor(out).shape == out.shape
+        assert out.shape == pixels.shape[:2] + ((3,) if read is ma.image_to_rgb else ())
+    if encoding in ma.images.COLOR_ENCODINGS:
+        rgb = pixels[..., 2::-1] if encoding.startswith("bgr") else pixels[..., :3]
+        np.testing.assert_array_equal(ma.image_to_rgb(msg), rgb)
+
+
 def test_depth_16uc1_millimetres_to_metres():
     msg = ma.numpy_to_image(np.array([[0, 1234, 65535]], np.uint16), "16UC1", HEADER)
     depth = ma.image_to_depth(msg)
@@ -107,9 +132,9 @@ def test_depth_16uc1_millimetres_to_metres():
 
 
 def test_depth_32fc1_invalid_values_become_zero():
-    raw = np.array([[1.5, np.nan, np.inf, -2.0, 0.0, -np.inf]], np.float32)
+    raw = np.array([[1.5, np.nan, np.inf, -2.0, 0.0, -np.inf, 9999.0, 2e4, 3e38]], np.float32)
     np.testing.assert_array_equal(ma.image_to_depth(ma.numpy_to_image(raw, "32FC1", HEADER)),
-                                  [[1.5, 0, 0, 0, 0, 0]])
+                                  [[1.5, 0, 0, 0, 0, 0, 9999.0, 0, 0]])  # 3e38 (random bytes) crashed the renderer
 
 
 def test_depth_builders():
@@ -175,6 +200,11 @@ def test_camera_info_round_trip_and_pixel_centre_shift():
     ([0.0] * 9, (640, 480), "invalid K"),
     ([525.0, 0, 319.5, 0, math.nan, 239.5, 0, 0, 1], (640, 480), "invalid K"),
     ([525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (0, 480), "image size 0x480"),
+    ([525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (640, 0), "image size 640x0"),
+    ([math.inf, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (640, 480), "invalid K"),
+    ([525.0, 0, math.nan, 0, 525.0, 239.5, 0, 0, 1], (640, 480), "invalid K"),
+    ([-525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (640, 480), "invalid K"),
+    ([525.0, 0, 319.5, 0, 0.0, 239.5, 0, 0, 1], (640, 480), "invalid K"),
 ])
 def test_camera_info_errors(k, size, match):
     with pytest.raises(ValueError, match=match):
@@ -272,6 +302,20 @@ def test_pointcloud2_big_endian_and_padded_points_read():
     out = pointcloud2_to_structured(msg)
     np.testing.assert_array_equal(out["a"], [1.5, -2.0])
     np.testing.assert_array_equal(out["b"], [7, 300])
+
+
+@pytest.mark.parametrize("offset, count", [(2**31 - 1, 16), (16, 2**29), (200, 16)])
+def test_pointcloud2_fields_beyond_the_point_are_rejected(offset, count):
+    """Issue 24 (found by the fuzz test): numpy segfaulted on a field offset near 2**31."""
+    record = ma.KeyframeRecord(1, 1.0, 0, np.eye(4), np.eye(4), np.zeros(2, np.float32))
+    msg = ma.records_to_pointcloud2([record], HEADER)  # the pose: 16 float64 at offset 16 of a 280-byte point
+    msg.fields[3].offset, msg.fields[3].count = offset, count
+    with pytest.raises(ValueError, match=f"'pose' \\({count} x float64 at offset {offset}\\) ends at byte "
+                                         f"{offset + 8 * count}, beyond point_step 280"):
+        ma.pointcloud2_to_records(msg, ma.KeyframeRecord)
+    msg.point_step = 2**31
+    with pytest.raises(ValueError, match="point_step 2147483648 exceeds"):
+        pointcloud2_to_structured(msg)
 
 
 # --- typed records --------------------------------------------------------------------------------------------------

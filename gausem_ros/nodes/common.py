@@ -1,9 +1,12 @@
 """What every GauSem node shares: parameter declaration (the SLAM configuration as ROS parameters), class tables,
-dropped-input reporting, a one-slot newest-frame queue and the ``main`` runner."""
+dropped-input reporting (and the guard that turns an exception on one input into a drop), a one-slot newest-frame
+queue and the ``main`` runner."""
 from __future__ import annotations
 
+import functools
 import threading
 import time
+import traceback
 from collections import Counter
 from collections.abc import Callable
 from types import SimpleNamespace
@@ -57,6 +60,24 @@ class FrameRejected(ValueError):
     def __init__(self, reason: str, detail: str):
         super().__init__(detail)
         self.reason = reason
+
+
+def survives_errors(handler: Callable | None = None, *, frame: bool = True) -> Callable:
+    """Decorator for a node method that handles one input: an exception it raises is logged (the traceback at debug
+    level) and counted on the node's ``drops`` as ``processing_error`` (a dropped frame, or with ``frame=False`` a
+    rejected message), and the node goes on with the next input. ``@survives_errors`` or
+    ``@survives_errors(frame=False)``."""
+    if handler is None:
+        return functools.partial(survives_errors, frame=frame)
+
+    @functools.wraps(handler)
+    def guarded(node, *args):
+        try:
+            return handler(node, *args)
+        except Exception as err:  # noqa: BLE001 -- one input must never end the node
+            node.get_logger().debug(f"{handler.__name__} failed:\n{traceback.format_exc()}")
+            node.drops.drop("processing_error", f"{handler.__name__}: {type(err).__name__}: {err}", frame=frame)
+    return guarded
 
 
 class DropReport:

@@ -6,7 +6,8 @@ first waits, at most ``cache_size`` of each). The keyframe's global descriptor i
 colour image (the class table's colours of the labels) with ``semantics.descriptor`` (DINOv2 CLS with
 ``semantics.dinov2_weights``, else the colour-layout fallback), so labels are needed. Every keyframe the tracker
 publishes is a loop keyframe (the tracker already keeps one every ``mapping.every`` frames; a keyframe id seen before
-is a re-publication, whose corrected pose is kept, and otherwise ignored); ``loop.check_every``,
+is a re-publication, whose corrected pose is kept, and otherwise ignored; a new id below the newest one is dropped as
+``keyframe_out_of_order``); ``loop.check_every``,
 ``loop.max_descriptor_distance`` (DINOv2) or ``loop.max_fallback_descriptor_distance`` (the fallback descriptor),
 ``loop.exclude_recent`` and ``loop.proximity_radius`` (keyframes near in the latest published poses are candidates
 too) configure the detector.
@@ -32,7 +33,7 @@ from gausem_core.semantics import make_descriptor
 from gausem_core.slam.loop import LoopDetector, gaussian_idf, landmark_scores, nearby_keyframes
 
 from ..qos import EVENT_QOS, input_qos
-from .common import DropReport, class_table, declare_parameters, declare_slam_config, run_node
+from .common import DropReport, class_table, declare_parameters, declare_slam_config, run_node, survives_errors
 
 NODE_DEFAULTS = {"classes": "synthetic", "input_qos": "reliable", "stamp_tolerance": 0.02, "cache_size": 60,
                  "label_stride": 4}
@@ -69,10 +70,12 @@ class LoopDetectionNode(Node):
         self._world_poses: dict[int, torch.Tensor] = {}  # keyframe id -> latest map-from-camera (for proximity)
         self._submap_pixels: dict[int, list[torch.Tensor]] = defaultdict(list)
 
+    @survives_errors
     def _on_labels(self, msg: Image) -> None:
         self._remember(self._labels, ma.header_seconds(msg.header), msg, "labels")
         self._pair()
 
+    @survives_errors
     def _on_keyframes(self, msg: PointCloud2) -> None:
         if not self.cfg.loop.enabled:
             return
@@ -87,6 +90,11 @@ class LoopDetectionNode(Node):
                 self.get_logger().info(f"keyframe {record.keyframe_id} arrived with a new stamp ({record.stamp:.6f} s, "
                                        f"was {known:.6f} s): the tracker started a new map; starting over")
                 self._start_map()
+            newest = max(self._stamps, default=-1)
+            if record.keyframe_id < newest and record.keyframe_id not in self._stamps:
+                self.drops.drop("keyframe_out_of_order", f"new keyframe {record.keyframe_id} arrived after keyframe "
+                                                         f"{newest}; the detector needs increasing ids")
+                continue
             self._world_poses[record.keyframe_id] = torch.from_numpy(record.anchor_pose @ record.pose)
             if record.keyframe_id not in self._stamps:  # re-published keyframes (corrected poses) are not new
                 self._stamps[record.keyframe_id] = record.stamp
@@ -110,6 +118,8 @@ class LoopDetectionNode(Node):
     def _check(self, record: ma.KeyframeRecord, labels_msg: Image) -> None:
         try:
             labels = ma.image_to_labels(labels_msg)
+            if not labels.size:
+                raise ValueError(f"the label image is empty ({labels_msg.width}x{labels_msg.height})")
             semantic = self.table.colorize(labels)
         except ValueError as err:
             self.drops.drop("bad_labels", f"keyframe {record.keyframe_id}: {err}")

@@ -24,7 +24,7 @@ from gausem_core.slam.loop_closure import LoopConstraint, odometry_sigmas
 from gausem_core.slam.pose_graph import PoseGraph, optimise_chain
 
 from ..qos import EVENT_QOS
-from .common import DropReport, declare_parameters, declare_slam_config, run_node
+from .common import DropReport, declare_parameters, declare_slam_config, run_node, survives_errors
 
 NODE_DEFAULTS = {"map_frame": "map", "max_iterations": 100}
 
@@ -57,6 +57,7 @@ class PoseGraphNode(Node):
             self.drops.drop(f"bad_{record_type.__name__}", str(err))
             return []
 
+    @survives_errors
     def _on_keyframes(self, msg: PointCloud2) -> None:
         for r in self._records(msg, ma.KeyframeRecord):
             if self._stamps.setdefault(r.keyframe_id, r.stamp) != r.stamp:
@@ -67,10 +68,12 @@ class PoseGraphNode(Node):
             self.keyframes[r.keyframe_id] = (r.submap_id, r.pose)
             self.anchors.setdefault(r.submap_id, r.anchor_pose)
 
+    @survives_errors
     def _on_submaps(self, msg: PointCloud2) -> None:
         for r in self._records(msg, ma.SubmapEvent):
             self.anchors.setdefault(r.submap_id, r.anchor_pose)
 
+    @survives_errors
     def _on_loops(self, msg: PointCloud2) -> None:
         for record in self._records(msg, ma.LoopConstraintRecord):
             name = f"loop constraint {record.keyframe_a}-{record.keyframe_b}"

@@ -5,7 +5,7 @@ It needs a segmenter that works on the image alone (``semantics.segmenter: dinov
 and ``semantics.head_weights``). With ``semantics.segmenter: labels`` the class ids come with the data -- the player
 publishes ``semantic/labels`` from a labelled dataset, or another robot stack does -- so this node is not run (it
 refuses to start and says so). Frames are segmented newest first; superseded or undecodable images are dropped and
-counted on gausem/diagnostics.
+counted on gausem/diagnostics (bad_encoding, bad_image; processing_error when segmenting raises).
 """
 from __future__ import annotations
 
@@ -19,7 +19,8 @@ from gausem_core.pipeline import resolve_device
 from gausem_core.semantics import Segmenter, make_segmenter
 
 from ..qos import IMAGE_QOS, input_qos
-from .common import DropReport, NewestFrameQueue, class_table, declare_parameters, declare_slam_config, run_node
+from .common import (DropReport, NewestFrameQueue, class_table, declare_parameters, declare_slam_config, run_node,
+                     survives_errors)
 
 NODE_DEFAULTS = {"classes": "synthetic", "input_qos": "reliable", "label_encoding": "mono16"}
 
@@ -56,11 +57,15 @@ class SegmentationNode(Node):
         self.create_subscription(Image, "rgb/image", self._queue.put, input_qos(p.input_qos),
                                  callback_group=MutuallyExclusiveCallbackGroup())  # images arrive while segmenting
 
+    @survives_errors
     def _segment(self, msg: Image, arrived: float) -> None:
         del arrived
         try:
             rgb = ma.image_to_rgb(msg)
-        except ValueError as err:
+        except ma.ImageEncodingError as err:
+            self.drops.drop("bad_encoding", str(err))
+            return
+        except ValueError as err:  # data length / step inconsistent with the declared size
             self.drops.drop("bad_image", str(err))
             return
         labels = self.segmenter.segment(rgb.copy())

@@ -28,9 +28,11 @@ a backlog. Every rgb image received is accounted for: processed (a pose publishe
 by reason on gausem/diagnostics (``dropped.<reason>``) with a warning: ``superseded`` (a newer frame arrived while
 busy), ``unmatched`` (no depth/labels within ``sync_slop``; the warning gives the offset seen), ``no_depth`` /
 ``no_labels`` (that input never arrived: with ``use_labels`` true and no labels, the warning names the parameter),
-``stale_stamp`` / ``duplicate_stamp`` (stamps going backwards or repeated), bad input (wrong encodings, size
-mismatches, too little valid depth, no camera_info yet, labels outside the class table) and ``tracking_diverged`` (a
-pose estimate that is not finite: nothing is published for it). ``frames_in``, ``frames_processed``,
+``stale_stamp`` / ``duplicate_stamp`` (stamps going backwards or repeated), bad input (wrong encodings, data
+shorter than the declared size, a side below ``min_image_size``, size mismatches, too little valid depth, no
+camera_info yet, labels outside the class table), ``tracking_diverged`` (a pose estimate that is not finite: nothing
+is published for it) and ``processing_error`` (any input whose handling raises; the node goes on). Frames of more
+than ``max_image_pixels`` pixels are downscaled (aspect kept, intrinsics scaled). ``frames_in``, ``frames_processed``,
 ``frames_pending`` and the latency from a synchronised frame's arrival to its pose's publication (``latency_ms.median``
 / ``.p95`` over the last 100 frames) are published with the counts; :meth:`TrackingMappingNode.summary` gives them
 for the whole run. Published poses are projected onto SE(3) in float64.
@@ -62,6 +64,8 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 import msg_adapters as ma
+from gausem_core.config import SlamConfig
+from gausem_core.data.frame import Frame, resize_frame
 from gausem_core.eval.trajectory import Trajectory, write_tum_trajectory
 from gausem_core.io.ply import write_gaussian_ply
 from gausem_core.pipeline import UNLABELLED_PALETTE, resolve_device
@@ -72,7 +76,7 @@ from ..qos import EVENT_QOS, LATCHED_QOS, input_qos
 from ..sync import make_synchronizer
 from ..tf import make_transform_broadcaster
 from .common import (LAST_FRAME_KEY, DropReport, FrameRejected, NewestFrameQueue, class_table,
-                     declare_parameters, declare_slam_config, run_node)
+                     declare_parameters, declare_slam_config, run_node, survives_errors)
 
 NODE_DEFAULTS = {
     "classes": "synthetic",      # class table of the labels: synthetic, nyu40, scannet20 or a class-table file
@@ -84,6 +88,8 @@ NODE_DEFAULTS = {
     "sync_slop": 0.02,           # seconds
     "map_publish_period": 2.0,   # seconds
     "min_valid_depth": 0.05,     # fraction of pixels with a valid depth below which a frame is dropped
+    "min_image_size": 16,        # pixels: frames with a smaller side are dropped (bad_size); >= the pyramids' need
+    "max_image_pixels": 1280 * 720,  # larger frames are downscaled to at most this many pixels (aspect kept)
     "output_dir": "gausem_output",
     "loop_closure": "nodes",     # or "core": see the module docstring
     "save_on_exit": False,       # write map.ply, trajectory.txt and session/ to output_dir when the node shuts down
@@ -93,6 +99,25 @@ LOOP_CLOSURE_MODES = ("nodes", "core")
 SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched"}
 NO_LABELS_HINT = ("; use_labels is true but no semantic/labels arrived: set -p use_labels:=false for data without "
                   "labels, or run the segmentation node (semantics.segmenter: dinov2)")
+
+
+def _pyramid_minimum(cfg: SlamConfig) -> int:
+    """The smallest image side the image pyramids can take (each level halves it and must keep a pixel): tracking's,
+    and loop registration's at the keyframe resolution divided by ``loop.registration.downsample``."""
+    reg = cfg.loop.registration
+    return max(2 ** (cfg.tracking.pyramid_levels - 1), reg.downsample * 2 ** (reg.pyramid_levels - 1))
+
+
+def _check_size_limits(cfg: SlamConfig, min_image_size: int, max_image_pixels: int) -> None:
+    """ValueError naming the parameter to change when the size limits cannot work together."""
+    least = _pyramid_minimum(cfg)
+    if min_image_size < least:
+        raise ValueError(f"tracking_mapping: min_image_size {min_image_size} is below {least} pixels, the smallest "
+                         "side the image pyramids (tracking.pyramid_levels, loop.registration.pyramid_levels and "
+                         "downsample) can take; raise min_image_size")
+    if max_image_pixels < min_image_size ** 2:
+        raise ValueError(f"tracking_mapping: max_image_pixels {max_image_pixels} is below min_image_size^2 = "
+                         f"{min_image_size ** 2}; raise max_image_pixels")
 
 
 def _numpy_pose(pose: torch.Tensor) -> np.ndarray:
@@ -113,6 +138,7 @@ class TrackingMappingNode(Node):
         if p.loop_closure not in LOOP_CLOSURE_MODES:
             raise ValueError(f"tracking_mapping: loop_closure must be one of {', '.join(LOOP_CLOSURE_MODES)}, got "
                              f"{p.loop_closure!r}")
+        _check_size_limits(self.cfg, p.min_image_size, p.max_image_pixels)
         self.palette = class_table(p.classes).palette if p.use_labels else UNLABELLED_PALETTE
         self.device = resolve_device(self.cfg.device)
         self.drops = DropReport(self, status=self._status)
@@ -173,6 +199,7 @@ class TrackingMappingNode(Node):
         self._map_dirty = False
 
     # --- inputs -------------------------------------------------------------------------------------------------
+    @survives_errors(frame=False)
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
             self.camera = ma.camera_info_to_camera(msg)
@@ -195,13 +222,44 @@ class TrackingMappingNode(Node):
         self.drops.drop(SYNC_REASONS.get(reason, reason), detail)
 
     def _observation(self, rgb_msg: Image, depth_msg: Image, labels_msg: Image | None = None) -> Observation:
-        """Validated observation of one synchronised frame, or FrameRejected saying why not."""
+        """Validated observation of one synchronised frame (downscaled to ``max_image_pixels``), or FrameRejected
+        saying why not."""
         stamp = ma.header_seconds(rgb_msg.header)
         if stamp <= self._last_stamp:
             raise FrameRejected("stale_stamp", f"frame stamped {stamp:.6f} s is not after the last processed "
                                                f"frame ({self._last_stamp:.6f} s)")
         if self.camera is None:
             raise FrameRejected("no_camera_info", "no valid rgb/camera_info received yet; waiting for it")
+        self._check_min_size(rgb_msg, depth_msg, labels_msg)
+        rgb, depth, labels = self._decode(rgb_msg, depth_msg, labels_msg)
+        camera = self.camera
+        sizes = {"rgb": rgb.shape[:2], "depth": depth.shape, "labels": labels.shape,
+                 "camera_info": (camera.height, camera.width)}
+        if len(set(sizes.values())) > 1:
+            raise FrameRejected("size_mismatch", "image sizes differ (height, width): "
+                                + ", ".join(f"{k} {v}" for k, v in sizes.items()))
+        if labels.size and (labels.min() < 0 or labels.max() >= len(self.palette)):
+            raise FrameRejected("bad_labels", f"labels span [{labels.min()}, {labels.max()}], outside the class "
+                                              f"table's ids 0..{len(self.palette) - 1} (parameter classes)")
+        valid = float((depth > 0).mean()) if depth.size else 0.0
+        if valid < self.params.min_valid_depth:
+            raise FrameRejected("invalid_depth", f"only {100 * valid:.1f} % of the depth pixels are valid (finite, "
+                                                 f"> 0); at least {100 * self.params.min_valid_depth:.1f} % needed")
+        frame = self._limit_pixels(Frame(0, stamp, rgb, depth, labels, camera))
+        return Observation.from_arrays(frame.rgb, frame.depth, frame.labels, frame.camera, self.palette, stamp,
+                                       self.device)
+
+    def _check_min_size(self, *msgs: Image | None) -> None:
+        """FrameRejected (bad_size) for an image with a side below ``min_image_size``, before any decoding."""
+        least = self.params.min_image_size
+        for name, msg in zip(("rgb", "depth", "labels"), msgs):
+            if msg is not None and min(msg.width, msg.height) < least:
+                raise FrameRejected("bad_size", f"{name} image is {msg.width}x{msg.height}: sides below "
+                                                f"{least} pixels are dropped (parameter min_image_size)")
+
+    def _decode(self, rgb_msg: Image, depth_msg: Image, labels_msg: Image | None):
+        """RGB, depth (metres) and labels (zeros without a labels input) arrays, or FrameRejected (bad_encoding;
+        bad_image when the data does not hold the declared size)."""
         try:
             rgb = ma.image_to_rgb(rgb_msg)
             depth = ma.image_to_depth(depth_msg)
@@ -211,20 +269,23 @@ class TrackingMappingNode(Node):
             raise FrameRejected("bad_encoding", str(err)) from err
         except ValueError as err:  # data length / step inconsistent with the declared size
             raise FrameRejected("bad_image", str(err)) from err
-        camera = self.camera
-        sizes = {"rgb": rgb.shape[:2], "depth": depth.shape, "labels": labels.shape,
-                 "camera_info": (camera.height, camera.width)}
-        if len(set(sizes.values())) > 1:
-            raise FrameRejected("size_mismatch", "image sizes differ (height, width): "
-                                + ", ".join(f"{k} {v}" for k, v in sizes.items()))
-        valid = float((depth > 0).mean()) if depth.size else 0.0
-        if valid < self.params.min_valid_depth:
-            raise FrameRejected("invalid_depth", f"only {100 * valid:.1f} % of the depth pixels are valid (finite, "
-                                                 f"> 0); at least {100 * self.params.min_valid_depth:.1f} % needed")
-        try:
-            return Observation.from_arrays(rgb, depth, labels, camera, self.palette, stamp, self.device)
-        except ValueError as err:
-            raise FrameRejected("bad_labels", str(err)) from err
+        return rgb, depth, labels
+
+    def _limit_pixels(self, frame: Frame) -> Frame:
+        """The frame downscaled, aspect kept, to at most ``max_image_pixels`` pixels (rgb area-averaged, depth and
+        labels nearest, intrinsics scaled: ``resize_frame``); FrameRejected (bad_size) if a side would fall below
+        ``min_image_size``."""
+        w, h = frame.size
+        limit = self.params.max_image_pixels
+        if w * h <= limit:
+            return frame
+        scale = math.sqrt(limit / (w * h))
+        size = int(w * scale), int(h * scale)
+        if min(size) < self.params.min_image_size:
+            raise FrameRejected("bad_size", f"a {w}x{h} image downscaled to max_image_pixels = {limit} would be "
+                                            f"{size[0]}x{size[1]}, a side below min_image_size; raise "
+                                            "max_image_pixels or lower min_image_size")
+        return resize_frame(frame, *size)
 
     # --- processing ---------------------------------------------------------------------------------------------
     @property
@@ -233,6 +294,7 @@ class TrackingMappingNode(Node):
         last one: the ROS counterpart of the offline pipeline's loop time (0 before any frame)."""
         return self._busy[1] - self._busy[0] if self._busy else 0.0
 
+    @survives_errors
     def _process(self, msgs: tuple[Image, ...], arrived: float) -> None:
         start = time.perf_counter()
         self._handled_ns = ma.time_to_ns(msgs[0].header.stamp)
@@ -243,7 +305,11 @@ class TrackingMappingNode(Node):
             self._in_progress = False
             self.drops.drop(err.reason, str(err))
             return
-        self._track_and_publish(obs, msgs[0].header.frame_id, arrived)
+        try:
+            self._track_and_publish(obs, msgs[0].header.frame_id, arrived)
+        except Exception:
+            self._in_progress = False  # counted as a processing_error drop
+            raise
         self._busy = (self._busy[0] if self._busy else start, time.perf_counter())
 
     def _track_and_publish(self, obs: Observation, image_frame: str, arrived: float) -> None:
@@ -347,6 +413,7 @@ class TrackingMappingNode(Node):
                                                       ma.make_header(stamp, self.params.map_frame), self.palette))
 
     # --- loop closure events ------------------------------------------------------------------------------------
+    @survives_errors(frame=False)
     def _on_loop_candidates(self, msg: PointCloud2) -> None:
         try:
             candidates = ma.pointcloud2_to_records(msg, ma.LoopCandidateRecord)
@@ -374,6 +441,7 @@ class TrackingMappingNode(Node):
                                                                    header))
         self.loop_candidates += candidates  # handled
 
+    @survives_errors(frame=False)
     def _on_pose_graph(self, msg: PointCloud2) -> None:
         try:
             update = ma.pointcloud2_to_pose_graph_update(msg)
