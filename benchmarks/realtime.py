@@ -4,7 +4,7 @@ Runs ``gausem-ros SOURCE --report DIR`` twice in fresh processes, both on the sa
 (every frame processed, the reference) and once at the recorded rate (the tracker takes the newest frame and drops
 what it cannot keep up with). Recorded per run: frames in, processed, dropped by reason, pending, latency median and
 p95 (a synchronised frame's arrival to its pose's publication), the player's playback time, and the ATE of the
-processed frames; written to ``benchmarks/results/realtime_<name>.{json,md}``.
+processed frames (NaN with fewer than 3); written to ``benchmarks/results/realtime_<name>.{json,md}``.
 
     .venv/bin/python benchmarks/realtime.py [--source tum:../shared/data/tum_fr1_rpy] [--size 160x120]
         [--params params/tum.yaml] [--name tum_fr1_rpy_160x120] [-- ROS_ARGS...]
@@ -39,8 +39,8 @@ def run(mode: str, args, ros_args: list[str], out: Path) -> dict:
         raise SystemExit(f"{mode} run failed ({result.returncode}):\n{result.stderr[-3000:]}")
     metrics = json.loads((out / "metrics.json").read_text())["metrics"]
     accounting = json.loads((out / "input.json").read_text())
-    return {"mode": mode, "wall_s": round(time.monotonic() - start, 1), "ate_cm": round(100 * metrics["ate"]["rmse"], 2),
-            "ate_pairs": metrics["ate"]["pairs"], **accounting}
+    return {"mode": mode, "wall_s": round(time.monotonic() - start, 1), "ate_cm": round(metrics["ate_rmse_cm"], 2),
+            "ate": metrics["ate"], **accounting}
 
 
 def markdown(rows: list[dict], args, ros_args: list[str]) -> str:

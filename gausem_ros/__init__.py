@@ -2,3 +2,4 @@
 
 Message conversions live in ``msg_adapters``; this package parses parameters, converts and calls the core.
 """
+import gausem_core  # noqa: F401 (first: its OpenMP setting must precede torch's import)

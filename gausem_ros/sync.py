@@ -14,7 +14,10 @@ counted in ``dropped[(input name, reason)]`` and reported to ``on_drop(index, re
   without :meth:`ApproximateTimeSync.reset`);
 - ``duplicate``: a stamp already queued on the same input (the first is kept);
 - ``unmatched``: left behind by a later match or evicted from a full queue without a partner within ``slop``; the
-  detail gives the nearest stamp offset seen on each other input, or ``no_<input>`` when that input has sent nothing.
+  detail gives the nearest stamp offset seen on each other input, or ``no_<input>`` when that input has sent nothing;
+- ``lost_in_transport``: never received, seen as a gap in the publisher's sequence numbers (``add``'s ``sequence``:
+  the DDS publication sequence number of the message info, which rclpy hands to a two-argument callback); a
+  subscription whose queue overflowed before the node took its messages loses them this way. Counted in ``lost``.
 
 ``message_filters`` (not on PyPI) is not used: its synchroniser drops without telling.
 """
@@ -47,6 +50,8 @@ class ApproximateTimeSync:
             self._queues: list[dict[float, object]] = [{} for _ in self.names]
             self._last_matched = [float("-inf")] * len(self.names)
             self.received = [0] * len(self.names)
+            self.lost = [0] * len(self.names)  # messages never received (sequence-number gaps)
+            self._sequences: list[int | None] = [None] * len(self.names)
             self.dropped: Counter[tuple[str, str]] = Counter()
             self.matched = 0
 
@@ -54,13 +59,15 @@ class ApproximateTimeSync:
         """Messages of input ``index`` queued, waiting for a match."""
         return len(self._queues[index])
 
-    def add(self, index: int, stamp: float, msg) -> None:
-        """Queue ``msg`` stamped ``stamp`` seconds on input ``index``; emit a match if it completes one."""
+    def add(self, index: int, stamp: float, msg, sequence: int | None = None) -> None:
+        """Queue ``msg`` stamped ``stamp`` seconds on input ``index`` (``sequence``: its publication sequence number,
+        when known); emit a match if it completes one."""
         if not 0 <= index < len(self._queues):
             raise ValueError(f"input index {index} out of range 0..{len(self._queues) - 1}")
         drops: list[tuple[int, str, str]] = []
         with self._lock:
             self.received[index] += 1
+            self._count_lost(index, sequence, drops)
             match = self._add(index, stamp, msg, drops)
             for i, reason, _ in drops:
                 self.dropped[(self.names[i], reason)] += 1
@@ -68,6 +75,18 @@ class ApproximateTimeSync:
             self.on_drop(*drop)
         if match is not None:
             self.callback(*match)
+
+    def _count_lost(self, index: int, sequence: int | None, drops: list) -> None:
+        """Messages skipped in the publisher's sequence since the last one received (none after a restart of the
+        sequence, e.g. a new publisher)."""
+        last, self._sequences[index] = self._sequences[index], sequence
+        if sequence is None or last is None or sequence <= last + 1:
+            return
+        gap = sequence - last - 1
+        self.lost[index] += gap
+        detail = (f"{gap} {self.names[index]} message(s) never arrived (publication sequence {last} -> {sequence}): "
+                  "the subscription queue overflowed before they were taken, or the network lost them")
+        drops.extend([(index, "lost_in_transport", detail)] * gap)
 
     def _add(self, index: int, stamp: float, msg, drops: list):
         queue, name = self._queues[index], self.names[index]
@@ -129,8 +148,8 @@ class SynchronizedInputs:
     subscriptions: list
 
 
-def _feed(sync: ApproximateTimeSync, index: int, msg) -> None:
-    sync.add(index, header_seconds(msg.header), msg)
+def _feed(sync: ApproximateTimeSync, index: int, msg, info: dict) -> None:
+    sync.add(index, header_seconds(msg.header), msg, info.get("publication_sequence_number"))
 
 
 def make_synchronizer(node, inputs: Sequence[tuple[str, type, str]], callback: Callable[..., None], qos, *,

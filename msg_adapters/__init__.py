@@ -1,4 +1,5 @@
 """Pure conversions between GauSem core types and standard ROS 2 messages. No nodes, no spinning."""
+import gausem_core  # noqa: F401 (first: its OpenMP setting must precede torch's import)
 from .camera_info import camera_info_to_camera, camera_to_camera_info
 from .gaussian_map import cloud_to_pointcloud2, pointcloud2_to_cloud
 from .images import (ImageEncodingError, depth_to_image, image_to_depth, image_to_labels, image_to_numpy,

@@ -136,9 +136,18 @@ def test_make_synchronizer_feeds_header_stamps():
                                                                        (Image, "depth/image", qos.IMAGE_QOS)]
     rgb = ma.rgb_to_image(np.zeros((2, 2, 3), np.uint8), ma.make_header(5.000, "cam"))
     depth = ma.depth_to_image(np.ones((2, 2)), ma.make_header(5.004, "cam"))
-    node.subscriptions[1][2](depth)
-    node.subscriptions[0][2](rgb)
+    node.subscriptions[1][2](depth, {"publication_sequence_number": 1})
+    node.subscriptions[0][2](rgb, {"publication_sequence_number": 1})
     assert out.matches == [(rgb, depth)] and handle.synchronizer.matched == 1
+
+
+def test_gaps_in_the_publication_sequence_are_counted_as_lost():
+    drops = Drops()
+    s = sync.ApproximateTimeSync(["rgb", "depth"], Collector(), slop=0.01, on_drop=drops)
+    for stamp, sequence in ((1.0, 7), (2.0, 8), (3.0, 11), (4.0, 1), (5.0, 2)):  # 9, 10 lost; then a new publisher
+        s.add(0, stamp, f"rgb{stamp}", sequence)
+    assert s.lost == [2, 0] and s.dropped[("rgb", "lost_in_transport")] == 2
+    assert [reason for _, reason, _ in drops] == ["lost_in_transport"] * 2 and "sequence 8 -> 11" in drops[0][2]
 
 
 # --- TF ---------------------------------------------------------------------------------------------------------------

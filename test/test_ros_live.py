@@ -284,3 +284,22 @@ def test_ctrl_c_ends_gausem_ros_quickly_and_save_still_writes_the_map(tmp_path):
     # the frame in progress at Ctrl-C is finished and saved, though its pose may not have gone out any more
     assert len((tmp_path / "out" / "trajectory.txt").read_text().splitlines()) - 1 in (processed, processed + 1)
     assert (tmp_path / "out" / "map.ply").is_file() and (tmp_path / "out" / "session" / "session.json").is_file()
+
+
+def test_frames_without_the_labels_the_tracker_expects_are_dropped_with_the_parameter_to_change(capfd):
+    """use_labels is true (the default) but the source has no labels: every frame is dropped as no_labels, and the
+    warning names use_labels."""
+    frames = list(open_source("synthetic", size=(40, 30), max_frames=14))
+    for frame in frames:
+        frame.messages = [(key, msg) for key, msg in frame.messages if key != "labels"]
+    with ros_session(137) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
+        player = Player(frames, rate=1.0, context=ctx)
+        for node in (tracking, player):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: player.done and tracking.summary()["dropped"].get("no_labels", 0) >= 4,
+                          10.0)
+        summary = tracking.summary()
+    assert summary["frames_processed"] == 0 and set(summary["dropped"]) == {"no_labels"}
+    assert summary["frames_in"] == 14 == sum(summary["dropped"].values()) + summary["frames_pending"]
+    assert "set -p use_labels:=false" in capfd.readouterr().err

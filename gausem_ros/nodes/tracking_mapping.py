@@ -26,7 +26,8 @@ GauSem entry point uses) inputs keep arriving while a frame is processed; frames
 newest synchronised one first (``NewestFrameQueue``), so a tracker that falls behind skips frames instead of building
 a backlog. Every rgb image received is accounted for: processed (a pose published), pending, or dropped and counted
 by reason on gausem/diagnostics (``dropped.<reason>``) with a warning: ``superseded`` (a newer frame arrived while
-busy), ``unmatched`` (no depth/labels within ``sync_slop``; the warning gives the offset seen), ``no_depth`` /
+busy), ``lost_in_transport`` (never received: a gap in the publisher's sequence numbers, e.g. the subscription queue
+overflowed), ``unmatched`` (no depth/labels within ``sync_slop``; the warning gives the offset seen), ``no_depth`` /
 ``no_labels`` (that input never arrived: with ``use_labels`` true and no labels, the warning names the parameter),
 ``stale_stamp`` / ``duplicate_stamp`` (stamps going backwards or repeated), bad input (wrong encodings, data
 shorter than the declared size, a side below ``min_image_size``, size mismatches, too little valid depth, no
@@ -96,7 +97,8 @@ NODE_DEFAULTS = {
     "map_path": "",              # a saved session folder to start from (and for gausem/load_map)
 }
 LOOP_CLOSURE_MODES = ("nodes", "core")
-SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched"}
+SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched",
+                "lost_in_transport": "lost_in_transport"}
 NO_LABELS_HINT = ("; use_labels is true but no semantic/labels arrived: set -p use_labels:=false for data without "
                   "labels, or run the segmentation node (semantics.segmenter: dinov2)")
 
@@ -357,7 +359,7 @@ class TrackingMappingNode(Node):
         frames, the last handled frame (lock-step players take it as the answer for a frame that produced no
         odometry) and the depth and label messages the synchroniser dropped."""
         sync = self._inputs.synchronizer
-        return {"frames_in": sync.received[0], "frames_processed": self.frames_processed,
+        return {"frames_in": sync.received[0] + sync.lost[0], "frames_processed": self.frames_processed,
                 "frames_pending": self._frames_pending(), LAST_FRAME_KEY: self._handled_ns,
                 **latency_stats(self.latencies[-100:]),
                 **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(sync.dropped.items())
@@ -366,7 +368,7 @@ class TrackingMappingNode(Node):
     def summary(self) -> dict:
         """The whole run's input accounting: frames in = processed + dropped (by reason) + pending; latency."""
         sync = self._inputs.synchronizer
-        return {"frames_in": sync.received[0], "frames_processed": self.frames_processed,
+        return {"frames_in": sync.received[0] + sync.lost[0], "frames_processed": self.frames_processed,
                 "dropped": dict(sorted(self.drops.counts.items())),
                 "frames_pending": self._frames_pending(), **latency_stats(self.latencies)}
 
