@@ -55,14 +55,17 @@ def build_nodes(**node_kwargs) -> list:
     return nodes
 
 
-def spin_until_done(executor, player, linger: float = 1.0, on_spin: Callable[[], None] = lambda: None) -> None:
-    """Spin until the player is done (then ``linger`` s more for the last outputs), or forever without one;
-    ``on_spin`` after every spin."""
+def spin_until_done(executor, player, linger: float = 1.0, on_spin: Callable[[], None] = lambda: None,
+                    drained: Callable[[], bool] = lambda: True, drain_timeout: float = 600.0) -> None:
+    """Spin until the player is done, then at least ``linger`` s more for the last outputs and until ``drained()``
+    (the tracker's pending frames processed; ``drain_timeout`` s at most); forever without a player. ``on_spin``
+    after every spin."""
     while rclpy.ok(context=executor.context) and (player is None or not player.done):
         executor.spin_once(timeout_sec=0.1)
         on_spin()
-    end = time.monotonic() + linger
-    while rclpy.ok(context=executor.context) and time.monotonic() < end:
+    start = time.monotonic()
+    while rclpy.ok(context=executor.context) and (time.monotonic() < start + linger or not drained()) \
+            and time.monotonic() < start + drain_timeout:
         executor.spin_once(timeout_sec=0.1)
         on_spin()
 
@@ -148,7 +151,8 @@ def main(args=None) -> int:
         tracking = nodes[0]
         bar, update = progress_bar(tracking, disable=player is None or ns.quiet)
         try:
-            spin_until_done(executor, player, on_spin=update)
+            spin_until_done(executor, player, on_spin=update,
+                            drained=lambda: tracking.summary()["frames_pending"] == 0)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         interrupted = not rclpy.ok()  # SIGINT or SIGTERM shut the context down
