@@ -182,6 +182,7 @@ class HealthConfig:
     lost_jump: float = 15.0  # ... lost beyond this many
     degraded_valid_depth: float = 0.3  # degraded below this fraction of pixels with valid depth ...
     lost_valid_depth: float = 0.05  # ... lost below this one
+    recovery_inlier_fraction: float = 0.3  # after a loss, relocalisation accepts from this inlier fraction (its own)
 
 
 @dataclass

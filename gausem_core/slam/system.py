@@ -14,7 +14,7 @@ the compute device. A closed submap's tensors go to a :class:`SubmapStore` (CPU 
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -219,7 +219,7 @@ class GauSemSLAM:
             return FrameResult(frame_id, relocalised.cam_to_world, False, relocalised.tracking_loss,
                                relocalised.iterations, None, self.active.num_gaussians, self.active.submap_id, None,
                                relocalised, TrackingHealth("lost", reasons=("relocalisation_failed",)))
-        health = self._assess(obs, tracked, relocalised is not None)
+        health = self._assess(obs, tracked, relocalised)
         pose = tracked.cam_to_world.detach()
         lost = health.status == "lost"
         if lost or frame_id % self.cfg.mapping.every:
@@ -265,15 +265,17 @@ class GauSemSLAM:
             return previous, constant_velocity(previous, self._local_pose(-2))
         return previous, None
 
-    def _assess(self, obs: Observation, tracked: TrackingResult, relocalised: bool) -> TrackingHealth:
-        """The health of a frame placed at ``tracked`` in the active submap (before it is recorded); a relocalised
-        frame starts a new motion history and is not judged against the motion model."""
+    def _assess(self, obs: Observation, tracked: TrackingResult,
+                relocalised: RelocalisationResult | None) -> TrackingHealth:
+        """The health of a frame tracked to ``tracked`` in the active submap (before it is recorded). A relocalised
+        frame was judged by relocalisation (against the submap that placed it): ok, and a new motion history starts."""
+        if relocalised is not None:
+            self.health.reset()
+            return TrackingHealth("ok", inlier_fraction=relocalised.inlier_fraction,
+                                  valid_depth=float(obs.valid_depth.float().mean()))
         view, hessian = inspect_pose(self.active.cloud, obs, tracked.cam_to_world, self.cfg.tracking,
                                      self.cfg.backend)
         image = image_signals(view, obs, hessian, self.cfg.health)
-        if relocalised:
-            self.health.reset()
-            return self.health.assess(tracked.loss, image, tracked.cam_to_world, None, None)
         previous, predicted = self._motion_model()
         return self.health.assess(tracked.loss, image, tracked.cam_to_world, previous,
                                   previous if predicted is None else predicted)
@@ -285,11 +287,15 @@ class GauSemSLAM:
 
     def relocalise(self, obs: Observation) -> RelocalisationResult:
         """Place a frame against the map without the motion model (``slam.relocalisation``): tracked from the last
-        pose and from the ``relocalisation.candidates`` keyframes nearest by global descriptor (or the active
-        submap's keyframes), the best start kept. Changes nothing; :meth:`process` uses it while :attr:`lost`."""
+        good pose and from the ``relocalisation.candidates`` keyframes nearest by global descriptor (or the active
+        submap's keyframes), the best start kept; after a tracking loss it accepts from
+        ``health.recovery_inlier_fraction``. Changes nothing; :meth:`process` uses it while :attr:`lost`."""
         if not self.frames:
             raise ValueError("relocalise: the map is empty (no frame processed or loaded)")
         cfg = self.cfg.relocalisation
+        if self.frames[-1].lost:  # after a tracking loss: the map lacks what the lost frames would have added
+            cfg = replace(cfg, min_inlier_fraction=min(cfg.min_inlier_fraction,
+                                                       self.cfg.health.recovery_inlier_fraction))
         last = next(f for f in reversed(self.frames) if not f.lost)
         ranked = (self.loop_closure.nearest_keyframes(obs.semantic, cfg.candidates)
                   if self.loop_closure is not None else [])
