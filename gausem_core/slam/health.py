@@ -3,7 +3,8 @@
 Signals of a tracked frame (:class:`TrackingHealth`):
 
 - ``inlier_fraction``: among the pixels where the map renders a silhouette, the share it explains: observed depth
-  within ``inlier_depth`` of the rendered depth, or, where the depth is invalid, colour within ``inlier_color``;
+  within ``inlier_depth`` of the rendered depth, or, where the depth is invalid, colour within ``inlier_color`` (NaN
+  when the map renders no silhouette: then no rule on it fires, and the infinite ``condition`` marks it degraded);
 - ``residual_z``: robust z-score of the tracking residual against the median/MAD of the recent frames' (the raw loss
   drifts over a run, its jumps do not);
 - ``condition``: log10 of the condition number of the Gauss-Newton Hessian at the pose, translation scaled by the
@@ -58,7 +59,7 @@ def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig) ->
     color_ok = (view.color - obs.rgb).abs().mean(-1) < cfg.inlier_color
     inliers = silhouette & torch.where(valid, depth_ok, color_ok)
     covered = int(silhouette.sum())
-    inlier_fraction = float(inliers.sum()) / covered if covered else 0.0
+    inlier_fraction = float(inliers.sum()) / covered if covered else math.nan
     return {"inlier_fraction": inlier_fraction, "condition": condition(hessian, view.depth[silhouette]),
             "valid_depth": float(valid.float().mean())}
 
