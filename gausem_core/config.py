@@ -164,6 +164,28 @@ class RelocalisationConfig:
 
 
 @dataclass
+class HealthConfig:
+    """Per-frame tracking health (``slam.health``): ok / degraded / lost. A lost frame is not mapped and the next
+    frames are relocalised. Defaults are conservative: clean sequences stay ok or degraded, never lost."""
+
+    inlier_depth: float = 0.05  # metres: a silhouette pixel is an inlier when its rendered depth is this close ...
+    inlier_color: float = 0.15  # ... or, without valid depth, its rendered colour (mean absolute difference, 0..1)
+    window: int = 30  # recent frames behind the residual's median/MAD and the typical motion
+    min_history: int = 5  # frames before the residual z-score and the pose jump are judged
+    min_translation: float = 0.01  # metres: floor of the typical per-frame translation that scales the pose jump
+    min_rotation: float = 1.0  # degrees: floor of the typical per-frame rotation
+    degraded_inlier_fraction: float = 0.7  # degraded below this inlier fraction ...
+    lost_inlier_fraction: float = 0.3  # ... lost below this one
+    degraded_residual_z: float = 5.0  # degraded when the tracking residual's robust z-score exceeds this
+    degraded_condition: float = 8.0  # degraded when log10 of the (depth-scaled) Hessian's condition number exceeds this
+    degraded_jump: float = 5.0  # degraded when the pose departs from the motion model by this many typical motions ...
+    lost_jump: float = 15.0  # ... lost beyond this many
+    degraded_valid_depth: float = 0.3  # degraded below this fraction of pixels with valid depth ...
+    lost_valid_depth: float = 0.05  # ... lost below this one
+    recovery_inlier_fraction: float = 0.3  # after a loss, relocalisation accepts from this inlier fraction (its own)
+
+
+@dataclass
 class SlamConfig:
     backend: str = "auto"  # renderer back-end: "auto", "torch", "cpu" or "gsplat"
     device: str = "auto"  # "auto" (CUDA when available), "cpu" or "cuda"
@@ -174,6 +196,7 @@ class SlamConfig:
     semantics: SemanticsConfig = field(default_factory=SemanticsConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
+    health: HealthConfig = field(default_factory=HealthConfig)
 
 
 def flatten(cfg: Any, prefix: str = "") -> dict[str, Any]:

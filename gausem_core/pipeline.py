@@ -14,6 +14,7 @@ import torch
 from tqdm import tqdm
 
 from gausem_core.config import SlamConfig
+from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
 
@@ -42,6 +43,8 @@ class RunResult:
     frame_ids: list[int]
     seconds: float
     stats: list[dict] = field(default_factory=list)
+    health: list[tuple[int, float, TrackingHealth]] = field(default_factory=list)  # (frame, timestamp, health) of
+    # every frame given to the system, dropped ones included
 
     @property
     def fps(self) -> float:
@@ -71,12 +74,16 @@ class Pipeline:
         session is saved there after the last frame, before the global refinement (not timed)."""
         slam = slam or GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
         first = len(slam.frames)
-        gt, ids, stats = [], [], []
+        gt, ids, stats, health = [], [], [], []
         start = time.perf_counter()
         bar = tqdm(range(len(self.dataset)), desc="gausem", unit="frame", disable=not self.progress)
         for i in bar:
             frame = self.dataset[i]
             result = slam.process(self.observation(frame))
+            health.append((frame.index, frame.timestamp, result.health))
+            elapsed = time.perf_counter() - start
+            bar.set_postfix(fps=f"{(i + 1) / elapsed:.2f}", loss=f"{result.tracking_loss:.4f}",
+                            gaussians=result.num_gaussians, tracking=result.health.status)
             if result.relocalisation is not None and not result.relocalisation.accepted:
                 continue
             gt.append(frame.gt_pose)
@@ -84,9 +91,6 @@ class Pipeline:
             stats.append({"frame": frame.index, "tracking_loss": result.tracking_loss,
                           "tracking_iterations": result.tracking_iterations, "mapping_loss": result.mapping_loss,
                           "gaussians": result.num_gaussians})
-            elapsed = time.perf_counter() - start
-            bar.set_postfix(fps=f"{(i + 1) / elapsed:.2f}", loss=f"{result.tracking_loss:.4f}",
-                            gaussians=result.num_gaussians)
         if save_session is not None:
             saving = time.perf_counter()
             slam.save(save_session)
@@ -95,4 +99,4 @@ class Pipeline:
         seconds = time.perf_counter() - start
         trajectory = slam.trajectory()[first:]
         poses = np.stack([p.detach().cpu().double().numpy() for _, p in trajectory])
-        return RunResult(slam, [t for t, _ in trajectory], poses, gt, ids, seconds, stats)
+        return RunResult(slam, [t for t, _ in trajectory], poses, gt, ids, seconds, stats, health)

@@ -6,7 +6,9 @@ evaluation only (this module belongs with ``eval/`` in that respect).
 """
 from __future__ import annotations
 
+import csv
 import math
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +28,7 @@ from gausem_core.io.plots import write_trajectory_plot
 from gausem_core.io.ply import write_gaussian_ply
 from gausem_core.pipeline import Pipeline, RunResult, peak_rss_mb
 from gausem_core.render import render
+from gausem_core.slam.health import SIGNALS, STATUSES
 from gausem_core.slam.system import GauSemSLAM
 
 MONTAGE_FRAMES = 4
@@ -178,11 +181,26 @@ def loop_metrics(result: RunResult) -> dict:
     return out
 
 
+def write_tracking_status(path: Path, result: RunResult) -> dict[str, int]:
+    """Write ``frame, timestamp, status, <signals>, reasons`` per frame given to the system (dropped ones
+    included) as CSV; the number of frames per status."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["frame", "timestamp", "status", *SIGNALS, "reasons"])
+        for frame, stamp, health in result.health:
+            signals = health.signals()
+            writer.writerow([frame, f"{stamp:.6f}", health.status, *(f"{signals[n]:.6g}" for n in SIGNALS),
+                             " ".join(health.reasons)])
+    counts = Counter(health.status for _, _, health in result.health)
+    return {status: counts[status] for status in STATUSES}
+
+
 def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, *, eval_every: int = 5,
                   params_file: str | Path | None = None) -> dict:
     """Write a run's outputs into ``out`` and return its metrics.
 
-    Files: ``trajectory.txt`` (TUM, estimate), ``keyframes.txt`` (TUM, keyframe poses), ``map.ply`` (3DGS-style,
+    Files: ``trajectory.txt`` (TUM, estimate), ``tracking_status.csv`` (per-frame tracking health, its counts per
+    status in the metrics' ``tracking_status``), ``keyframes.txt`` (TUM, keyframe poses), ``map.ply`` (3DGS-style,
     class ids when the dataset has a class table), ``metrics.json``, ``montage.png`` and, with ground truth,
     ``trajectory_gt.txt`` and ``trajectory.png`` (SE(3)-aligned estimate vs ground truth).
     """
@@ -193,7 +211,7 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
     write_tum_trajectory(out / "trajectory.txt", estimate)
     write_tum_trajectory(out / "keyframes.txt", keyframe_trajectory(result.slam))
 
-    metrics = {}
+    metrics = {"tracking_status": write_tracking_status(out / "tracking_status.csv", result)}
     reference = ground_truth_trajectory(result)
     if reference is not None:
         write_tum_trajectory(out / "trajectory_gt.txt", reference)

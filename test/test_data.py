@@ -329,3 +329,72 @@ def test_real_tum_fr1_rpy(shared_data):
     assert valid.size > 0.5 * f.depth.size and 0.5 < np.median(valid) < 4.0  # a desk scene at arm's length
     assert all(ds.gt_poses[i] is not None for i in range(len(ds)))
     assert np.allclose(f.gt_pose[:3, :3] @ f.gt_pose[:3, :3].T, np.eye(3), atol=1e-6)
+
+
+# --- TUM layouts as they come: label folders, class tables, intrinsics files -----------------------------------------
+def add_labels(root, folder, n=3):
+    """16-bit class ids 0..2 under ``root/folder`` for the frames make_tum wrote."""
+    for k, line in enumerate((root / "rgb.txt").read_text().splitlines()[2:2 + n]):
+        stem = line.split()[1].split("/")[1][:-4]
+        labels = np.zeros((H, W), np.uint16)
+        labels[:, :k + 1] = k
+        write_png(root / folder / f"{stem}.png", labels)
+
+
+@pytest.mark.parametrize("folder", ["labels", "semantic", "label"])
+def test_tum_reads_labels_from_each_label_folder(tmp_path, folder):
+    root = make_tum(tmp_path / "seq_fr1")
+    add_labels(root, folder)
+    ClassTable(("a", "b", "c"), np.array([[1, 2, 3], [4, 5, 6], [7, 8, 9]])).save(root / "classes.txt")
+    ds = TumDataset(root)
+    assert ds.labels_dir.name == folder and ds[2].labels.max() == 2 and len(ds.class_table) == 3
+    assert f"from {folder}/, 3 classes from classes.txt" in ds.description
+
+
+def test_tum_class_tables_from_json_and_palette(tmp_path):
+    root = make_tum(tmp_path / "seq_fr1")
+    add_labels(root, "semantic")
+    (root / "classes.json").write_text('{"classes": [{"id": 1, "name": "wall", "color": [10, 20, 30]}, '
+                                       '{"id": 0, "name": "floor"}, {"id": 2, "name": "chair"}]}')
+    table = TumDataset(root).class_table
+    assert table.names == ("floor", "wall", "chair") and table.colors[1].tolist() == [10, 20, 30]
+    (root / "classes.json").write_text('["floor", "wall", "chair", "table"]')
+    assert TumDataset(root).class_table.names == ("floor", "wall", "chair", "table")
+    (root / "classes.json").unlink()
+    (root / "palette.txt").write_text("# r g b\n0 0 0\n255 0 0\n0 255 0\n")
+    ds = TumDataset(root)
+    assert ds.class_table.names == ("class_0", "class_1", "class_2") and "from palette.txt" in ds.description
+    (root / "classes.json").write_text('[{"id": 0, "name": "a"}, {"id": 2, "name": "b"}]')
+    with pytest.raises(ValueError, match="ids must be 0..1"):
+        TumDataset(root)
+
+
+def test_tum_labels_without_a_table_get_generic_classes_and_say_so(tmp_path):
+    root = make_tum(tmp_path / "seq_fr1")
+    add_labels(root, "semantic")
+    with pytest.warns(UserWarning, match="3 generic classes assumed"):
+        ds = TumDataset(root)
+    assert len(ds.class_table) == 3 and len({tuple(c) for c in ds.class_table.colors.tolist()}) == 3
+
+
+def test_tum_intrinsics_from_camera_yaml_then_published_values(tmp_path):
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg3_office")
+    (root / "camera.yaml").write_text("fx: 300.0\nfy: 301.0\ncx: 3.5\ncy: 2.5\nwidth: 8\nheight: 6\n"
+                                      "depth_scale: 1000\n")
+    ds = TumDataset(root)
+    assert (ds.camera.fx, ds.camera.fy, ds.camera.cx, ds.depth_scale) == (300.0, 301.0, 4.0, 1000.0)
+    assert "intrinsics from camera.yaml" in ds.description
+    (root / "calib.txt").write_text("200 200 3.5 2.5\n")  # calib.txt comes first
+    assert TumDataset(root).camera.fx == 200.0
+    (root / "calib.txt").unlink()
+    (root / "camera.yaml").unlink()
+    ds = TumDataset(root)
+    assert ds.camera.fx == 535.4 and "published TUM freiburg3 values" in ds.description
+    (root / "camera.yaml").write_text("fx: 300\n")
+    with pytest.raises(ValueError, match="camera.yaml: expected the keys fx, fy, cx, cy"):
+        TumDataset(root)
+
+
+def test_tum_unnamed_camera_warns_that_freiburg1_is_assumed(tmp_path):
+    with pytest.warns(UserWarning, match="freiburg1 values, assumed"):
+        TumDataset(make_tum(tmp_path / "my_sequence"))

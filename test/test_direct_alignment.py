@@ -8,7 +8,7 @@ import torch
 from gausem_core.geometry import PinholeCamera, invert_pose, se3_exp, so3_log
 from gausem_core.native import kernel_available
 from gausem_core.slam import direct_alignment
-from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, _model_samples,
+from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, model_samples,
                                                _normal_equations_compiled, _normal_equations_torch, align_level)
 
 CAMERA = PinholeCamera(100.0, 100.0, 80.0, 60.0, 160, 120)
@@ -122,7 +122,7 @@ def test_the_compiled_normal_equations_are_the_torch_ones(dtype, rtol):
     observed = ObservedImages.build(observed_color.to(dtype), observed_color.flip(-1).to(dtype),
                                     jitter_edges(observed_depth).to(dtype), CAMERA, features[1])
     weights = AlignmentWeights(0.5, 0.3, 5.0, huber_delta=0.002, feature=0.7)
-    points, ref = _model_samples(model, observed)
+    points, ref = model_samples(model, observed)
     for twist in ([0.004, -0.003, 0.002, 0.003, 0.004, -0.002], [0.5, 0.1, 0.0, 0.0, 0.0, 0.0]):  # a third out of view
         motion = se3_exp(torch.tensor(twist, dtype=torch.float64)).to(dtype)
         (h, g, cost), (h_ref, g_ref, cost_ref) = (f(observed, motion, weights, points, ref) for f in

@@ -5,6 +5,8 @@ the index of the nearest palette colour, so the colours of one table must be dis
 """
 from __future__ import annotations
 
+import colorsys
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,6 +83,82 @@ class ClassTable:
         if not names:
             raise ValueError(f"{path}: no classes")
         return cls(tuple(names), np.array(colors))
+
+
+# Class table files a dataset folder may hold, in the order they are looked for (see :func:`load_class_table`).
+CLASS_TABLE_FILES = ("classes.txt", "classes.json", "palette.txt")
+
+
+def generic_colors(count: int) -> np.ndarray:
+    """``count`` distinct RGB colours (uint8 values as int64), well spread for small counts (golden-ratio hues)."""
+    if count > 256**3:
+        raise ValueError(f"generic_colors: {count} colours cannot be distinct")
+    colors, seen = [], set()
+    for i in range(count):
+        rgb = colorsys.hsv_to_rgb(i * 0.618033988749895 % 1.0, 0.75, 0.95 - 0.3 * (i // 8 % 2))
+        code = int(round(rgb[0] * 255)) << 16 | int(round(rgb[1] * 255)) << 8 | int(round(rgb[2] * 255))
+        while code in seen:  # rounding collides for large counts: take the next free colour
+            code = (code + 1) % 256**3
+        seen.add(code)
+        colors.append([code >> 16, code >> 8 & 255, code & 255])
+    return np.array(colors, dtype=np.int64).reshape(-1, 3)
+
+
+def generic_table(count: int) -> ClassTable:
+    """``count`` classes named ``class_<id>`` with :func:`generic_colors`."""
+    return ClassTable(tuple(f"class_{i}" for i in range(count)), generic_colors(count))
+
+
+def load_class_table(path: str | Path) -> ClassTable:
+    """A class table from ``classes.txt`` (``id name r g b`` lines), a ``.json`` file (a list of names, or of
+    ``{"name": ..., "color": [r, g, b]}`` objects with optional ``id`` keys 0..C-1, possibly under ``"classes"``;
+    missing colours are generic) or a palette (``palette.txt``: one ``r g b`` line per class id, names
+    ``class_<id>``)."""
+    path = Path(path)
+    if path.suffix == ".json":
+        return _json_table(path)
+    if path.name.startswith("palette"):
+        return _palette_table(path)
+    return ClassTable.load(path)
+
+
+def _json_table(path: Path) -> ClassTable:
+    doc = json.loads(path.read_text())
+    entries = doc.get("classes") if isinstance(doc, dict) else doc
+    if not isinstance(entries, list) or not entries:
+        raise ValueError(f"{path}: expected a non-empty list of classes (or {{\"classes\": [...]}})")
+    entries = [{"name": e} if isinstance(e, str) else e for e in entries]
+    if not all(isinstance(e, dict) and "name" in e for e in entries):
+        raise ValueError(f"{path}: each class must be a name or an object with a \"name\"")
+    if any("id" in e for e in entries):
+        entries = sorted(entries, key=lambda e: e.get("id", -1))
+        if [e.get("id") for e in entries] != list(range(len(entries))):
+            raise ValueError(f"{path}: class ids must be 0..{len(entries) - 1}, each once")
+    fallback = generic_colors(len(entries))
+    colors = [e.get("color", e.get("colour", fallback[i])) for i, e in enumerate(entries)]
+    return ClassTable(tuple(str(e["name"]) for e in entries), np.array(colors, dtype=np.int64).reshape(-1, 3))
+
+
+def _palette_table(path: Path) -> ClassTable:
+    colors = []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 3 or not all(p.isdigit() for p in parts):
+            raise ValueError(f"{path}:{number}: expected 'r g b' (0..255), got {line!r}")
+        colors.append([int(p) for p in parts])
+    if not colors:
+        raise ValueError(f"{path}: no colours")
+    return ClassTable(tuple(f"class_{i}" for i in range(len(colors))), np.array(colors))
+
+
+def find_class_table(folder: Path) -> tuple[ClassTable, Path] | None:
+    """The first of :data:`CLASS_TABLE_FILES` in ``folder``, loaded, and its path; None when there is none."""
+    for name in CLASS_TABLE_FILES:
+        if (folder / name).is_file():
+            return load_class_table(folder / name), folder / name
+    return None
 
 
 def _table(entries: list[tuple[str, tuple[int, int, int]]]) -> ClassTable:

@@ -1,4 +1,12 @@
-"""TUM RGB-D folders: ``rgb.txt``/``depth.txt``/``groundtruth.txt`` (or ``associations.txt``), optional ``calib.txt``.
+"""TUM RGB-D folders: ``rgb.txt``/``depth.txt``/``groundtruth.txt`` (or ``associations.txt``), optional intrinsics,
+labels and class table.
+
+Intrinsics come from ``calib.txt``, else ``camera.yaml`` (keys ``fx fy cx cy`` and optional ``width height
+depth_scale``), else the published TUM values of the camera the folder name names (fr1/fr2/fr3; freiburg1 when it
+names none). Labels (16-bit class ids, ``<rgb stem>.png``) come from ``labels/``, ``semantic/`` or ``label/``, the class
+table from ``classes.txt``, ``classes.json`` or ``palette.txt`` (:func:`gausem_core.data.classes.load_class_table`);
+labels without a table get generic classes up to their largest id. What was found or assumed is logged once, at
+construction (``description``), with a warning when something was assumed.
 
 Intrinsics in files (TUM, ScanNet, Replica) use the OpenCV convention, pixel centres at integer coordinates; GauSem's
 :class:`PinholeCamera` puts them at integer + 0.5, so readers add 0.5 to cx and cy (writers subtract it).
@@ -13,6 +21,7 @@ unregistered depth is used as if it were registered (the usual 7-Scenes practice
 """
 from __future__ import annotations
 
+import logging
 import re
 import warnings
 from dataclasses import dataclass
@@ -20,13 +29,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 
-from gausem_core.data.classes import ClassTable
+from gausem_core.data.classes import ClassTable, find_class_table, generic_table
 from gausem_core.data.frame import Dataset, Frame
 from gausem_core.data.images import read_depth, read_rgb, read_uint16, require_file
 from gausem_core.geometry import PinholeCamera, quaternion_to_matrix
 
+log = logging.getLogger(__name__)
+
 TUM_DEPTH_SCALE = 5000.0
+LABEL_DIRS = ("labels", "semantic", "label")  # looked for in this order
 # Published TUM colour-camera intrinsics (fx, fy, cx, cy; OpenCV convention) at 640x480.
 TUM_INTRINSICS = {"freiburg1": (517.3, 516.5, 318.6, 255.3), "freiburg2": (520.9, 521.0, 325.1, 249.7),
                   "freiburg3": (535.4, 539.2, 320.1, 247.6)}
@@ -156,6 +169,20 @@ def read_calibration(path: Path) -> TumCalibration:
     return TumCalibration(**found)
 
 
+def read_camera_yaml(path: Path) -> TumCalibration:
+    """Parse a ``camera.yaml``: ``fx fy cx cy`` (OpenCV convention) and optional ``width height depth_scale``."""
+    doc = yaml.safe_load(path.read_text())
+    if not isinstance(doc, dict) or not all(k in doc for k in ("fx", "fy", "cx", "cy")):
+        raise ValueError(f"{path}: expected the keys fx, fy, cx, cy (and optionally width, height, depth_scale)")
+    try:
+        intrinsics = tuple(float(doc[k]) for k in ("fx", "fy", "cx", "cy"))
+        size = (int(doc["width"]), int(doc["height"])) if "width" in doc and "height" in doc else None
+        depth_scale = float(doc["depth_scale"]) if "depth_scale" in doc else None
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: {err}") from None
+    return TumCalibration(intrinsics, depth_scale, size)
+
+
 def register_depth(depth: np.ndarray, depth_camera: PinholeCamera, color_camera: PinholeCamera,
                    depth_to_color: np.ndarray) -> np.ndarray:
     """Re-project a depth image into the colour camera (nearest surface wins; unseen pixels stay 0)."""
@@ -178,10 +205,10 @@ def register_depth(depth: np.ndarray, depth_camera: PinholeCamera, color_camera:
 class TumDataset(Dataset):
     """A TUM RGB-D folder (also what :func:`write_tum_folder` writes, with ``labels/`` and ``classes.txt``).
 
-    camera: overrides the intrinsics (else ``calib.txt``, else the published fr1/fr2/fr3 values picked from the
-    folder name, default fr1); depth_scale: units per metre (else calib.txt, else 5000); depth_registered: overrides
-    what calib.txt says (default: registered); max_time_difference: association tolerance (s) for rgb/depth and
-    ground truth. Frame labels come from ``labels/<rgb stem>.png`` when that folder exists.
+    camera: overrides the intrinsics (else the files, see the module doc); depth_scale: units per metre (else
+    calib.txt or camera.yaml, else 5000); depth_registered: overrides what calib.txt says (default: registered);
+    max_time_difference: association tolerance (s) for rgb/depth and ground truth. ``description`` says where the
+    intrinsics, labels and classes came from.
     """
 
     def __init__(self, path: str | Path, *, camera: PinholeCamera | None = None, depth_scale: float | None = None,
@@ -191,11 +218,10 @@ class TumDataset(Dataset):
         if not self.root.is_dir():
             raise FileNotFoundError(f"TUM folder {self.root} does not exist")
         self.name = self.root.name
-        calib_path = self.root / "calib.txt"
-        calib = read_calibration(calib_path) if calib_path.is_file() else TumCalibration()
+        calib, calib_source = self._calibration()
         self.depth_scale = float(depth_scale or calib.depth_scale or TUM_DEPTH_SCALE)
         self.stamps, self.rgb_files, self.depth_files = self._associated_files(max_time_difference)
-        self.camera = camera or self._camera(calib)
+        self.camera, intrinsics_source = (camera, "given") if camera else self._camera(calib, calib_source)
         self._depth_calibration = None
         registered = calib.depth_registered if depth_registered is None else depth_registered
         self.depth_registered = registered is not False
@@ -208,10 +234,36 @@ class TumDataset(Dataset):
             warnings.warn(f"{self.root}: depth is not registered to colour and no depth calibration is given; "
                           "depth pixels are used as if aligned with colour pixels (an approximation)", stacklevel=2)
         self.gt_poses = self._ground_truth(max_time_difference)
-        labels_dir = self.root / "labels"
-        self.labels_dir = labels_dir if labels_dir.is_dir() else None
-        classes = self.root / "classes.txt"
-        self.class_table = ClassTable.load(classes) if classes.is_file() else None
+        self.labels_dir = next((self.root / d for d in LABEL_DIRS if (self.root / d).is_dir()), None)
+        self.class_table, classes_source = self._classes()
+        c = self.camera
+        self.description = (f"{self.name}: intrinsics {intrinsics_source} (fx {c.fx:.1f} fy {c.fy:.1f} "
+                            f"cx {c.cx - 0.5:.1f} cy {c.cy - 0.5:.1f}, {c.width}x{c.height}), depth scale "
+                            f"{self.depth_scale:g}; labels {classes_source}")
+        if "assumed" in self.description:
+            warnings.warn(self.description, stacklevel=2)
+        else:
+            log.info(self.description)
+
+    def _calibration(self) -> tuple[TumCalibration, str | None]:
+        """What ``calib.txt``, else ``camera.yaml``, states, and which file said it (None: neither exists)."""
+        for name, read in (("calib.txt", read_calibration), ("camera.yaml", read_camera_yaml)):
+            if (self.root / name).is_file():
+                return read(self.root / name), f"from {name}"
+        return TumCalibration(), None
+
+    def _classes(self) -> tuple[ClassTable | None, str]:
+        """The class table, and a description of the labels and where the table came from."""
+        found = find_class_table(self.root)
+        if self.labels_dir is None:
+            return (found[0], f"none (no labels/, semantic/ or label/ folder), {len(found[0])} classes from "
+                              f"{found[1].name}") if found else (None, "none (no labels/, semantic/ or label/ folder)")
+        where = f"from {self.labels_dir.name}/"
+        if found:
+            return found[0], f"{where}, {len(found[0])} classes from {found[1].name}"
+        count = 1 + max(int(read_uint16(self.labels_dir / (f.stem + ".png")).max()) for f in self.rgb_files)
+        return generic_table(count), (f"{where}, {count} generic classes assumed (no classes.txt, classes.json or "
+                                      "palette.txt)")
 
     def _associated_files(self, max_difference: float):
         assoc = self.root / "associations.txt"
@@ -231,14 +283,19 @@ class TumDataset(Dataset):
             require_file(self.root / name)
         return np.array(stamps), [self.root / n for n in rgb], [self.root / n for n in depth]
 
-    def _camera(self, calib: TumCalibration) -> PinholeCamera:
+    def _camera(self, calib: TumCalibration, source: str | None) -> tuple[PinholeCamera, str]:
+        """The colour camera and where its intrinsics came from."""
         if calib.intrinsics is not None:
             intrinsics = calib.intrinsics
         else:
             match = re.search(r"(?:freiburg|fr)([123])", self.root.name.lower())
-            intrinsics = TUM_INTRINSICS[f"freiburg{match.group(1) if match else 1}"]
+            camera = f"freiburg{match.group(1) if match else 1}"
+            intrinsics = TUM_INTRINSICS[camera]
+            source = (f"published TUM {camera} values (named by the folder)" if match else
+                      "published TUM freiburg1 values, assumed (no calib.txt or camera.yaml, no fr1/fr2/fr3 in the "
+                      "folder name)")
         width, height = calib.size or read_rgb(self.rgb_files[0]).shape[1::-1]
-        return camera_from_opencv(*intrinsics, width, height)
+        return camera_from_opencv(*intrinsics, width, height), source
 
     def _ground_truth(self, max_difference: float) -> list[np.ndarray | None]:
         path = self.root / "groundtruth.txt"

@@ -182,7 +182,7 @@ def _normal_equations_torch(observed: ObservedImages, motion: torch.Tensor, weig
     return jw.T @ jac.reshape(-1, 6), jw.T @ res.reshape(-1), float(cost / len(points))
 
 
-def _model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Tensor, torch.Tensor]:
+def model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Tensor, torch.Tensor]:
     """Back-projected model pixels (N, 3) and their colour + semantic (+ feature) values (6 + F, N)."""
     channels = 0 if model.features is None else model.features.shape[-1]
     if channels != observed.feature_channels:
@@ -197,14 +197,14 @@ def _model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Te
 def alignment_cost(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
                    weights: AlignmentWeights) -> float:
     """Mean weighted L1 residual of the model seen through ``motion`` (inf when the views do not overlap)."""
-    step = normal_equations(observed, motion, weights, *_model_samples(model, observed))
+    step = normal_equations(observed, motion, weights, *model_samples(model, observed))
     return float("inf") if step is None else step[2]
 
 
 def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                 iterations: int, damping: float = 1e-4) -> tuple[torch.Tensor, float]:
     """Refine ``motion`` (observed-camera-from-model-camera, 4x4) on one level; returns it and the last mean L1."""
-    points, ref = _model_samples(model, observed)
+    points, ref = model_samples(model, observed)
     cost = float("nan")
     for _ in range(iterations):
         step = normal_equations(observed, motion, weights, points, ref)

@@ -14,7 +14,7 @@ the compute device. A closed submap's tensors go to a :class:`SubmapStore` (CPU 
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -24,6 +24,7 @@ from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
 from gausem_core.render import select_backend
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
+from gausem_core.slam.health import HealthMonitor, TrackingHealth, image_signals
 from gausem_core.slam.loop import LoopCandidate
 from gausem_core.slam.loop_closure import LoopClosure, LoopConstraint
 from gausem_core.slam.mapper import Keyframe, Mapper
@@ -31,7 +32,7 @@ from gausem_core.slam.refinement import global_refinement
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.relocalisation import RelocalisationResult, relocalisation_starts, track_from_starts
 from gausem_core.slam.submap_store import SubmapStore
-from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity
+from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity, inspect_pose
 
 _IMAGES = ("rgb", "depth", "semantic", "labels")
 
@@ -133,6 +134,7 @@ class FrameRecord:
     submap: Submap
     reference: Keyframe
     relative: torch.Tensor  # reference-keyframe-from-camera
+    lost: bool = False  # tracking was judged lost: the pose is kept for the record, nothing else uses it
 
     @property
     def cam_to_world(self) -> torch.Tensor:
@@ -151,6 +153,7 @@ class FrameResult:
     submap_id: int  # the submap the frame belongs to
     allocation: Decision | None  # the allocation decision (keyframes after the first)
     relocalisation: RelocalisationResult | None = None  # when the frame was relocalised (the system was lost)
+    health: TrackingHealth | None = None  # ok / degraded / lost and its signals (``slam.health``)
 
 
 class GauSemSLAM:
@@ -166,6 +169,9 @@ class GauSemSLAM:
     system is :attr:`lost`: the first frame given to :meth:`process` is relocalised against the map
     (:meth:`relocalise`) instead of tracked from the last pose; when relocalisation fails the frame is dropped (not
     recorded, the map untouched, ``FrameResult.relocalisation.accepted`` False) and the next frame tries again.
+
+    Every frame's tracking is judged (``FrameResult.health``, see ``slam.health``). A frame judged lost is recorded (its
+    pose, for the trajectory) but not mapped, even at a keyframe, and the system becomes :attr:`lost`.
     """
 
     def __init__(self, cfg: SlamConfig, device: torch.device | str = "cpu", num_classes: int = 1,
@@ -179,6 +185,7 @@ class GauSemSLAM:
         torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # the first optimiser imports torch._dynamo (seconds)
         self.num_classes = num_classes
         self.tracker = Tracker(cfg.tracking, cfg.backend)
+        self.health = HealthMonitor(cfg.health)
         self.mapper = Mapper(cfg.mapping, cfg.backend, cfg.seed)
         self.allocation = make_allocation(cfg.submaps)
         self.store = SubmapStore(int(cfg.submaps.memory_budget_mb * 2**20), cfg.submaps.cache_dir or None)
@@ -211,13 +218,16 @@ class GauSemSLAM:
         if tracked is None:  # lost and not relocalised: the frame is dropped
             return FrameResult(frame_id, relocalised.cam_to_world, False, relocalised.tracking_loss,
                                relocalised.iterations, None, self.active.num_gaussians, self.active.submap_id, None,
-                               relocalised)
+                               relocalised, TrackingHealth("lost", reasons=("relocalisation_failed",)))
+        health = self._assess(obs, tracked, relocalised)
         pose = tracked.cam_to_world.detach()
-        if frame_id % self.cfg.mapping.every:
+        lost = health.status == "lost"
+        if lost or frame_id % self.cfg.mapping.every:
             reference = self.active.keyframes[-1]
             self.frames.append(FrameRecord(frame_id, obs.timestamp, self.active, reference,
-                                           invert_pose(reference.cam_to_world) @ pose))
-            return self._result(tracked, False, None, None, relocalised)
+                                           invert_pose(reference.cam_to_world) @ pose, lost))
+            self.lost = lost
+            return self._result(tracked, False, None, None, relocalised, health)
         decision = self.allocation.should_start_new(self.active.extent, obs, pose)
         if decision.new:
             anchor = rigid_product(self.active.anchor, pose)
@@ -226,7 +236,7 @@ class GauSemSLAM:
         else:
             loss = self._map_keyframe(obs, frame_id, pose)
         self._close_loops()
-        return self._result(tracked, True, loss, decision, relocalised)
+        return self._result(tracked, True, loss, decision, relocalised, health)
 
     def _place(self, obs: Observation, frame_id: int) -> tuple[TrackingResult | None, RelocalisationResult | None]:
         """The frame's pose in the active submap: tracked, or relocalised while :attr:`lost` (None when that fails;
@@ -241,12 +251,34 @@ class GauSemSLAM:
         return TrackingResult(local, relocalised.tracking_loss, relocalised.iterations), relocalised
 
     def _track(self, obs: Observation) -> TrackingResult:
-        previous = self._local_pose(-1)
-        before = (self._local_pose(-2) if len(self.frames) > 1 and self.frames[-2].frame_id >= self.segment_start
-                  and self.cfg.tracking.constant_velocity else None)
-        if before is None:
+        previous, predicted = self._motion_model()
+        if predicted is None:
             return self.tracker.track(self.active.cloud, obs, previous)
-        return self.tracker.track(self.active.cloud, obs, constant_velocity(previous, before), [previous])
+        return self.tracker.track(self.active.cloud, obs, predicted, [previous])
+
+    def _motion_model(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The last frame's pose in the active submap and the constant-velocity prediction (None at a segment's
+        first frame or with ``tracking.constant_velocity`` off)."""
+        previous = self._local_pose(-1)
+        in_segment = len(self.frames) > 1 and self.frames[-2].frame_id >= self.segment_start
+        if in_segment and self.cfg.tracking.constant_velocity:
+            return previous, constant_velocity(previous, self._local_pose(-2))
+        return previous, None
+
+    def _assess(self, obs: Observation, tracked: TrackingResult,
+                relocalised: RelocalisationResult | None) -> TrackingHealth:
+        """The health of a frame tracked to ``tracked`` in the active submap (before it is recorded). A relocalised
+        frame was judged by relocalisation (against the submap that placed it): ok, and a new motion history starts."""
+        if relocalised is not None:
+            self.health.reset()
+            return TrackingHealth("ok", inlier_fraction=relocalised.inlier_fraction,
+                                  valid_depth=float(obs.valid_depth.float().mean()))
+        view, hessian = inspect_pose(self.active.cloud, obs, tracked.cam_to_world, self.cfg.tracking,
+                                     self.cfg.backend)
+        image = image_signals(view, obs, hessian, self.cfg.health)
+        previous, predicted = self._motion_model()
+        return self.health.assess(tracked.loss, image, tracked.cam_to_world, previous,
+                                  previous if predicted is None else predicted)
 
     def interrupt(self) -> None:
         """Ask the frame in progress (in another thread) to finish early, e.g. on Ctrl-C: optimisations stop at their
@@ -255,12 +287,16 @@ class GauSemSLAM:
 
     def relocalise(self, obs: Observation) -> RelocalisationResult:
         """Place a frame against the map without the motion model (``slam.relocalisation``): tracked from the last
-        pose and from the ``relocalisation.candidates`` keyframes nearest by global descriptor (or the active
-        submap's keyframes), the best start kept. Changes nothing; :meth:`process` uses it while :attr:`lost`."""
+        good pose and from the ``relocalisation.candidates`` keyframes nearest by global descriptor (or the active
+        submap's keyframes), the best start kept; after a tracking loss it accepts from
+        ``health.recovery_inlier_fraction``. Changes nothing; :meth:`process` uses it while :attr:`lost`."""
         if not self.frames:
             raise ValueError("relocalise: the map is empty (no frame processed or loaded)")
         cfg = self.cfg.relocalisation
-        last = self.frames[-1]
+        if self.frames[-1].lost:  # after a tracking loss: the map lacks what the lost frames would have added
+            cfg = replace(cfg, min_inlier_fraction=min(cfg.min_inlier_fraction,
+                                                       self.cfg.health.recovery_inlier_fraction))
+        last = next(f for f in reversed(self.frames) if not f.lost)
         ranked = (self.loop_closure.nearest_keyframes(obs.semantic, cfg.candidates)
                   if self.loop_closure is not None else [])
         local = invert_pose(last.submap.anchor) @ last.cam_to_world
@@ -311,12 +347,14 @@ class GauSemSLAM:
         submap.offload(self.store)
 
     def _result(self, tracked: TrackingResult | None, is_keyframe: bool, mapping_loss: float | None,
-                allocation: Decision | None, relocalised: RelocalisationResult | None = None) -> FrameResult:
-        """The last frame's result (``tracked`` is None for the first frame, which defines the world frame)."""
+                allocation: Decision | None, relocalised: RelocalisationResult | None = None,
+                health: TrackingHealth | None = None) -> FrameResult:
+        """The last frame's result (``tracked`` is None for the first frame, which defines the world frame: ok)."""
         record = self.frames[-1]
         loss, iterations = (tracked.loss, tracked.iterations) if tracked else (0.0, 0)
         return FrameResult(record.frame_id, record.cam_to_world, is_keyframe, loss, iterations, mapping_loss,
-                           self.active.num_gaussians, self.active.submap_id, allocation, relocalised)
+                           self.active.num_gaussians, self.active.submap_id, allocation, relocalised,
+                           health or TrackingHealth("ok"))
 
     def _local_pose(self, index: int) -> torch.Tensor:
         """A recent frame's pose in the active submap's frame."""

@@ -11,7 +11,7 @@ from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, project_to_se3, se3_exp
 from gausem_core.render import render
 from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, align_level,
-                                                alignment_cost)
+                                                alignment_cost, model_samples, normal_equations)
 from gausem_core.slam.losses import tracking_loss
 from gausem_core.slam.observation import Observation
 
@@ -30,6 +30,32 @@ def constant_velocity(previous: torch.Tensor, before_previous: torch.Tensor | No
     if before_previous is None:
         return previous.clone()
     return project_to_se3(previous @ (invert_pose(before_previous) @ previous))
+
+
+def alignment_weights(cfg: TrackingConfig) -> AlignmentWeights:
+    """The Gauss-Newton alignment's weights and tolerances from the tracking config."""
+    return AlignmentWeights(cfg.w_color, cfg.w_semantic, cfg.w_depth, cfg.huber_delta, cfg.max_depth_residual,
+                            cfg.max_depth_slope)
+
+
+def model_view(cloud: GaussianCloud, cam_to_world: torch.Tensor, camera, cfg: TrackingConfig,
+               backend: str) -> ModelView:
+    """The map rendered at ``cam_to_world``, masked to its silhouette (alpha above ``silhouette_threshold``)."""
+    out = render(cloud, invert_pose(cam_to_world), camera, backend=backend)
+    return ModelView(out.color, out.semantic, out.expected_depth, out.alpha > cfg.silhouette_threshold, camera)
+
+
+def inspect_pose(cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor, cfg: TrackingConfig,
+                 backend: str) -> tuple[ModelView, torch.Tensor | None]:
+    """The model view at ``cam_to_world`` and the Gauss-Newton Hessian (6, 6) of the full-resolution alignment
+    there (None when the views barely overlap): what tracking health is judged from."""
+    with torch.no_grad():
+        cloud = cloud.detach()
+        view = model_view(cloud, cam_to_world.detach().to(cloud.dtype), obs.camera, cfg, backend)
+        observed = ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera)
+        eye = torch.eye(4, dtype=cloud.dtype, device=cloud.means.device)
+        step = normal_equations(observed, eye, alignment_weights(cfg), *model_samples(view, observed))
+    return view, None if step is None else step[0]
 
 
 class Tracker:
@@ -61,9 +87,7 @@ class Tracker:
         """Coarse-to-fine Gauss-Newton from the start whose coarsest-level alignment costs least; keeps that start if
         the result explains the full-resolution frame worse (coarse levels can leave the basin of convergence when
         the map covers little of the view)."""
-        cfg = self.cfg
-        weights = AlignmentWeights(cfg.w_color, cfg.w_semantic, cfg.w_depth, cfg.huber_delta, cfg.max_depth_residual,
-                                   cfg.max_depth_slope)
+        cfg, weights = self.cfg, alignment_weights(self.cfg)
         pyramid = [ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera)]
         for _ in range(cfg.pyramid_levels - 1):
             pyramid.append(pyramid[-1].downsampled())
@@ -93,9 +117,7 @@ class Tracker:
         return pose
 
     def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
-        out = render(cloud, invert_pose(cam_to_world), camera, backend=self.backend)
-        return ModelView(out.color, out.semantic, out.expected_depth, out.alpha > self.cfg.silhouette_threshold,
-                         camera)
+        return model_view(cloud, cam_to_world, camera, self.cfg, self.backend)
 
     def _track_adam(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor) -> TrackingResult:
         cfg = self.cfg

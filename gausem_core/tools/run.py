@@ -85,6 +85,8 @@ def run_pipeline(args: argparse.Namespace, out: Path) -> dict:
         params, cfg = None, session_config(args.resume, dict(args.overrides))
     dataset = open_dataset(args.dataset, size=args.size, stride=args.stride, max_frames=args.frames,
                            start=args.start)
+    if getattr(dataset, "description", None):
+        print(dataset.description)  # where intrinsics and labels came from, what was assumed
     pipeline = Pipeline(dataset, cfg, progress=not args.quiet)
     slam = GauSemSLAM.load(args.resume, pipeline.device, cfg) if args.resume else None
     result = pipeline.run(slam, args.save_session)

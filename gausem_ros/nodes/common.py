@@ -85,11 +85,14 @@ class DropReport:
     publishes the counts (plus the node's ``status()`` values) as ``diagnostic_msgs/DiagnosticArray`` on
     gausem/diagnostics, after every drop and whenever the node calls ``publish``. Dropped frames (``frame=True``:
     the node's main input, e.g. a synchronised rgb-d frame) are ``dropped.<reason>``; other rejected messages
-    (camera_info, records) are ``rejected.<reason>``. Thread-safe."""
+    (camera_info, records) are ``rejected.<reason>``. The level is WARN after a drop, else OK, raised to what the
+    node's ``level()`` says (a DiagnosticStatus level and a message, e.g. ERROR "tracking lost"). Thread-safe."""
 
-    def __init__(self, node, log_period: float = 5.0, status: Callable[[], dict] = dict):
+    def __init__(self, node, log_period: float = 5.0, status: Callable[[], dict] = dict,
+                 level: Callable[[], tuple[int, str]] = lambda: (DiagnosticStatus.OK, "")):
         self._node = node
         self._status = status
+        self._level = level
         self._pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, EVENT_QOS)
         self._last_logged: dict[str, float] = {}
         self._log_period = log_period
@@ -123,9 +126,10 @@ class DropReport:
         with self._lock:
             values = self.values()
             dropped = sum(self.counts.values()) + sum(self.rejected.values())
-            level = DiagnosticStatus.WARN if dropped else DiagnosticStatus.OK
-            status = DiagnosticStatus(level=level, name=self._node.get_fully_qualified_name(),
-                                      message=f"{dropped} inputs dropped",
+            node_level, node_message = self._level()
+            level = max(DiagnosticStatus.WARN if dropped else DiagnosticStatus.OK, node_level, key=ord)
+            message = "; ".join(filter(None, [f"{dropped} inputs dropped", node_message]))
+            status = DiagnosticStatus(level=level, name=self._node.get_fully_qualified_name(), message=message,
                                       values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
             stamp = self._node.get_clock().now().nanoseconds / 1e9
             self._pub.publish(DiagnosticArray(header=make_header(stamp, ""), status=[status]))

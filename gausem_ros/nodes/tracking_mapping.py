@@ -11,6 +11,11 @@ Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_f
 ``gausem/submaps`` (SubmapEvent), ``gausem/loop_constraints`` (LoopConstraintRecord, every accepted loop) and
 ``gausem/diagnostics`` (dropped inputs by reason, frames processed, the stamp of
 the last frame handled). ``seconds``: the processing time so far, for fps.
+Tracking health (``gausem_core.slam.health``): the last frame's ``tracking.status`` (ok / degraded / lost) and signals
+(``tracking.inlier_fraction``, ...) are in the diagnostics values, and raise the level (WARN degraded, ERROR lost).
+The odometry of a degraded frame has pose covariance ``DEGRADED_VARIANCE`` on its diagonal (zero, i.e. unknown, when
+ok); a lost frame is not mapped, publishes no odometry and is dropped as ``tracking_lost``; the next frames are
+relocalised against the map (dropped as ``relocalisation_failed`` until one is placed).
 Services (std_srvs/Trigger): ``gausem/save_map`` writes ``map.ply``, ``trajectory.txt`` (TUM) and the whole SLAM
 state (``session/``, :mod:`gausem_core.slam.persistence`) to ``output_dir``; ``gausem/load_map`` replaces the map by
 the session in ``map_path`` (default: ``output_dir/session``); ``gausem/finish`` ends the sequence with the global
@@ -58,6 +63,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from diagnostic_msgs.msg import DiagnosticStatus
 from nav_msgs.msg import Odometry, Path as PathMsg
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -70,6 +76,7 @@ from gausem_core.data.frame import Frame, resize_frame
 from gausem_core.eval.trajectory import Trajectory, write_tum_trajectory
 from gausem_core.io.ply import write_gaussian_ply
 from gausem_core.pipeline import UNLABELLED_PALETTE, resolve_device
+from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
 
@@ -132,6 +139,11 @@ def _numpy_pose(pose: torch.Tensor) -> np.ndarray:
     return m
 
 
+DEGRADED_VARIANCE = 1.0  # m^2 and rad^2 on the odometry's pose covariance diagonal for a degraded frame
+_HEALTH_LEVELS = {"ok": (DiagnosticStatus.OK, ""), "degraded": (DiagnosticStatus.WARN, "tracking degraded"),
+                  "lost": (DiagnosticStatus.ERROR, "tracking lost")}
+
+
 class TrackingMappingNode(Node):
     def __init__(self, **kwargs):
         super().__init__("tracking_mapping", **kwargs)
@@ -143,7 +155,7 @@ class TrackingMappingNode(Node):
         _check_size_limits(self.cfg, p.min_image_size, p.max_image_pixels)
         self.palette = class_table(p.classes).palette if p.use_labels else UNLABELLED_PALETTE
         self.device = resolve_device(self.cfg.device)
-        self.drops = DropReport(self, status=self._status)
+        self.drops = DropReport(self, status=self._status, level=lambda: _HEALTH_LEVELS[self.health.status])
         self._handled_ns = -1  # stamp of the last synchronised frame handled (processed or dropped)
         self.loop_candidates: list[ma.LoopCandidateRecord] = []
         self.pose_graph_updates: list[ma.PoseGraphUpdate] = []
@@ -199,6 +211,7 @@ class TrackingMappingNode(Node):
         self._last_stamp = -math.inf
         self._camera_frame = self.params.camera_frame or "camera"
         self._map_dirty = False
+        self.health = TrackingHealth("ok")  # the last frame's
 
     # --- inputs -------------------------------------------------------------------------------------------------
     @survives_errors(frame=False)
@@ -318,9 +331,16 @@ class TrackingMappingNode(Node):
         submaps_before = len(self.slam.submaps)
         result = self.slam.process(obs)
         self._last_stamp = obs.timestamp
+        self.health = result.health
         if result.relocalisation is not None:
             if not self._relocalised(result.relocalisation, obs.timestamp):
                 return
+        if result.health.status == "lost":
+            self._in_progress = False
+            self.drops.drop("tracking_lost", f"frame stamped {obs.timestamp:.6f} s: tracking lost "
+                                             f"({', '.join(result.health.reasons)}); not mapped, nothing published, "
+                                             "the next frames are relocalised")
+            return
         pose = _numpy_pose(result.cam_to_world)
         if not np.isfinite(pose).all():
             self._in_progress = False
@@ -329,7 +349,10 @@ class TrackingMappingNode(Node):
             return
         self._camera_frame = self.params.camera_frame or image_frame or "camera"
         header = ma.make_header(obs.timestamp, self.params.map_frame)
-        self._odometry_pub.publish(ma.matrix_to_odometry(pose, header, self._camera_frame))
+        odometry = ma.matrix_to_odometry(pose, header, self._camera_frame)
+        if result.health.status == "degraded":
+            odometry.pose.covariance = (DEGRADED_VARIANCE * np.eye(6)).ravel().tolist()
+        self._odometry_pub.publish(odometry)
         self.frames_processed += 1
         self._in_progress = False
         self.latencies.append(time.monotonic() - arrived)
@@ -347,20 +370,22 @@ class TrackingMappingNode(Node):
         if not reloc.accepted:
             self._in_progress = False
             self.drops.drop("relocalisation_failed", f"frame stamped {stamp:.6f} s could not be placed against the "
-                                                     f"loaded map (inlier fraction {reloc.inlier_fraction:.2f}); the "
+                                                     f"map (inlier fraction {reloc.inlier_fraction:.2f}); the "
                                                      "next frame tries again")
             return False
-        self.get_logger().info(f"relocalised against the loaded map (submap {reloc.submap_id}, inlier fraction "
+        self.get_logger().info(f"relocalised against the map (submap {reloc.submap_id}, inlier fraction "
                                f"{reloc.inlier_fraction:.2f}); tracking goes on")
         return True
 
     def _status(self) -> dict:
-        """Diagnostics besides the drop counts: frames in, processed and pending, the latency over the last 100
-        frames, the last handled frame (lock-step players take it as the answer for a frame that produced no
-        odometry) and the depth and label messages the synchroniser dropped."""
+        """Diagnostics besides the drop counts: frames in, processed and pending, the last frame's tracking health,
+        the latency over the last 100 frames, the last handled frame (lock-step players take it as the answer for a
+        frame that produced no odometry) and the depth and label messages the synchroniser dropped."""
         sync = self._inputs.synchronizer
         return {"frames_in": sync.received[0] + sync.lost[0], "frames_processed": self.frames_processed,
                 "frames_pending": self._frames_pending(), LAST_FRAME_KEY: self._handled_ns,
+                "tracking.status": self.health.status,
+                **{f"tracking.{name}": value for name, value in self.health.signals().items()},
                 **latency_stats(self.latencies[-100:]),
                 **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(sync.dropped.items())
                    if name != sync.names[0]}}

@@ -1,0 +1,105 @@
+"""How well the tracking status (ok / degraded / lost) predicts per-frame pose error.
+
+Runs the pipeline on (a) the synthetic sequence with a planted failure (frame ``--source``'s images at frame
+``--slot``) and (b) the real TUM frames (skipped with a message when the folder is absent), computes each frame's
+relative pose error against ground truth (frame i-1 to i, translation and rotation) and reports, for each, the share
+of the 1 % and 5 % worst frames flagged degraded or lost and the false-flag rate (flagged frames outside the 5 %
+worst). Frames dropped by a failed relocalisation have no pose and are counted as flags, not ranked. Run from the
+repository root, e.g.
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/health.py --frames 120 --out benchmarks/results/health_160x120.md
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from gausem_core.config import load_config
+from gausem_core.data import open_dataset
+from gausem_core.eval.health import PlantedFailure, flag_scores, relative_errors
+from gausem_core.pipeline import Pipeline
+from gausem_core.tools.run import default_params_file, parse_size
+
+
+def evaluate(name: str, spec: str, dataset, frames: int) -> dict:
+    """Run the pipeline on ``dataset`` and score its statuses against the per-frame relative pose errors."""
+    cfg = load_config(default_params_file(spec), {"device": "cpu"})
+    start = time.perf_counter()
+    result = Pipeline(dataset, cfg, progress=False).run()
+    seconds = time.perf_counter() - start
+    status = {frame: health.status for frame, _, health in result.health}
+    reasons = Counter(r for _, _, health in result.health for r in health.reasons)
+    translation, rotation = relative_errors(result.poses, np.stack(result.gt_poses))
+    flagged = np.array([status[f] != "ok" for f in result.frame_ids])
+    ranked = {"translation": flag_scores(translation[1:], flagged[1:]),
+              "rotation": flag_scores(rotation[1:], flagged[1:])}
+    worst = int(np.argmax(translation))
+    return {"name": name, "frames": len(result.health), "seconds": round(seconds, 1),
+            "statuses": dict(Counter(status.values())), "reasons": dict(reasons), "scores": ranked,
+            "rpe_median": [float(np.median(translation[1:]) * 100), float(np.median(rotation[1:]))],
+            "worst_frame": [result.frame_ids[worst], float(translation[worst] * 100), float(rotation[worst]),
+                            status[result.frame_ids[worst]]],
+            "per_frame": [[f, status[f], float(t * 100), float(r)]
+                          for f, t, r in zip(result.frame_ids, translation, rotation)]}
+
+
+def markdown(results: list[dict], command: str, skipped: list[str]) -> str:
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    lines = ["# Tracking health: does the status predict per-frame pose error?", "",
+             f"Written by `{command}` on {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%dT%H:%M}Z, commit "
+             f"{commit}. Error: relative pose error frame i-1 to i against ground truth; flagged: degraded or lost; "
+             "false-flag rate: flagged frames among those outside the 5 % worst.", ""]
+    lines += [f"Skipped: {s}" for s in skipped] + ([""] if skipped else [])
+    lines += ["| Sequence | Frames | ok / degraded / lost | Error ranked by | Worst 1 % flagged | Worst 5 % flagged "
+              "| False-flag rate |", "|---|---|---|---|---|---|---|"]
+    for r in results:
+        counts = " / ".join(str(r["statuses"].get(s, 0)) for s in ("ok", "degraded", "lost"))
+        for by, s in r["scores"].items():
+            lines.append(f"| {r['name']} | {r['frames']} | {counts} | {by} | {s['worst_1%_flagged']:.0%} | "
+                         f"{s['worst_5%_flagged']:.0%} | {s['false_flag_rate']:.1%} |")
+    lines.append("")
+    for r in results:
+        frame, t, rot, status = r["worst_frame"]
+        lines.append(f"- {r['name']}: median RPE {r['rpe_median'][0]:.2f} cm / {r['rpe_median'][1]:.2f} deg; worst "
+                     f"frame {frame} ({t:.2f} cm, {rot:.2f} deg) was {status}; rules fired: {r['reasons'] or 'none'};"
+                     f" {r['seconds']} s.")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=120, help="frames per sequence")
+    parser.add_argument("--size", type=parse_size, default=(160, 120))
+    parser.add_argument("--slot", type=int, default=20, help="synthetic: the frame whose images are swapped out")
+    parser.add_argument("--source", type=int, default=40, help="synthetic: the frame whose images are swapped in")
+    parser.add_argument("--tum", default="../shared/data/tum_fr1_rpy")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/health_160x120.md"))
+    args = parser.parse_args()
+    results, skipped = [], []
+    synthetic = open_dataset("synthetic", size=args.size, max_frames=args.frames)
+    results.append(evaluate(f"synthetic, frame {args.source} at {args.slot}", "synthetic",
+                            PlantedFailure(synthetic, args.slot, args.source), args.frames))
+    if Path(args.tum).is_dir():
+        spec = f"tum:{args.tum}"
+        results.append(evaluate(Path(args.tum).name, spec, open_dataset(spec, size=args.size,
+                                                                        max_frames=args.frames), args.frames))
+    else:
+        skipped.append(f"{args.tum} (not found)")
+        print(f"skipping the TUM sequence: {args.tum} not found", file=sys.stderr)
+    command = "OMP_NUM_THREADS=2 .venv/bin/python benchmarks/health.py " + " ".join(sys.argv[1:])
+    report = markdown(results, command, skipped)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(report)
+    args.out.with_suffix(".json").write_text(json.dumps(results, indent=1) + "\n")
+    print(report)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,143 @@
+"""Tracking health: whether a frame's tracked pose can be trusted, as ok / degraded / lost.
+
+Signals of a tracked frame (:class:`TrackingHealth`):
+
+- ``inlier_fraction``: among the pixels where the map renders a silhouette, the share it explains: observed depth
+  within ``inlier_depth`` of the rendered depth, or, where the depth is invalid, colour within ``inlier_color`` (NaN
+  when the map renders no silhouette: then no rule on it fires, and the infinite ``condition`` marks it degraded);
+- ``residual_z``: robust z-score of the tracking residual against the median/MAD of the recent frames' (the raw loss
+  drifts over a run, its jumps do not);
+- ``condition``: log10 of the condition number of the Gauss-Newton Hessian at the pose, translation scaled by the
+  median depth so that metres and radians compare (large: the pose is weakly constrained in some direction);
+- ``jump``: how far the pose departs from the constant-velocity prediction, in typical per-frame motions (the median
+  of the recent ones, floored by ``min_translation`` / ``min_rotation``), the larger of translation and rotation;
+- ``valid_depth``: the fraction of pixels with a valid depth.
+
+Rules (:class:`HealthMonitor`, thresholds in ``HealthConfig``): lost when the inlier fraction, the valid depth or the
+jump passes its ``lost_`` threshold; else degraded when any signal passes its ``degraded_`` threshold; else ok.
+The residual and motion histories learn from frames that are not lost only.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import asdict, dataclass
+
+import torch
+
+from gausem_core.config import HealthConfig
+from gausem_core.geometry import invert_pose, so3_log
+
+STATUSES = ("ok", "degraded", "lost")
+SIGNALS = ("inlier_fraction", "residual_z", "condition", "jump", "valid_depth")
+
+
+@dataclass(frozen=True)
+class TrackingHealth:
+    """A frame's status and the signals it was judged from; ``reasons`` names the rules that fired."""
+
+    status: str
+    inlier_fraction: float = float("nan")
+    residual_z: float = 0.0
+    condition: float = float("nan")
+    jump: float = 0.0
+    valid_depth: float = float("nan")
+    reasons: tuple[str, ...] = ()
+
+    def signals(self) -> dict[str, float]:
+        """The signals by name (:data:`SIGNALS`)."""
+        values = asdict(self)
+        return {name: values[name] for name in SIGNALS}
+
+
+def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig) -> dict[str, float]:
+    """``inlier_fraction``, ``condition`` and ``valid_depth`` of a frame from the model ``view`` rendered at its pose
+    and the alignment ``hessian`` there (see :func:`gausem_core.slam.tracker.inspect_pose`)."""
+    valid = obs.valid_depth
+    silhouette = view.mask
+    depth_ok = (view.depth - obs.depth).abs() < cfg.inlier_depth
+    color_ok = (view.color - obs.rgb).abs().mean(-1) < cfg.inlier_color
+    inliers = silhouette & torch.where(valid, depth_ok, color_ok)
+    covered = int(silhouette.sum())
+    inlier_fraction = float(inliers.sum()) / covered if covered else math.nan
+    return {"inlier_fraction": inlier_fraction, "condition": condition(hessian, view.depth[silhouette]),
+            "valid_depth": float(valid.float().mean())}
+
+
+def condition(hessian: torch.Tensor | None, depths: torch.Tensor) -> float:
+    """log10 of the condition number of ``hessian`` with its translation scaled by the median of ``depths`` (inf
+    without a Hessian or when it is singular)."""
+    if hessian is None or not len(depths):
+        return math.inf
+    scale = torch.ones(6, dtype=torch.float64)
+    scale[:3] = float(depths.median())
+    h = hessian.double().cpu() * scale[:, None] * scale[None, :]
+    eig = torch.linalg.eigvalsh(h)
+    return math.log10(float(eig[-1]) / float(eig[0])) if float(eig[0]) > 0 else math.inf
+
+
+def motion(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
+    """Translation (metres) and rotation (degrees) of b relative to a (4x4 poses)."""
+    delta = (invert_pose(a.double()) @ b.double()).cpu()
+    return float(delta[:3, 3].norm()), math.degrees(float(so3_log(delta[:3, :3]).norm()))
+
+
+class HealthMonitor:
+    """Judges each tracked frame against the recent ones (see the module doc); :meth:`reset` when tracking starts
+    over (after a relocalisation)."""
+
+    def __init__(self, cfg: HealthConfig):
+        self.cfg = cfg
+        self.residuals: deque[float] = deque(maxlen=cfg.window)
+        self.motions: deque[tuple[float, float]] = deque(maxlen=cfg.window)
+
+    def reset(self) -> None:
+        """Forget the motion history (the motion model restarts); residuals stay comparable."""
+        self.motions.clear()
+
+    def assess(self, loss: float, image: dict[str, float], pose: torch.Tensor, previous: torch.Tensor | None,
+               predicted: torch.Tensor | None) -> TrackingHealth:
+        """The health of a frame tracked to ``pose`` with residual ``loss`` and :func:`image_signals` ``image``;
+        ``previous`` is the last frame's pose and ``predicted`` the motion model's (None at a segment start)."""
+        cfg = self.cfg
+        residual_z = self._residual_z(loss)
+        jump = self._jump(pose, predicted)
+        signals = dict(image, residual_z=residual_z, jump=jump)
+        lost = self._fired(signals, "lost")
+        degraded = self._fired(signals, "degraded")
+        status = "lost" if lost else "degraded" if degraded else "ok"
+        if status != "lost":
+            self.residuals.append(loss)
+            if previous is not None:
+                self.motions.append(motion(previous, pose))
+        return TrackingHealth(status, reasons=tuple(lost or degraded), **signals)
+
+    def _fired(self, signals: dict[str, float], level: str) -> list[str]:
+        """Names of the signals past their ``<level>_`` threshold (below it for fractions, above for the rest)."""
+        fired = []
+        for name, value in signals.items():
+            threshold = getattr(self.cfg, f"{level}_{name}", None)
+            if threshold is None:
+                continue
+            low_is_bad = name in ("inlier_fraction", "valid_depth")
+            if (value < threshold) if low_is_bad else (value > threshold):
+                fired.append(name)
+        return fired
+
+    def _residual_z(self, loss: float) -> float:
+        if len(self.residuals) < self.cfg.min_history:
+            return 0.0
+        recent = torch.tensor(list(self.residuals), dtype=torch.float64)
+        median = float(recent.median())
+        mad = float((recent - median).abs().median())
+        spread = max(1.4826 * mad, 0.01 * abs(median), 1e-12)
+        return (loss - median) / spread
+
+    def _jump(self, pose: torch.Tensor, predicted: torch.Tensor | None) -> float:
+        if predicted is None or len(self.motions) < self.cfg.min_history:
+            return 0.0
+        translation, rotation = motion(predicted, pose)
+        recent = torch.tensor(list(self.motions), dtype=torch.float64)
+        typical = recent.median(0).values
+        return max(translation / max(float(typical[0]), self.cfg.min_translation),
+                   rotation / max(float(typical[1]), self.cfg.min_rotation))

@@ -1,0 +1,150 @@
+"""Tracking health: the monitor's rules on fabricated signals, the evaluation helpers, and a planted tracking
+failure end to end (flagged lost, the map untouched, tracking recovers)."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gausem_core.config import HealthConfig, load_config
+from gausem_core.data import open_dataset
+from gausem_core.eval.health import PlantedFailure, flag_scores, relative_errors
+from gausem_core.geometry import invert_pose, make_pose, so3_exp, so3_log
+from gausem_core.pipeline import Pipeline
+from gausem_core.slam.health import HealthMonitor, condition
+from gausem_core.slam.system import GauSemSLAM
+
+SLOT = 10  # the planted failure's frame
+GOOD = {"inlier_fraction": 0.95, "condition": 3.0, "valid_depth": 0.9}
+
+
+def at(x, yaw_deg=0.0):
+    """A pose at (x, 0, 0) turned by ``yaw_deg`` about y."""
+    rot = so3_exp(torch.tensor([0.0, math.radians(yaw_deg), 0.0], dtype=torch.float64))
+    return make_pose(rot, torch.tensor([x, 0.0, 0.0], dtype=torch.float64))
+
+
+def steady(monitor, frames=10, step=0.02, loss=0.10):
+    """Frames moving ``step`` m along x with a steady loss; returns the last pose."""
+    for i in range(1, frames + 1):
+        health = monitor.assess(loss + 0.001 * (i % 3), GOOD, at(i * step), at((i - 1) * step), at(i * step))
+        assert health.status == "ok", health
+    return frames * step
+
+
+def test_image_signals_decide_lost_and_degraded():
+    monitor = HealthMonitor(HealthConfig())
+    assert monitor.assess(0.1, GOOD, at(0), None, None).status == "ok"
+    degraded = monitor.assess(0.1, dict(GOOD, inlier_fraction=0.5), at(0), None, None)
+    assert degraded.status == "degraded" and degraded.reasons == ("inlier_fraction",)
+    lost = monitor.assess(0.1, dict(GOOD, inlier_fraction=0.1, valid_depth=0.01), at(0), None, None)
+    assert lost.status == "lost" and set(lost.reasons) == {"inlier_fraction", "valid_depth"}
+    assert monitor.assess(0.1, dict(GOOD, valid_depth=0.2), at(0), None, None).status == "degraded"
+    assert monitor.assess(0.1, dict(GOOD, condition=9.0), at(0), None, None).reasons == ("condition",)
+    assert monitor.assess(0.1, dict(GOOD, condition=math.inf), at(0), None, None).status == "degraded"
+
+
+def test_residual_is_judged_against_its_recent_distribution_not_its_level():
+    monitor = HealthMonitor(HealthConfig())
+    x = steady(monitor)
+    spike = monitor.assess(0.2, GOOD, at(x + 0.02), at(x), at(x + 0.02))
+    assert spike.status == "degraded" and spike.reasons == ("residual_z",) and spike.residual_z > 5
+    drifting = HealthMonitor(HealthConfig())  # a loss that climbs slowly over the run stays ok
+    for i in range(1, 60):
+        health = drifting.assess(0.1 * 1.01 ** i, GOOD, at(0.02 * i), at(0.02 * (i - 1)), at(0.02 * i))
+        assert health.status == "ok", (i, health)
+
+
+def test_pose_jump_is_scaled_by_recent_motion():
+    monitor = HealthMonitor(HealthConfig())
+    x = steady(monitor, step=0.02)  # 2 cm per frame
+    predicted = at(x + 0.02)
+    small = monitor.assess(0.1, GOOD, at(x + 0.05), at(x), predicted)  # 3 cm off: 1.5 typical motions
+    assert small.status == "ok" and small.jump == pytest.approx(1.5)
+    x += 0.05
+    jumped = monitor.assess(0.1, GOOD, at(x + 0.02 + 0.15), at(x), at(x + 0.02))  # 7.5 typical motions
+    assert jumped.status == "degraded" and jumped.reasons == ("jump",)
+    turned = monitor.assess(0.1, GOOD, at(x + 0.02, yaw_deg=20.0), at(x), at(x + 0.02))  # 20 deg >> 1 deg floor
+    assert turned.status == "lost" and turned.reasons == ("jump",) and turned.jump == pytest.approx(20.0)
+
+
+def test_lost_frames_do_not_teach_the_monitor_and_reset_forgets_the_motion():
+    monitor = HealthMonitor(HealthConfig())
+    x = steady(monitor)
+    residuals, motions = list(monitor.residuals), list(monitor.motions)
+    lost = monitor.assess(5.0, dict(GOOD, inlier_fraction=0.0), at(x + 3.0), at(x), at(x + 0.02))
+    assert lost.status == "lost"
+    assert list(monitor.residuals) == residuals and list(monitor.motions) == motions
+    monitor.reset()
+    assert not monitor.motions and list(monitor.residuals) == residuals
+    assert monitor.assess(0.1, GOOD, at(x + 1.0), at(x), at(x + 0.02)).jump == 0.0  # no motion history yet
+
+
+def test_condition_is_scale_aware_and_infinite_when_degenerate():
+    depth = torch.full((100,), 2.0)
+    h = torch.diag(torch.tensor([0.25, 0.25, 0.25, 1.0, 1.0, 1.0], dtype=torch.float64))
+    assert condition(h, depth) == pytest.approx(0.0, abs=1e-9)  # translation scaled by the 2 m depth
+    h[0, 0] = 0.0
+    assert condition(h, depth) == math.inf and condition(None, depth) == math.inf
+
+
+def test_relative_errors_and_flag_scores():
+    truths = np.stack([np.eye(4)] * 4)
+    truths[:, 0, 3] = [0.0, 0.1, 0.2, 0.3]
+    poses = truths.copy()
+    poses[2, 0, 3] += 0.05
+    translation, rotation = relative_errors(poses, truths)
+    assert translation == pytest.approx([0.0, 0.0, 0.05, 0.05]) and rotation == pytest.approx([0, 0, 0, 0])
+    errors = np.arange(100.0)
+    flagged = np.zeros(100, bool)
+    flagged[[99, 98, 10]] = True
+    scores = flag_scores(errors, flagged)
+    assert scores["worst_1%_flagged"] == 1.0 and scores["worst_5%_flagged"] == pytest.approx(0.4)
+    assert scores["false_flag_rate"] == pytest.approx(1 / 95)
+
+
+@pytest.fixture(scope="module")
+def planted_run():
+    """GauSemSLAM over the first 18 synthetic frames at 160x120 with frame 30's images at frame 10's slot (a
+    keyframe); the active submap's Gaussians and keyframe count just before and just after frame 10, and the
+    results."""
+    cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False})
+    dataset = PlantedFailure(open_dataset("synthetic", size=(160, 120), max_frames=31), SLOT, 30)
+    pipeline = Pipeline(dataset, cfg, progress=False)
+    slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
+    results, before = [], None
+    for i in range(18):
+        if i == SLOT:
+            before = ({k: v.clone() for k, v in slam.active.cloud.tensors().items()}, len(slam.active.keyframes))
+        results.append(slam.process(pipeline.observation(dataset[i])))
+        if i == SLOT:
+            after = ({k: v.clone() for k, v in slam.active.cloud.tensors().items()}, len(slam.active.keyframes),
+                     slam.lost)
+    origin = np.linalg.inv(dataset[0].gt_pose)
+    truths = [torch.tensor(origin @ dataset[i].gt_pose, dtype=torch.float32) for i in range(18)]
+    return slam, results, truths, before, after
+
+
+@pytest.mark.slow
+def test_a_swapped_in_frame_is_lost_leaves_the_map_alone_and_the_next_is_relocalised(planted_run):
+    slam, results, truths, (cloud, keyframes), (cloud_after, keyframes_after, lost_after) = planted_run
+    assert [r.health.status for r in results[:SLOT]].count("lost") == 0
+    swapped = results[SLOT]
+    assert swapped.health.status == "lost" and lost_after and not swapped.is_keyframe
+    assert keyframes_after == keyframes and cloud.keys() == cloud_after.keys()
+    assert all(torch.equal(cloud[k], cloud_after[k]) for k in cloud)  # the map is untouched by the lost frame
+    relocalised = results[SLOT + 1].relocalisation
+    assert relocalised is not None and relocalised.accepted and results[SLOT + 1].health.status != "lost"
+    assert not slam.lost and all(r.relocalisation is None for r in results[SLOT + 2:])
+    assert all(r.health.status != "lost" for r in results[SLOT + 1:])
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="open: the frame relocalised after the loss (accepted at inlier fraction >= "
+                   "health.recovery_inlier_fraction against a map without the skipped keyframe) is placed ~24 cm off "
+                   "and tracking goes on from there")
+def test_after_a_planted_failure_tracking_resumes_with_small_error(planted_run):
+    _, results, truths, _, _ = planted_run
+    for result, truth in zip(results[SLOT + 5:], truths[SLOT + 5:]):  # the relocalised pose settles in a few frames
+        delta = invert_pose(result.cam_to_world) @ truth
+        assert delta[:3, 3].norm() < 0.02 and math.degrees(float(so3_log(delta[:3, :3]).norm())) < 1.0
