@@ -150,12 +150,13 @@ def main(args=None) -> int:
             executor.add_node(node)
         tracking = nodes[0]
         bar, update = progress_bar(tracking, disable=player is None or ns.quiet)
+        interrupted = False
         try:
             spin_until_done(executor, player, on_spin=update,
                             drained=lambda: tracking.summary()["frames_pending"] == 0)
         except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-        interrupted = not rclpy.ok()  # SIGINT or SIGTERM shut the context down
+            interrupted = True
+        interrupted = interrupted or not rclpy.ok()  # SIGTERM shuts the context down without an exception
         bar.close()
         if interrupted:
             tracking.interrupt()
