@@ -121,6 +121,12 @@ def project_to_se3(pose: torch.Tensor) -> torch.Tensor:
     return m.to(pose.dtype)
 
 
+def rigid_float64(pose: torch.Tensor) -> torch.Tensor:
+    """A pose as a float64 CPU tensor, projected onto SE(3) when finite (a non-finite pose is returned as is)."""
+    m = pose.detach().cpu().double()
+    return project_to_se3(m) if torch.isfinite(m).all() else m
+
+
 def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Apply a 4x4 transform to points (N, 3)."""
     return points @ pose[:3, :3].T + pose[:3, 3]

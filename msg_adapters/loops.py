@@ -7,9 +7,10 @@ import numpy as np
 import torch
 
 from gausem_core.slam.loop import LoopCandidate
+from gausem_core.slam import loop_graphs
 from gausem_core.slam.loop_closure import LoopConstraint
 
-from .records import LoopCandidateRecord, LoopConstraintRecord
+from .records import LoopCandidateRecord, LoopConstraintRecord, PoseGraphNode, PoseGraphNodeKind, PoseGraphUpdate
 
 
 def loop_candidate_to_record(candidate: LoopCandidate) -> LoopCandidateRecord:
@@ -56,3 +57,15 @@ def record_to_loop_constraint(record: LoopConstraintRecord) -> LoopConstraint:
     return LoopConstraint(record.keyframe_a, record.keyframe_b, record.submap_a, record.submap_b,
                           torch.tensor(np.asarray(record.relative_pose), dtype=torch.float64),
                           information_to_sigmas(record.information), record.fitness, record.intra_submap)
+
+
+def pose_graph_update_from_core(update: loop_graphs.PoseGraphUpdate) -> PoseGraphUpdate:
+    """The core's corrected poses as records: KEYFRAME nodes (by frame id), then ANCHOR nodes (by submap id)."""
+    return PoseGraphUpdate([PoseGraphNode(PoseGraphNodeKind.KEYFRAME, k, pose) for k, pose in update.keyframes.items()]
+                           + [PoseGraphNode(PoseGraphNodeKind.ANCHOR, s, pose) for s, pose in update.anchors.items()])
+
+
+def pose_graph_update_to_core(update: PoseGraphUpdate) -> loop_graphs.PoseGraphUpdate:
+    """Records back to the core's corrected poses (keyframes by frame id, anchors by submap id)."""
+    return loop_graphs.PoseGraphUpdate({n.node_id: n.pose for n in update.nodes if n.kind == PoseGraphNodeKind.KEYFRAME},
+                                       {n.node_id: n.pose for n in update.nodes if n.kind == PoseGraphNodeKind.ANCHOR})

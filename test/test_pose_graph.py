@@ -144,3 +144,29 @@ def test_per_edge_sigmas_weight_loop_against_odometry():
         graph.add_loop(0, 1, loop, (0.0, 0.1))
     with pytest.raises(ValueError, match="sigmas must be two positive"):
         graph.add_odometry(0, 1, (0.1,))
+
+
+def test_loop_graphs_optimise_the_level_of_each_loop_and_keep_nothing_from_a_bad_one():
+    from gausem_core.config import LoopConfig
+    from gausem_core.slam.loop_closure import LoopConstraint
+    from gausem_core.slam.loop_graphs import LoopGraphs
+    graphs = LoopGraphs(LoopConfig())
+    for k in range(4):  # keyframes of submap 0 on a line, 0.1 m apart (odometry)
+        graphs.set_keyframe(5 * k, 0, _pose([0.1 * k, 0, 0], [0, 0, 0]))
+    for s in range(3):
+        graphs.set_anchor(s, _pose([s, 0, 0], [0, 0, 0]))
+    sigmas = (0.005, 0.01)
+    unknown = LoopConstraint(0, 99, 0, 0, torch.eye(4, dtype=torch.float64), sigmas, 1.0, True)
+    with pytest.raises(ValueError, match="keyframe 99"):
+        graphs.add(unknown)
+    assert graphs.missing(unknown) == ["keyframe 99"] and graphs.constraints == []
+    intra = LoopConstraint(0, 15, 0, 0, torch.from_numpy(_pose([0.2, 0, 0], [0, 0, 0])), sigmas, 1.0, True)
+    update = graphs.add(intra)
+    assert sorted(update.keyframes) == [0, 5, 10, 15] and not update.anchors
+    x = [update.keyframes[k][0, 3] for k in (0, 5, 10, 15)]
+    assert x[0] == pytest.approx(0.0, abs=1e-9) and 0.2 < x[3] < 0.3 and x[1] < x[2] < x[3]  # pulled, order kept
+    assert graphs.keyframes[15][1][0, 3] == x[3]  # kept for the next loop
+    inter = LoopConstraint(0, 15, 0, 2, torch.from_numpy(_pose([1.8, 0, 0], [0, 0, 0])), sigmas, 1.0, False)
+    update = graphs.add(inter)
+    assert sorted(update.anchors) == [0, 1, 2] and not update.keyframes
+    assert 1.8 < update.anchors[2][0, 3] < 2.0 and graphs.constraints == [intra, inter]

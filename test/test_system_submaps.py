@@ -14,6 +14,7 @@ from gausem_core.config import from_flat
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.geometry import invert_pose, se3_exp
 from gausem_core.slam.allocation import Decision, make_allocation, partition_keyframes
+from gausem_core.slam.loop_graphs import PoseGraphUpdate
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM, StoredObservation, rigid_product
 from gausem_core.slam.tracker import TrackingResult
@@ -93,6 +94,42 @@ def test_new_submaps_start_exactly_at_the_policy_decisions(sequence):
         assert submap.num_gaussians == len(submap.cloud) > 0
     assert [s.is_active for s in slam.submaps] == [False, False, True]
     assert [f.submap.submap_id for f in slam.frames] == [r.submap_id for r in results]
+
+
+def test_process_reports_keyframes_and_submaps_as_events(sequence):
+    slam, results, inputs = run(sequence, 10, {"mapping.every": 2}, switch_at=[4, 8])
+    keyframes = [r.events.keyframe for r in results]
+    assert [k is not None for k in keyframes] == [r.is_keyframe for r in results]
+    assert [(k.frame_id, k.submap_id, k.timestamp) for k in keyframes if k] == [
+        (i, i // 4, inputs[i].timestamp) for i in (0, 2, 4, 6, 8)]
+    changes = [(i, c.submap_id, c.first_keyframe, c.opened) for i, r in enumerate(results) for c in r.events.submaps]
+    assert changes == [(0, 0, 0, True), (4, 0, 0, False), (4, 1, 4, True), (8, 1, 4, False), (8, 2, 8, True)]
+    for result in results:
+        for change in result.events.submaps:  # anchors as the system holds them, rigid float64
+            anchor = slam.submaps[change.submap_id].anchor
+            assert change.anchor.dtype == torch.float64 and torch.allclose(change.anchor, anchor.double(), atol=1e-6)
+    kf = keyframes[6]  # its pose when it was made (bundle adjustment refines it later)
+    assert torch.allclose(kf.anchor @ kf.pose, results[6].cam_to_world.double(), atol=1e-5)
+    assert [(k.frame_id, k.submap_id) for k in slam.keyframe_states()] == [(0, 0), (2, 0), (4, 1), (6, 1), (8, 2)]
+    assert all(r.events.loop is None for r in results)  # loop closure off
+
+
+def test_apply_pose_graph_moves_anchors_and_keyframes_and_frames_follow(sequence):
+    slam, _, _ = run(sequence, 10, {"mapping.every": 2, "loop.enabled": True, "loop.keyframe_every": 1000,
+                                    "loop.remap_iterations_per_keyframe": 1}, switch_at=[6])
+    before = [p.clone() for _, p in slam.trajectory()]
+    shift = se3_exp(torch.tensor([0.05, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64))
+    moved_kf = slam.submaps[0].keyframes[1].cam_to_world.double() @ shift
+    update = PoseGraphUpdate(keyframes={2: moved_kf.numpy(), 99: moved_kf.numpy()},
+                             anchors={1: (shift @ slam.submaps[1].anchor.double()).numpy(), 7: shift.numpy()})
+    correction = slam.apply_pose_graph(update)
+    after = [p for _, p in slam.trajectory()]
+    assert (correction.anchors, correction.keyframes, correction.remapped) == (1, 1, (0,))  # unknown ids ignored
+    assert torch.allclose(slam.submaps[0].keyframes[1].cam_to_world.double(), moved_kf, atol=1e-6)
+    for i in range(6, 10):  # frames of submap 1 follow its anchor
+        assert torch.allclose(after[i].double(), shift @ before[i].double(), atol=1e-5)
+    assert torch.allclose(after[0], before[0]) and torch.allclose(after[4], before[4])  # keyframe 0's frames stay
+    assert torch.allclose(after[2].double(), before[2].double() @ shift, atol=1e-5)
 
 
 def test_semantic_policy_in_the_loop_decides_as_on_its_own(sequence):

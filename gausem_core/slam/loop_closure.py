@@ -38,10 +38,11 @@ from gausem_core.config import LoopConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_log
 from gausem_core.semantics.descriptors import DescriptorExtractor, make_descriptor
+from gausem_core.slam.events import Correction
 from gausem_core.slam.loop import (DescriptorDatabase, LoopCandidate, LoopDetector, gaussian_idf, landmark_scores,
                                    nearby_keyframes, observed_gaussians)
+from gausem_core.slam.loop_graphs import LoopGraphs, PoseGraphUpdate, odometry_sigmas
 from gausem_core.slam.mapper import Keyframe, Mapper
-from gausem_core.slam.pose_graph import optimise_chain
 from gausem_core.slam.registration import align_keyframes, semantic_guided_registration
 
 
@@ -80,6 +81,16 @@ class LoopConstraint:
         if self.intra:
             return self.keyframe_a, self.keyframe_b, self.relative, self.sigmas
         return self.submap_a, self.submap_b, self.relative, self.sigmas
+
+
+@dataclass(frozen=True)
+class LoopOutcome:
+    """A registered loop: its record, the constraint when accepted, and the correction applied to the map (when the
+    loop closure corrected it itself)."""
+
+    record: LoopRecord
+    constraint: LoopConstraint | None = None
+    correction: Correction | None = None
 
 
 class SemanticPalette:
@@ -149,8 +160,8 @@ class LoopClosure:
 
     Three steps, also usable one by one when detection and pose graphs run elsewhere (the ROS nodes):
     :meth:`on_keyframe` describes a keyframe and detects a loop, :meth:`register` measures a candidate as a
-    :class:`LoopConstraint`, :meth:`correct` optimises the pose graph of its level and moves the map
-    (:meth:`move_keyframes`, :meth:`move_anchors`).
+    :class:`LoopConstraint`, :meth:`correct` optimises the pose graph of its level (:class:`LoopGraphs`) and moves the
+    map (:meth:`apply`).
 
     ``mapper`` re-maps submaps after intra-submap loops; ``descriptor`` gives the global descriptors and the dense
     features of the SGR feature term (default: the colour-layout fallback); ``device``: where submaps are loaded for
@@ -168,15 +179,20 @@ class LoopClosure:
                                                  backend=database_backend)
         self.palette = SemanticPalette()
         self.records: list[LoopRecord] = []
-        self.constraints: list[LoopConstraint] = []  # accepted loops corrected here, both levels
+        self.graphs = LoopGraphs(cfg)
         self._descriptors: dict[int, torch.Tensor] = {}  # keyframe frame id -> global descriptor
+
+    @property
+    def constraints(self) -> list[LoopConstraint]:
+        """The accepted loops corrected here, both levels, in order."""
+        return self.graphs.constraints
 
     @property
     def loops(self) -> list[LoopRecord]:
         """The accepted (closed) loops."""
         return [r for r in self.records if r.accepted]
 
-    def on_keyframe(self, submaps: Sequence, submap, keyframe: Keyframe, detect: bool = True) -> LoopRecord | None:
+    def on_keyframe(self, submaps: Sequence, submap, keyframe: Keyframe, detect: bool = True) -> LoopOutcome | None:
         """Algorithm 1 for a new keyframe of ``submap`` (one of ``submaps``): describe it and, with ``detect``,
         query the loop database and close a detected loop (register, then correct when accepted)."""
         if not self.cfg.enabled:
@@ -191,12 +207,11 @@ class LoopClosure:
         if candidate is None:
             return None
         start = time.perf_counter()
-        constraint = self.register(submaps, candidate)
-        if constraint is not None:
-            self.correct(submaps, constraint)
-        record = dataclasses.replace(self.records[-1], seconds=time.perf_counter() - start)
+        outcome = self.register(submaps, candidate)
+        correction = self.correct(submaps, outcome.constraint) if outcome.constraint is not None else None
+        record = dataclasses.replace(outcome.record, seconds=time.perf_counter() - start)
         self.records[-1] = record
-        return record
+        return LoopOutcome(record, outcome.constraint, correction)
 
     def nearest_keyframes(self, semantic: torch.Tensor, k: int) -> list[int]:
         """Frame ids of the ``k`` described keyframes whose global descriptors are nearest (L2 between unit
@@ -236,7 +251,7 @@ class LoopClosure:
             database._append(frame_id, vector)  # stored unit vectors, not normalised again (bit-identical)
         self.detector._keyframes = {int(f): (int(s), scores) for f, s, scores in state["landmarks"]}
         self.records = [LoopRecord(**r) for r in state["records"]]
-        self.constraints = [LoopConstraint(**{**c, "sigmas": tuple(c["sigmas"])}) for c in state["constraints"]]
+        self.graphs.constraints = [LoopConstraint(**{**c, "sigmas": tuple(c["sigmas"])}) for c in state["constraints"]]
 
     # --- detection inputs ---------------------------------------------------------------------------------------
     def _descriptor(self, submap, keyframe: Keyframe) -> torch.Tensor:
@@ -272,9 +287,9 @@ class LoopClosure:
                 and float(error[:3, 3].norm()) <= bound * translation)
 
     # --- registration -------------------------------------------------------------------------------------------
-    def register(self, submaps: Sequence, candidate: LoopCandidate) -> LoopConstraint | None:
+    def register(self, submaps: Sequence, candidate: LoopCandidate) -> LoopOutcome:
         """Measure a detected loop (intra: keyframe alignment; inter: SGR) and decide whether to accept it; the
-        decision is recorded in :attr:`records`. Returns the constraint when accepted, else None. Raises ValueError
+        decision is recorded in :attr:`records`. The outcome's constraint is set when accepted. Raises ValueError
         when a keyframe or submap of the candidate is unknown."""
         start = time.perf_counter()
         by_id = {s.submap_id: s for s in submaps}
@@ -285,10 +300,11 @@ class LoopClosure:
                                  f"{frame_id} in submap {submap_id}")
         measure = self._register_intra if candidate.intra else self._register_inter
         constraint, accepted = measure(candidate, by_id)
-        self.records.append(LoopRecord(candidate.query_keyframe, candidate.match_keyframe, candidate.query_submap,
-                                       candidate.match_submap, candidate.intra, accepted, constraint.fitness,
-                                       time.perf_counter() - start))
-        return constraint if accepted else None
+        record = LoopRecord(candidate.query_keyframe, candidate.match_keyframe, candidate.query_submap,
+                            candidate.match_submap, candidate.intra, accepted, constraint.fitness,
+                            time.perf_counter() - start)
+        self.records.append(record)
+        return LoopOutcome(record, constraint if accepted else None)
 
     def _register_intra(self, candidate: LoopCandidate, by_id: dict) -> tuple[LoopConstraint, bool]:
         submap = by_id[candidate.query_submap]
@@ -330,23 +346,27 @@ class LoopClosure:
         return torch.stack([self._descriptor(submap, kf) for kf in submap.keyframes])
 
     # --- correction ---------------------------------------------------------------------------------------------
-    def correct(self, submaps: Sequence, constraint: LoopConstraint) -> None:
-        """Add an accepted loop to the pose graph of its level, optimise it with every loop of that level so far
-        and move the map (intra: the submap's keyframes, then re-mapping; inter: the anchors)."""
-        self.constraints.append(constraint)
-        same_level = [c for c in self.constraints if c.intra == constraint.intra
-                      and (not c.intra or c.submap_a == constraint.submap_a)]
-        if constraint.intra:
-            submap = next(s for s in submaps if s.submap_id == constraint.submap_a)
-            poses = {kf.frame_id: kf.cam_to_world for kf in submap.keyframes}
-            result = optimise_chain(poses, [c.edge for c in same_level], lambda _: odometry_sigmas(self.cfg, 1),
-                                    self.cfg.robust_kernel)
-            self.move_keyframes(submap, result.poses)
-        else:
-            counts = {s.submap_id: len(s.keyframes) for s in submaps}
-            result = optimise_chain({s.submap_id: s.anchor for s in submaps}, [c.edge for c in same_level],
-                                    lambda key: odometry_sigmas(self.cfg, counts[key]), self.cfg.robust_kernel)
-            self.move_anchors(submaps, result.poses)
+    def correct(self, submaps: Sequence, constraint: LoopConstraint) -> Correction:
+        """Add an accepted loop to the pose graph of its level (:class:`LoopGraphs`, given the current keyframe poses
+        and anchors), optimise it with every loop of that level so far and move the map (:meth:`apply`)."""
+        for s in submaps:
+            self.graphs.set_anchor(s.submap_id, s.anchor)
+            for kf in s.keyframes:
+                self.graphs.set_keyframe(kf.frame_id, s.submap_id, kf.cam_to_world)
+        return self.apply(submaps, self.graphs.add(constraint))
+
+    def apply(self, submaps: Sequence, update: PoseGraphUpdate) -> Correction:
+        """Move the map to a pose-graph answer: anchors (:meth:`move_anchors`), then keyframes grouped by their
+        submap (:meth:`move_keyframes`, which re-maps each). Unknown ids are ignored."""
+        anchors = self.move_anchors(submaps, update.anchors)
+        by_id = {s.submap_id: s for s in submaps}
+        owner = {kf.frame_id: s.submap_id for s in submaps for kf in s.keyframes}
+        grouped: dict[int, dict[int, object]] = {}
+        for frame_id, pose in update.keyframes.items():
+            if frame_id in owner:
+                grouped.setdefault(owner[frame_id], {})[frame_id] = pose
+        keyframes = sum(self.move_keyframes(by_id[s], poses) for s, poses in grouped.items())
+        return Correction(anchors, keyframes, tuple(sorted(grouped)))
 
     def move_keyframes(self, submap, poses: dict[int, object]) -> int:
         """Set the poses (submap frame, by frame id) of ``submap``'s non-fixed keyframes, then re-map the submap for
@@ -375,9 +395,3 @@ class LoopClosure:
                                             device=submap.anchor.device)
         return len(moved)
 
-
-def odometry_sigmas(cfg: LoopConfig, keyframes: int) -> tuple[float, float]:
-    """Pose-graph odometry standard deviations (rotation, translation) over ``keyframes`` keyframe steps (random-walk
-    growth from ``odometry_sigma_rotation`` / ``odometry_sigma_translation`` per step)."""
-    scale = max(keyframes, 1) ** 0.5
-    return cfg.odometry_sigma_rotation * scale, cfg.odometry_sigma_translation * scale

@@ -14,19 +14,21 @@ the compute device. A closed submap's tensors go to a :class:`SubmapStore` (CPU 
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import torch
 
 from gausem_core.config import SlamConfig
 from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
+from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3, rigid_float64
 from gausem_core.render import select_backend
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
+from gausem_core.slam.events import Correction, FrameEvents, KeyframeState, SubmapChange
 from gausem_core.slam.health import HealthMonitor, TrackingHealth, image_signals
 from gausem_core.slam.loop import LoopCandidate
-from gausem_core.slam.loop_closure import LoopClosure, LoopConstraint
+from gausem_core.slam.loop_closure import LoopClosure, LoopOutcome
+from gausem_core.slam.loop_graphs import PoseGraphUpdate
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.refinement import global_refinement
 from gausem_core.slam.observation import Observation
@@ -154,6 +156,7 @@ class FrameResult:
     allocation: Decision | None  # the allocation decision (keyframes after the first)
     relocalisation: RelocalisationResult | None = None  # when the frame was relocalised (the system was lost)
     health: TrackingHealth | None = None  # ok / degraded / lost and its signals (``slam.health``)
+    events: FrameEvents = field(default_factory=FrameEvents)  # keyframe, submaps closed/opened, loop outcome
 
 
 class GauSemSLAM:
@@ -212,8 +215,7 @@ class GauSemSLAM:
         self.mapper.hurry.clear()
         if not self.submaps:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
-            self._close_loops()
-            return self._result(None, True, loss, None)
+            return self._result(None, True, loss, None, events=self._keyframe_events([], self._close_loops()))
         tracked, relocalised = self._place(obs, frame_id)
         if tracked is None:  # lost and not relocalised: the frame is dropped
             return FrameResult(frame_id, relocalised.cam_to_world, False, relocalised.tracking_loss,
@@ -229,14 +231,16 @@ class GauSemSLAM:
             self.lost = lost
             return self._result(tracked, False, None, None, relocalised, health)
         decision = self.allocation.should_start_new(self.active.extent, obs, pose)
+        closed = []
         if decision.new:
             anchor = rigid_product(self.active.anchor, pose)
+            closed.append(self._submap_change(self.active, opened=False))
             self._close_active()
             loss = self._open_submap(obs, frame_id, anchor)
         else:
             loss = self._map_keyframe(obs, frame_id, pose)
-        self._close_loops()
-        return self._result(tracked, True, loss, decision, relocalised, health)
+        events = self._keyframe_events(closed, self._close_loops())
+        return self._result(tracked, True, loss, decision, relocalised, health, events)
 
     def _place(self, obs: Observation, frame_id: int) -> tuple[TrackingResult | None, RelocalisationResult | None]:
         """The frame's pose in the active submap: tracked, or relocalised while :attr:`lost` (None when that fails;
@@ -348,44 +352,65 @@ class GauSemSLAM:
 
     def _result(self, tracked: TrackingResult | None, is_keyframe: bool, mapping_loss: float | None,
                 allocation: Decision | None, relocalised: RelocalisationResult | None = None,
-                health: TrackingHealth | None = None) -> FrameResult:
+                health: TrackingHealth | None = None, events: FrameEvents | None = None) -> FrameResult:
         """The last frame's result (``tracked`` is None for the first frame, which defines the world frame: ok)."""
         record = self.frames[-1]
         loss, iterations = (tracked.loss, tracked.iterations) if tracked else (0.0, 0)
         return FrameResult(record.frame_id, record.cam_to_world, is_keyframe, loss, iterations, mapping_loss,
                            self.active.num_gaussians, self.active.submap_id, allocation, relocalised,
-                           health or TrackingHealth("ok"))
+                           health or TrackingHealth("ok"), events or FrameEvents())
 
     def _local_pose(self, index: int) -> torch.Tensor:
         """A recent frame's pose in the active submap's frame."""
         return invert_pose(self.active.anchor) @ self.frames[index].cam_to_world
 
-    def _close_loops(self) -> None:
-        """Loop closure (Algorithm 1) for the newest keyframe, self.active.keyframes[-1]."""
-        if self.loop_closure is not None:
-            self.loop_closure.on_keyframe(self.submaps, self.active, self.active.keyframes[-1], self.detect_loops)
+    def _close_loops(self) -> LoopOutcome | None:
+        """Loop closure (Algorithm 1) for the newest keyframe, self.active.keyframes[-1]: the outcome of a loop
+        detected here, else None."""
+        if self.loop_closure is None:
+            return None
+        return self.loop_closure.on_keyframe(self.submaps, self.active, self.active.keyframes[-1], self.detect_loops)
 
-    def register_loop(self, candidate: LoopCandidate) -> LoopConstraint | None:
-        """Register a loop detected elsewhere (keyframe alignment or SGR); the accepted constraint, else None. The
-        map is not corrected: that is the pose graph's answer (:meth:`move_keyframes`, :meth:`move_anchors`). Raises
+    def _keyframe_events(self, closed: list[SubmapChange], loop: LoopOutcome | None) -> FrameEvents:
+        """The events of a frame that made the newest keyframe (``closed``: the submap it closed, if any)."""
+        submap = self.active
+        opened = [self._submap_change(submap, opened=True)] if len(submap.keyframes) == 1 else []
+        return FrameEvents(self._keyframe_state(submap, submap.keyframes[-1]), tuple(closed + opened), loop)
+
+    @staticmethod
+    def _submap_change(submap: Submap, opened: bool) -> SubmapChange:
+        return SubmapChange(submap.submap_id, submap.keyframes[0].frame_id, rigid_float64(submap.anchor), opened)
+
+    @staticmethod
+    def _keyframe_state(submap: Submap, kf: Keyframe) -> KeyframeState:
+        return KeyframeState(kf.frame_id, submap.submap_id, kf.obs.timestamp, rigid_float64(kf.cam_to_world),
+                             rigid_float64(submap.anchor))
+
+    def keyframe_states(self, submap_id: int | None = None) -> list[KeyframeState]:
+        """The keyframes (of one submap, or all) with their current poses, in order."""
+        return [self._keyframe_state(s, kf) for s in self.submaps if submap_id is None or s.submap_id == submap_id
+                for kf in s.keyframes]
+
+    def submap_states(self) -> list[SubmapChange]:
+        """Every submap as opened (e.g. to announce a loaded map), with its current anchor."""
+        return [self._submap_change(s, opened=True) for s in self.submaps]
+
+    def register_loop(self, candidate: LoopCandidate) -> LoopOutcome:
+        """Register a loop detected elsewhere (keyframe alignment or SGR); the outcome's constraint is set when
+        accepted. The map is not corrected: that is the pose graph's answer (:meth:`apply_pose_graph`). Raises
         ValueError when loop closure is disabled or the candidate names unknown keyframes."""
         if self.loop_closure is None:
             raise ValueError("loop closure is disabled (loop.enabled: false)")
         return self.loop_closure.register(self.submaps, candidate)
 
-    def move_keyframes(self, submap_id: int, poses: dict[int, object]) -> int:
-        """Corrected keyframe poses (submap frame, by frame id) for one submap, which is then re-mapped with them
-        held; the number of keyframes moved (0 for an unknown submap)."""
-        submap = next((s for s in self.submaps if s.submap_id == submap_id), None)
-        if submap is None:
-            return 0
+    def apply_pose_graph(self, update: PoseGraphUpdate) -> Correction:
+        """Move the map to a pose graph's answer: anchors (world-from-submap), then keyframe poses (submap frame),
+        each submap whose keyframes moved re-mapped with them held. Unknown ids are ignored."""
         if self.loop_closure is None:
-            raise ValueError("loop closure is disabled (loop.enabled: false)")
-        return self.loop_closure.move_keyframes(submap, poses)
-
-    def move_anchors(self, poses: dict[int, object]) -> int:
-        """Corrected anchors (world-from-submap, by submap id); the number of submaps moved."""
-        return LoopClosure.move_anchors(self.submaps, poses)
+            if update.keyframes:
+                raise ValueError("loop closure is disabled (loop.enabled: false): keyframes cannot be re-mapped")
+            return Correction(LoopClosure.move_anchors(self.submaps, update.anchors), 0)
+        return self.loop_closure.apply(self.submaps, update)
 
     def finish(self) -> None:
         """Call after the last frame: the two-stage global refinement when ``loop.global_refinement`` (with or

@@ -1,27 +1,21 @@
 """The pose-graph node (GTSAM): ``gausem/keyframes``, ``gausem/submaps``, ``gausem/loop_constraints`` ->
 ``gausem/pose_graph`` (a PoseGraphUpdate: corrected poses, one record per node).
 
-It keeps every keyframe's pose in its submap frame (the latest record of it wins: tracking_mapping re-publishes a
-submap's keyframes before an intra-submap constraint, as bundle adjustment moves them) and every submap's anchor
-pose in the map. A keyframe id seen before with another stamp means the tracker started a new map (restarted or
-reset): the graph is then emptied. Each loop constraint re-optimises one level (paper §III-C) with the core's graph
-(:func:`~gausem_core.slam.pose_graph.optimise_chain`, as ``gausem run`` does): an intra-submap loop the keyframes of
-that submap, an inter-submap loop the anchors, each with odometry edges between consecutive nodes (sigmas from
-``loop.odometry_sigma_*``, grown with the keyframes in between), the first node fixed, and every loop of that level so
-far under ``loop.robust_kernel`` with the sigmas of its information matrix. The optimised poses replace the stored
-ones and are published (KEYFRAME or ANCHOR nodes). Constraints naming unknown keyframes or submaps are dropped and
-counted.
+A thin shell over the core's :class:`~gausem_core.slam.loop_graphs.LoopGraphs`, the pose graphs ``gausem run``
+corrects loops with: keyframe records give keyframe poses in their submap frame (the latest record of a keyframe wins:
+tracking_mapping re-publishes a submap's keyframes before an intra-submap constraint, as bundle adjustment moves
+them), submap events and keyframe records give anchors, and each loop constraint re-optimises its level; the
+corrected poses are published (KEYFRAME or ANCHOR nodes). A keyframe id seen before with another stamp means the
+tracker started a new map (restarted or reset): the graphs start over. Constraints naming unknown keyframes or
+submaps, or that the graph cannot take, are dropped and counted.
 """
 from __future__ import annotations
-
-from collections import Counter
 
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 import msg_adapters as ma
-from gausem_core.slam.loop_closure import LoopConstraint, odometry_sigmas
-from gausem_core.slam.pose_graph import PoseGraph, optimise_chain
+from gausem_core.slam.loop_graphs import LoopGraphs
 
 from ..qos import EVENT_QOS
 from .common import DropReport, declare_parameters, declare_slam_config, run_node, survives_errors
@@ -34,8 +28,7 @@ class PoseGraphNode(Node):
         super().__init__("pose_graph", **kwargs)
         self.cfg = declare_slam_config(self)
         self.params = declare_parameters(self, NODE_DEFAULTS)
-        # fails now, not at the first loop, on bad odometry sigmas or kernel:
-        PoseGraph(odometry_sigmas=odometry_sigmas(self.cfg.loop, 1), robust_kernel=self.cfg.loop.robust_kernel)
+        LoopGraphs(self.cfg.loop)  # fails now, not at the first loop, on bad odometry sigmas or kernel
         self.drops = DropReport(self)
         self.updates_published = 0
         self._start_map()
@@ -45,10 +38,13 @@ class PoseGraphNode(Node):
         self.create_subscription(PointCloud2, "gausem/loop_constraints", self._on_loops, EVENT_QOS)
 
     def _start_map(self) -> None:
-        self.keyframes: dict[int, tuple[int, object]] = {}  # keyframe id -> (submap id, pose in the submap frame)
-        self.anchors: dict[int, object] = {}  # submap id -> anchor pose in the map
-        self.loops: list[LoopConstraint] = []
+        self.graphs = LoopGraphs(self.cfg.loop, self.params.max_iterations)
         self._stamps: dict[int, float] = {}  # keyframe id -> its stamp
+
+    @property
+    def keyframes(self) -> dict[int, tuple[int, object]]:
+        """Keyframe id -> (submap id, latest pose in the submap frame)."""
+        return self.graphs.keyframes
 
     def _records(self, msg: PointCloud2, record_type):
         try:
@@ -65,13 +61,15 @@ class PoseGraphNode(Node):
                                        "map; the pose graph starts over")
                 self._start_map()
                 self._stamps[r.keyframe_id] = r.stamp
-            self.keyframes[r.keyframe_id] = (r.submap_id, r.pose)
-            self.anchors.setdefault(r.submap_id, r.anchor_pose)
+            self.graphs.set_keyframe(r.keyframe_id, r.submap_id, r.pose)
+            if r.submap_id not in self.graphs.anchors:
+                self.graphs.set_anchor(r.submap_id, r.anchor_pose)
 
     @survives_errors
     def _on_submaps(self, msg: PointCloud2) -> None:
         for r in self._records(msg, ma.SubmapEvent):
-            self.anchors.setdefault(r.submap_id, r.anchor_pose)
+            if r.submap_id not in self.graphs.anchors:
+                self.graphs.set_anchor(r.submap_id, r.anchor_pose)
 
     @survives_errors
     def _on_loops(self, msg: PointCloud2) -> None:
@@ -82,45 +80,21 @@ class PoseGraphNode(Node):
             except ValueError as err:
                 self.drops.drop("bad_constraint", f"{name}: {err}")
                 continue
-            missing = self._missing(loop)
+            missing = self.graphs.missing(loop)
             if missing:
-                self.drops.drop("unknown_nodes", f"{name}: unknown {missing}")
+                self.drops.drop("unknown_nodes", f"{name}: unknown {', '.join(missing)}")
                 continue
-            self.loops.append(loop)
             try:
-                nodes = self._optimise_keyframes(loop.submap_a) if loop.intra else self._optimise_anchors()
+                update = self.graphs.add(loop)
             except ValueError as err:  # e.g. a loop between a node and itself
-                self.loops.pop()
                 self.drops.drop("bad_constraint", f"{name}: {err}")
                 continue
+            before, after = self.graphs.last_error
+            self.get_logger().info(f"pose graph: {name}, {len(update.keyframes) or len(update.anchors)} nodes, "
+                                   f"error {before:.4g} -> {after:.4g}")
             header = ma.make_header(max(ma.header_seconds(msg.header), 0.0), self.params.map_frame)
-            self._pub.publish(ma.pose_graph_update_to_pointcloud2(ma.PoseGraphUpdate(nodes), header))
+            self._pub.publish(ma.pose_graph_update_to_pointcloud2(ma.pose_graph_update_from_core(update), header))
             self.updates_published += 1
-
-    def _missing(self, loop: LoopConstraint) -> list[str]:
-        if loop.intra:
-            return [f"keyframe {k}" for k in (loop.keyframe_a, loop.keyframe_b)
-                    if self.keyframes.get(k, (None,))[0] != loop.submap_a]
-        return [f"submap {s}" for s in (loop.submap_a, loop.submap_b) if s not in self.anchors]
-
-    def _optimise(self, poses: dict[int, object], intra: bool, sigmas) -> dict[int, object]:
-        loops = [c.edge for c in self.loops if c.intra == intra and c.edge[0] in poses]
-        result = optimise_chain(poses, loops, sigmas, self.cfg.loop.robust_kernel, self.params.max_iterations)
-        self.get_logger().info(f"pose graph: {len(poses)} nodes, {len(loops)} loops, error "
-                               f"{result.error_before:.4g} -> {result.error_after:.4g}")
-        return result.poses
-
-    def _optimise_keyframes(self, submap_id: int) -> list[ma.PoseGraphNode]:
-        poses = {k: pose for k, (s, pose) in self.keyframes.items() if s == submap_id}
-        optimised = self._optimise(poses, True, lambda _: odometry_sigmas(self.cfg.loop, 1))
-        self.keyframes.update({k: (submap_id, pose) for k, pose in optimised.items()})
-        return [ma.PoseGraphNode(ma.PoseGraphNodeKind.KEYFRAME, k, pose) for k, pose in optimised.items()]
-
-    def _optimise_anchors(self) -> list[ma.PoseGraphNode]:
-        counts = Counter(s for s, _ in self.keyframes.values())
-        optimised = self._optimise(self.anchors, False, lambda s: odometry_sigmas(self.cfg.loop, counts[s]))
-        self.anchors.update(optimised)
-        return [ma.PoseGraphNode(ma.PoseGraphNodeKind.ANCHOR, s, pose) for s, pose in optimised.items()]
 
 
 def main(args=None) -> int:

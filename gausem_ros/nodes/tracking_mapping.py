@@ -74,8 +74,10 @@ import msg_adapters as ma
 from gausem_core.config import SlamConfig
 from gausem_core.data.frame import Frame, resize_frame
 from gausem_core.eval.trajectory import Trajectory, write_tum_trajectory
+from gausem_core.geometry import rigid_float64
 from gausem_core.io.ply import write_gaussian_ply
 from gausem_core.pipeline import UNLABELLED_PALETTE, resolve_device
+from gausem_core.slam.events import FrameEvents, KeyframeState, SubmapChange
 from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
@@ -127,16 +129,6 @@ def _check_size_limits(cfg: SlamConfig, min_image_size: int, max_image_pixels: i
     if max_image_pixels < min_image_size ** 2:
         raise ValueError(f"tracking_mapping: max_image_pixels {max_image_pixels} is below min_image_size^2 = "
                          f"{min_image_size ** 2}; raise max_image_pixels")
-
-
-def _numpy_pose(pose: torch.Tensor) -> np.ndarray:
-    """A core pose as a float64 matrix whose rotation is projected onto SO(3): chains of float32 pose updates drift
-    off orthonormality (2e-4 seen) beyond what the message adapters accept. Non-finite poses are returned as is."""
-    m = pose.detach().cpu().double().numpy()
-    if np.isfinite(m).all():
-        u, _, vt = np.linalg.svd(m[:3, :3])
-        m[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return m
 
 
 DEGRADED_VARIANCE = 1.0  # m^2 and rad^2 on the odometry's pose covariance diagonal for a degraded frame
@@ -205,7 +197,6 @@ class TrackingMappingNode(Node):
         torch.manual_seed(self.cfg.seed)
         self.slam = slam or GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette),
                                        detect_loops=not self.loop_nodes)
-        self._constraints_published = 0  # of the core's own constraints (loop_closure: core)
         self.frames_processed = 0
         self._busy: tuple[float, float] | None = None  # perf_counter at the first processed frame's start, last end
         self._last_stamp = -math.inf
@@ -328,7 +319,6 @@ class TrackingMappingNode(Node):
         self._busy = (self._busy[0] if self._busy else start, time.perf_counter())
 
     def _track_and_publish(self, obs: Observation, image_frame: str, arrived: float) -> None:
-        submaps_before = len(self.slam.submaps)
         result = self.slam.process(obs)
         self._last_stamp = obs.timestamp
         self.health = result.health
@@ -341,7 +331,7 @@ class TrackingMappingNode(Node):
                                              f"({', '.join(result.health.reasons)}); not mapped, nothing published, "
                                              "the next frames are relocalised")
             return
-        pose = _numpy_pose(result.cam_to_world)
+        pose = rigid_float64(result.cam_to_world).numpy()
         if not np.isfinite(pose).all():
             self._in_progress = False
             self.drops.drop("tracking_diverged", f"frame stamped {obs.timestamp:.6f} s: the estimated pose is not "
@@ -358,10 +348,7 @@ class TrackingMappingNode(Node):
         self.latencies.append(time.monotonic() - arrived)
         self._tf.sendTransform(ma.matrix_to_transform(pose, header, self._camera_frame))
         self._publish_path()
-        self._publish_submap_events(submaps_before, header)
-        if result.is_keyframe:
-            self._publish_keyframes(self.slam.active, [result.frame_id], header)
-        self._publish_core_constraints(header)
+        self._publish_events(result.events, header)
         self._map_dirty = True
         self.drops.publish()
 
@@ -402,34 +389,33 @@ class TrackingMappingNode(Node):
         return self._inputs.synchronizer.pending(0) + self._queue.pending + self._in_progress
 
     def _publish_path(self) -> None:
-        poses = [(t, m) for t, m in ((t, _numpy_pose(p)) for t, p in self.slam.trajectory()) if np.isfinite(m).all()]
+        poses = [(t, m) for t, m in ((t, rigid_float64(p).numpy()) for t, p in self.slam.trajectory())
+                 if np.isfinite(m).all()]
         self._path_pub.publish(ma.poses_to_path(poses, self.params.map_frame))
 
-    def _publish_submap_events(self, submaps_before: int, header) -> None:
-        events = []
-        if submaps_before and len(self.slam.submaps) > submaps_before:
-            closed = self.slam.submaps[submaps_before - 1]
-            events.append(ma.SubmapEvent(closed.submap_id, closed.keyframes[0].frame_id, _numpy_pose(closed.anchor),
-                                         ma.SubmapEventKind.CLOSED))
-        events += [ma.SubmapEvent(s.submap_id, s.keyframes[0].frame_id, _numpy_pose(s.anchor),
-                                  ma.SubmapEventKind.CREATED) for s in self.slam.submaps[submaps_before:]]
+    def _publish_events(self, events: FrameEvents, header) -> None:
+        """A frame's events: submaps closed and opened, its keyframe, the loop the core closed (``loop_closure:
+        core``; published for observers)."""
+        self._publish_submaps(events.submaps, header)
+        if events.keyframe is not None:
+            self._publish_keyframes([events.keyframe], header)
+        if events.loop is not None and events.loop.constraint is not None:
+            self._constraint_pub.publish(ma.records_to_pointcloud2(
+                [ma.loop_constraint_to_record(events.loop.constraint)], header))
+
+    def _publish_submaps(self, changes: list[SubmapChange], header) -> None:
+        events = [ma.SubmapEvent(c.submap_id, c.first_keyframe, c.anchor.numpy(),
+                                 ma.SubmapEventKind.CREATED if c.opened else ma.SubmapEventKind.CLOSED)
+                  for c in changes]
         if events:
             self._submap_pub.publish(ma.records_to_pointcloud2(events, header))
 
-    def _publish_keyframes(self, submap, frame_ids: list[int] | None, header) -> None:
-        """KeyframeRecords of ``submap``'s keyframes (those in ``frame_ids``, or all) with their current poses."""
-        records = [ma.KeyframeRecord(k.frame_id, k.obs.timestamp, submap.submap_id, _numpy_pose(k.cam_to_world),
-                                     _numpy_pose(submap.anchor), np.zeros(0, np.float32))
-                   for k in submap.keyframes if frame_ids is None or k.frame_id in frame_ids]
-        self._keyframe_pub.publish(ma.records_to_pointcloud2(records, header))
-
-    def _publish_core_constraints(self, header) -> None:
-        """The loops the core closed since the last call (``loop_closure: core``)."""
-        constraints = self.slam.loop_closure.constraints if self.slam.loop_closure else []
-        for constraint in constraints[self._constraints_published:]:
-            self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(constraint)],
-                                                                   header))
-        self._constraints_published = len(constraints)
+    def _publish_keyframes(self, keyframes: list[KeyframeState], header) -> None:
+        """KeyframeRecords with the keyframes' current poses."""
+        records = [ma.KeyframeRecord(k.frame_id, k.timestamp, k.submap_id, k.pose.numpy(), k.anchor.numpy(),
+                                     np.zeros(0, np.float32)) for k in keyframes]
+        if records:
+            self._keyframe_pub.publish(ma.records_to_pointcloud2(records, header))
 
     def _publish_map(self) -> None:
         if not self._map_dirty:
@@ -450,11 +436,11 @@ class TrackingMappingNode(Node):
         for c in candidates:
             name = f"loop candidate {c.query_keyframe_id}->{c.match_keyframe_id}"
             try:
-                constraint = self.slam.register_loop(ma.record_to_loop_candidate(c))
+                outcome = self.slam.register_loop(ma.record_to_loop_candidate(c))
             except ValueError as err:  # unknown keyframes (e.g. from before a reset), inconsistent record
                 self.drops.drop("bad_loop_candidate", f"{name}: {err}", frame=False)
                 continue
-            record = self.slam.loop_closure.records[-1]
+            constraint, record = outcome.constraint, outcome.record
             self.get_logger().info(f"{name} (submaps {c.query_submap_id}, {c.match_submap_id}, descriptor distance "
                                    f"{c.descriptor_distance:.3f}): {'accepted' if constraint else 'rejected'}, "
                                    f"fitness {record.fitness:.3f}, {record.seconds:.2f} s")
@@ -462,8 +448,7 @@ class TrackingMappingNode(Node):
                 continue
             header = ma.make_header(max(self._last_stamp, 0.0), self.params.map_frame)
             if constraint.intra:  # the pose graph needs the keyframe poses bundle adjustment has refined since
-                self._publish_keyframes(next(s for s in self.slam.submaps if s.submap_id == constraint.submap_a),
-                                        None, header)
+                self._publish_keyframes(self.slam.keyframe_states(constraint.submap_a), header)
             self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(constraint)],
                                                                    header))
         self.loop_candidates += candidates  # handled
@@ -475,17 +460,10 @@ class TrackingMappingNode(Node):
         except ValueError as err:
             self.drops.drop("bad_pose_graph", str(err), frame=False)
             return
-        anchors = self.slam.move_anchors({n.node_id: n.pose for n in update.nodes
-                                          if n.kind == ma.PoseGraphNodeKind.ANCHOR})
-        owner = {k.frame_id: s.submap_id for s in self.slam.submaps for k in s.keyframes}
-        by_submap: dict[int, dict[int, np.ndarray]] = {}
-        for n in update.nodes:
-            if n.kind == ma.PoseGraphNodeKind.KEYFRAME and n.node_id in owner:
-                by_submap.setdefault(owner[n.node_id], {})[n.node_id] = n.pose
-        keyframes = sum(self.slam.move_keyframes(submap_id, poses) for submap_id, poses in by_submap.items())
-        self.get_logger().info(f"pose graph update of {len(update.nodes)} poses: moved {anchors} submaps and "
-                               f"{keyframes} keyframes (re-mapped {len(by_submap)} submaps)")
-        if anchors or keyframes:
+        correction = self.slam.apply_pose_graph(ma.pose_graph_update_to_core(update))
+        self.get_logger().info(f"pose graph update of {len(update.nodes)} poses: moved {correction.anchors} submaps "
+                               f"and {correction.keyframes} keyframes (re-mapped {len(correction.remapped)} submaps)")
+        if correction:
             self._publish_path()
             self._map_dirty = True
         self.pose_graph_updates.append(update)  # applied
@@ -512,7 +490,8 @@ class TrackingMappingNode(Node):
         write_gaussian_ply(ply, cloud, cloud.class_ids(self.palette.to(cloud.means.device)))
         poses = self.slam.trajectory()
         write_tum_trajectory(trajectory, Trajectory([t for t, _ in poses],
-                                                    np.array([_numpy_pose(p) for _, p in poses]).reshape(-1, 4, 4)))
+                                                    np.array([rigid_float64(p).numpy() for _, p in poses]
+                                                            ).reshape(-1, 4, 4)))
         return ply, trajectory
 
     def _on_save_map(self, request, response):
@@ -532,17 +511,13 @@ class TrackingMappingNode(Node):
         slam.detect_loops = not self.loop_nodes
         self.slam.close()
         self._reset_state(slam)
-        self._constraints_published = len(slam.loop_closure.constraints) if slam.loop_closure else 0
-        header = ma.make_header(max((f.timestamp for f in slam.frames), default=0.0), self.params.map_frame)
-        events = [ma.SubmapEvent(s.submap_id, s.keyframes[0].frame_id, _numpy_pose(s.anchor),
-                                 ma.SubmapEventKind.CREATED) for s in slam.submaps]
-        if events:
-            self._submap_pub.publish(ma.records_to_pointcloud2(events, header))
-        for submap in slam.submaps:
-            self._publish_keyframes(submap, None, header)
+        header = ma.make_header(max((t for t, _ in slam.trajectory()), default=0.0), self.params.map_frame)
+        self._publish_submaps(slam.submap_states(), header)
+        self._publish_keyframes(slam.keyframe_states(), header)
         self._publish_path()
         self._map_dirty = True
-        self.get_logger().info(f"loaded the map in {folder}: {len(slam.submaps)} submaps, {len(slam.frames)} frames; "
+        self.get_logger().info(f"loaded the map in {folder}: {len(slam.submaps)} submaps, {len(slam.trajectory())} "
+                               "frames; "
                                "the next frames are relocalised against it")
 
     def _on_load_map(self, request, response):

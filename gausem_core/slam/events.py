@@ -1,0 +1,53 @@
+"""What happened in a frame, as :meth:`GauSemSLAM.process <gausem_core.slam.system.GauSemSLAM.process>` reports it:
+callers (the ROS node, the pipeline) learn of keyframes, submaps opened and closed, loops and map corrections from
+these events instead of inspecting the system's state. Poses are float64 4x4 tensors on the CPU, rigid (projected
+onto SE(3) when finite)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class KeyframeState:
+    """A keyframe with its current pose in its submap's frame and the submap's anchor (world-from-submap)."""
+
+    frame_id: int
+    submap_id: int
+    timestamp: float
+    pose: torch.Tensor
+    anchor: torch.Tensor
+
+
+@dataclass(frozen=True)
+class SubmapChange:
+    """A submap opened (``opened``) or closed (offloaded), with its first keyframe and its anchor."""
+
+    submap_id: int
+    first_keyframe: int
+    anchor: torch.Tensor
+    opened: bool
+
+
+@dataclass(frozen=True)
+class Correction:
+    """A pose-graph answer applied to the map: how many anchors and keyframes moved, which submaps were re-mapped."""
+
+    anchors: int
+    keyframes: int
+    remapped: tuple[int, ...] = ()
+
+    def __bool__(self) -> bool:
+        return bool(self.anchors or self.keyframes)
+
+
+@dataclass(frozen=True)
+class FrameEvents:
+    """The events of one processed frame: the keyframe it made (if any), the submaps closed and opened (in that
+    order) and the loop closure's outcome (a ``LoopOutcome``: detected, registered, accepted or not, the correction)."""
+
+    keyframe: KeyframeState | None = None
+    submaps: tuple[SubmapChange, ...] = ()
+    loop: object | None = None
+
