@@ -75,6 +75,7 @@ class SubmapConfig:
 
     policy: str = "semantic"  # "semantic" (overlap AND class KL) or "motion" (LoopSplat's 0.5 m / 50 deg rule)
     max_overlap: float = 0.5
+    overlap: str = "iou"  # r_olap: "iou" (frustum vs submap volume) or "view" (fraction of the frustum inside)
     min_class_kl: float = 0.4
     min_keyframes: int = 4  # hysteresis: a submap keeps at least this many keyframes (semantic policy; 1 = off)
     motion_translation: float = 0.5

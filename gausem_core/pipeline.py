@@ -14,12 +14,10 @@ import torch
 from tqdm import tqdm
 
 from gausem_core.config import SlamConfig
+from gausem_core.semantics.source import FrameSemantics
 from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
-
-UNLABELLED_PALETTE = torch.tensor([[0.5, 0.5, 0.5]])
-
 
 def resolve_device(name: str) -> torch.device:
     if name == "auto":
@@ -52,21 +50,23 @@ class RunResult:
 
 
 class Pipeline:
-    """Run GauSem over a dataset (anything with ``__len__``, ``__getitem__`` -> Frame and ``class_table``)."""
+    """Run GauSem over a dataset (anything with ``__len__``, ``__getitem__`` -> Frame and ``class_table``).
+
+    The class ids of each frame come from :attr:`semantics` (``semantics.segmenter``: the dataset's labels, or a
+    segmenter that runs on every frame); a missing weights file is an error here, before any frame."""
 
     def __init__(self, dataset, cfg: SlamConfig, progress: bool = True):
         self.dataset = dataset
         self.cfg = cfg
         self.progress = progress
         self.device = resolve_device(cfg.device)
-        table = getattr(dataset, "class_table", None)
-        self.palette = table.palette.float() if table is not None else UNLABELLED_PALETTE
+        self.semantics = FrameSemantics(dataset, cfg.semantics, self.device)
+        self.palette = self.semantics.palette
         torch.manual_seed(cfg.seed)
 
     def observation(self, frame) -> Observation:
-        labels = frame.labels if frame.labels is not None else np.zeros(frame.depth.shape, np.int64)
-        return Observation.from_arrays(frame.rgb, frame.depth, labels, frame.camera, self.palette,
-                                       frame.timestamp, self.device)
+        return Observation.from_arrays(frame.rgb, frame.depth, self.semantics.labels(frame), frame.camera,
+                                       self.palette, frame.timestamp, self.device)
 
     def run(self, slam: GauSemSLAM | None = None, save_session: Path | None = None) -> RunResult:
         """Process the dataset with ``slam`` (a loaded session to go on with; default: a new system). The result

@@ -135,7 +135,8 @@ def evaluate_rendering(result: RunResult, pipeline: Pipeline, eval_every: int,
     """Render the global map at every ``eval_every``-th processed frame's estimated pose and score it.
 
     PSNR and SSIM over the whole image; depth L1 of the rendered (alpha-accumulated) depth over pixels with a
-    measured depth; semantics by the nearest palette class of each rendered semantic colour, against the labels.
+    measured depth; semantics by the nearest palette class of each rendered semantic colour, against the dataset's
+    labels when they index the run's classes (:meth:`FrameSemantics.ground_truth`).
     """
     positions = evaluation_positions(len(result.frame_ids), eval_every)
     shown = set(evenly_spaced(positions, montage_frames))
@@ -145,9 +146,11 @@ def evaluate_rendering(result: RunResult, pipeline: Pipeline, eval_every: int,
         evaluation.scores["ssim"].append(float(ssim(out.color, obs.rgb)))
         if obs.valid_depth.any():
             evaluation.scores["depth_l1_m"].append(depth_l1(out.depth, obs.depth))
-        if frame.labels is not None:
+        truth = pipeline.semantics.ground_truth(frame)
+        if truth is not None:
             predicted = nearest_palette_class(out.semantic, pipeline.palette)
-            confusion = confusion_matrix(predicted, obs.labels, len(pipeline.palette))
+            confusion = confusion_matrix(predicted, torch.as_tensor(truth, device=predicted.device),
+                                         len(pipeline.palette))
             evaluation.confusion = confusion if evaluation.confusion is None else evaluation.confusion + confusion
         if k in shown:
             evaluation.rows.append(MontageRow(frame.rgb, out.color, out.semantic, out.depth, obs.depth,
@@ -169,11 +172,15 @@ def performance_metrics(result: RunResult, device: torch.device) -> dict:
 
 
 def loop_metrics(result: RunResult) -> dict:
-    """Detected and accepted loops and, with ground truth for every frame, precision/recall/F1 of the detections
-    under :data:`DEFAULT_PROTOCOL` (paper §IV-C-2)."""
+    """Detected and accepted loops, also split into intra-submap ones (keyframe alignment) and inter-submap ones
+    (each an SGR registration) and, with ground truth for every frame, precision/recall/F1 of the detections under
+    :data:`DEFAULT_PROTOCOL` (paper §IV-C-2)."""
     records = result.slam.loop_closure.records
     out = {"detected": len(records), "accepted": sum(r.accepted for r in records),
            "seconds": sum(r.seconds for r in records)}
+    for name, intra in (("intra_submap", True), ("inter_submap", False)):
+        level = [r for r in records if r.intra == intra]
+        out[name] = {"registrations": len(level), "accepted": sum(r.accepted for r in level)}
     if records and all(p is not None for p in result.gt_poses):
         positions = np.stack([p[:3, 3] for p in result.gt_poses])
         scores = loop_scores([(r.query_frame, r.match_frame) for r in records], positions, **DEFAULT_PROTOCOL)
@@ -201,7 +208,7 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
 
     Files: ``trajectory.txt`` (TUM, estimate), ``tracking_status.csv`` (per-frame tracking health, its counts per
     status in the metrics' ``tracking_status``), ``keyframes.txt`` (TUM, keyframe poses), ``map.ply`` (3DGS-style,
-    class ids when the dataset has a class table), ``metrics.json``, ``montage.png`` and, with ground truth,
+    class ids unless the run has no labels and no segmenter), ``metrics.json``, ``montage.png`` and, with ground truth,
     ``trajectory_gt.txt`` and ``trajectory.png`` (SE(3)-aligned estimate vs ground truth).
     """
     out = Path(out)
@@ -223,7 +230,7 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
                                         f"{ate_metrics['ate_rmse_cm']:.2f} cm (SE(3)-aligned)")
 
     cloud = result.slam.global_cloud()
-    has_classes = getattr(dataset, "class_table", None) is not None
+    has_classes = pipeline.semantics.class_table is not None
     write_gaussian_ply(out / "map.ply", cloud, cloud.class_ids(pipeline.palette) if has_classes else None)
 
     evaluation = evaluate_rendering(result, pipeline, eval_every)
@@ -231,6 +238,9 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
     if evaluation.rows:
         write_montage(out / "montage.png", evaluation.rows)
     metrics.update(performance_metrics(result, pipeline.device))
+    descriptor = result.slam.descriptor
+    metrics["semantics"] = {**pipeline.semantics.summary(),
+                            "descriptor": descriptor.kind if descriptor is not None else None}
     if result.slam.loop_closure is not None:
         metrics["loops"] = loop_metrics(result)
 

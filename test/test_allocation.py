@@ -1,4 +1,5 @@
 """Submap allocation: frusta, overlap, class histograms and KL, both policies; the synthetic sequence end to end."""
+import dataclasses
 import math
 
 import pytest
@@ -10,7 +11,8 @@ from gausem_core.eval.fragmentation import allocation_cohesion, object_instances
 from gausem_core.geometry import PinholeCamera, make_pose, se3_exp
 from gausem_core.slam.allocation import (
     Frustum, FrustumUnion, MotionAllocation, SemanticAllocation, SubmapExtent, class_histogram, class_kl,
-    depth_range, euler_xyz_deg, frustum_corners, frustum_overlap, make_allocation, partition_keyframes,
+    depth_range, euler_xyz_deg, frustum_corners, frustum_iou, frustum_overlap, frustum_volume, make_allocation,
+    partition_keyframes,
 )
 from gausem_core.slam.observation import Observation
 
@@ -227,18 +229,54 @@ def test_synthetic_semantic_boundaries_follow_class_content_and_keep_objects_who
     """The allocation alone on ground-truth poses (fast and deterministic), default parameters: submap boundaries
     (frames), counts, and object cohesion per visit (revisits after a loop are loop closure's business)."""
     num_classes = len(SYNTHETIC_CLASSES)
-    semantic, _ = partition_keyframes(make_allocation(SubmapConfig()), synthetic_keyframes, num_classes)
-    paper, _ = partition_keyframes(make_allocation(SubmapConfig(min_keyframes=1)), synthetic_keyframes, num_classes)
-    motion, _ = partition_keyframes(make_allocation(SubmapConfig(policy="motion")), synthetic_keyframes, num_classes)
-    boundaries = [k for k in range(1, len(semantic)) if semantic[k] != semantic[k - 1]]
-    assert [5 * k for k in boundaries] == [55, 85, 145] and semantic[-1] + 1 == 4
-    assert paper[-1] + 1 == 6 and motion[-1] + 1 == 12
-    anchors = [0] + boundaries
-    for previous, boundary in zip(anchors, boundaries):  # the objects in view changed since the previous anchor
-        assert visible_objects(synthetic_keyframes[boundary][0]) != visible_objects(synthetic_keyframes[previous][0])
+    policies = {"semantic": SubmapConfig(), "paper": SubmapConfig(min_keyframes=1),
+                "view": SubmapConfig(overlap="view"), "motion": SubmapConfig(policy="motion")}
+    ids = {name: partition_keyframes(make_allocation(cfg), synthetic_keyframes, num_classes)[0]
+           for name, cfg in policies.items()}
+
+    def boundaries(name):
+        return [k for k in range(1, len(ids[name])) if ids[name][k] != ids[name][k - 1]]
+
+    assert [5 * k for k in boundaries("semantic")] == list(range(20, 180, 20))  # IoU < 0.5 from about 4 keyframes
+    assert [5 * k for k in boundaries("view")] == [55, 85, 145]
+    assert ids["paper"][-1] + 1 == 13 and ids["motion"][-1] + 1 == 12
+    for name in ("semantic", "view"):
+        anchors = [0] + boundaries(name)
+        for previous, boundary in zip(anchors, boundaries(name)):  # the objects in view changed since the anchor
+            assert visible_objects(synthetic_keyframes[boundary][0]) != visible_objects(
+                synthetic_keyframes[previous][0])
     views = [(o.depth, o.labels, o.camera, p) for o, p in synthetic_keyframes]
-    cohesion = {name: allocation_cohesion(views, ids, STRUCTURE, stride=3, revisit_gap=5).mean
-                for name, ids in (("semantic", semantic), ("paper", paper), ("motion", motion))}
-    assert cohesion["semantic"] >= 0.9 and cohesion["semantic"] > cohesion["paper"] > cohesion["motion"] + 0.1
-    whole = allocation_cohesion(views, semantic, STRUCTURE, stride=3)  # a revisited object is split at least once
+    cohesion = {name: allocation_cohesion(views, submaps, STRUCTURE, stride=3, revisit_gap=5).mean
+                for name, submaps in ids.items()}
+    assert cohesion["view"] >= 0.9 and cohesion["view"] > cohesion["semantic"] > cohesion["paper"] > \
+        cohesion["motion"]
+    assert cohesion["semantic"] > cohesion["motion"] + 0.05
+    whole = allocation_cohesion(views, ids["semantic"], STRUCTURE, stride=3)  # a revisited object is split
     assert whole.mean < cohesion["semantic"]
+
+
+def test_a_slow_turn_splits_with_the_iou_and_never_with_the_view_fraction():
+    """A camera turning on the spot 10 deg per keyframe, a new class in every view: the previous keyframe covers
+    ~74 % of each view, so the view fraction never falls below 0.5 and the submap never splits; the IoU falls below
+    0.5 once |F u V| > 2 |F n V|, here when the submap's fan is 20 deg wider than the view (its third keyframe)."""
+    ramp = torch.linspace(NEAR, FAR, CAMERA.height)[:, None].expand(CAMERA.height, CAMERA.width)
+    keyframes = [(dataclasses.replace(observation(k), depth=ramp.clone()),
+                  pose(omega=(0.0, math.radians(10 * k), 0.0))) for k in range(30)]
+    view, view_decisions = partition_keyframes(SemanticAllocation(overlap="view"), keyframes, num_classes=30)
+    assert view[-1] == 0 and min(d.overlap for d in view_decisions) > 0.7
+    assert min(d.kl for d in view_decisions) > 0.4
+    iou, decisions = partition_keyframes(SemanticAllocation(overlap="iou"), keyframes, num_classes=30)
+    assert iou[:5] == [0, 0, 1, 1, 2] and decisions[0].overlap > 0.5 > decisions[1].overlap
+    assert iou[-1] == 14  # every second keyframe
+
+
+def test_volumes_exact_and_sampled():
+    assert frustum_volume(CAMERA, NEAR, FAR) == pytest.approx(1.6 * 1.2 * (FAR**3 - NEAR**3) / 3)
+    one = union(pose())
+    assert one.volume() == pytest.approx(frustum_volume(CAMERA, NEAR, FAR), rel=0.02)
+    assert union(pose(), pose(rho=(0.0, 0.0, 10.0))).volume() == pytest.approx(2 * one.volume(), rel=0.03)
+    assert union(pose(), pose()).volume() == pytest.approx(one.volume(), rel=0.02)
+    assert FrustumUnion().volume() == 0.0
+    assert frustum_iou(CAMERA, pose(), (NEAR, FAR), one) == pytest.approx(1.0, abs=0.03)
+    with pytest.raises(ValueError, match="submaps.overlap"):
+        SemanticAllocation(overlap="volume")

@@ -84,9 +84,9 @@ class Dinov2Backbone:
 
 def check_dinov2_dir(path: str | Path | None) -> Path:
     """The weights directory, or FileNotFoundError telling the user what ``dinov2_weights`` must point to."""
-    hint = ("set `dinov2_weights` to a local directory holding a Hugging Face DINOv2 checkpoint (config.json + "
-            "model.safetensors or pytorch_model.bin, e.g. a snapshot of facebook/dinov2-small); "
-            "no download is attempted")
+    hint = ("set `semantics.dinov2_weights` (gausem train-head: --dinov2-weights) to a local directory holding a "
+            "Hugging Face DINOv2 checkpoint (config.json + model.safetensors or pytorch_model.bin, e.g. a snapshot of "
+            "facebook/dinov2-small); no download is attempted")
     if not path:
         raise FileNotFoundError(f"dinov2_weights is not set: {hint}")
     directory = Path(path).expanduser()

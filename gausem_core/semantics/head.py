@@ -43,7 +43,7 @@ def save_head(path: str | Path, head: nn.Linear, info: HeadInfo) -> None:
 
 def load_head(path: str | Path | None) -> tuple[nn.Linear, HeadInfo]:
     """Read a head file; FileNotFoundError names the ``head_weights`` parameter, ValueError a malformed file."""
-    hint = "set `head_weights` to a head file written by `gausem train-head`; no download is attempted"
+    hint = "set `semantics.head_weights` to a head file written by `gausem train-head`; no download is attempted"
     if not path:
         raise FileNotFoundError(f"head_weights is not set: {hint}")
     path = Path(path).expanduser()

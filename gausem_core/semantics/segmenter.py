@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from gausem_core.config import SemanticsConfig
 from gausem_core.semantics.backbone import image_batch, load_dinov2
 from gausem_core.semantics.head import load_head
 
@@ -119,3 +120,16 @@ def make_segmenter(kind: str, **params) -> Segmenter:
     if kind not in _KINDS:
         raise ValueError(f"unknown segmenter kind {kind!r}; expected one of {', '.join(_KINDS)}")
     return _KINDS[kind](**params)
+
+
+def segmenter_from_config(cfg: SemanticsConfig, device: torch.device | str = "cpu",
+                          num_classes: int | None = None) -> Segmenter:
+    """The segmenter ``semantics.segmenter`` names: ``dinov2`` from ``semantics.dinov2_weights`` and
+    ``semantics.head_weights``, or ``labels`` for a class table of ``num_classes`` classes."""
+    if cfg.segmenter == "dinov2":
+        return Dinov2Segmenter(cfg.dinov2_weights or None, cfg.head_weights or None, device=device)
+    if cfg.segmenter == "labels":
+        if num_classes is None:
+            raise ValueError("semantics.segmenter 'labels' needs the class table's size (num_classes)")
+        return LabelsSegmenter(num_classes)
+    raise ValueError(f"semantics.segmenter must be one of {', '.join(_KINDS)}, got {cfg.segmenter!r}")

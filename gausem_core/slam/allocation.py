@@ -15,8 +15,19 @@ at the keyframe's own depth range (5th-95th percentile of valid depth). A union 
 more tightly than an axis-aligned box around the same frusta, which for a camera turning on the spot soon covers the
 whole room and never lets the overlap fall. It grows by one frustum per keyframe; containment tests cost O(keyframes).
 
-The overlap ratio r_olap is the fraction of the current frustum's VOLUME inside the submap volume, estimated on a fixed
-scrambled-Sobol sample of points distributed uniformly in volume (deterministic: same inputs, same value).
+The overlap ratio r_olap (``submaps.overlap``) is by default the intersection over union of the current frustum F and
+the submap volume V: |F n V| / (|F| + |V| - |F n V|). |F| is exact; |F n V| / |F| is the fraction of a fixed
+scrambled-Sobol sample uniform in F's volume that lies in V, |V| the fraction of a Sobol sample of V's bounding box
+that does (deterministic: same inputs, same value). The alternative ``view`` is |F n V| / |F| alone, the fraction of
+the current view the submap already covers. Measured on ground-truth keyframe poses
+(``benchmarks/results/submap_allocation.md``), ``view`` is set by the previous keyframe: V always holds that frustum,
+d_map frames back, which alone covers most of F (median 0.72 alone vs 0.73 for the whole V on the 360-frame synthetic
+loop), so r_olap < 0.5 needs a jump of about half a field of view between two keyframes: 6 of 71 keyframes of the loop
+(whose class KL exceeds 0.4 at 66), 3 submaps over the room. The IoU also falls as V grows beyond the view: below
+0.5 once |F u V| > 2 |F n V|, which a walk reaches within a few keyframes (IoU < 0.5 at 51 of the loop's 71
+keyframes), so in practice the class KL and the ``min_keyframes`` hysteresis decide: 13 submaps on that loop. The
+price, on the faster 180-frame 'default' walk: 9 submaps instead of 4, object cohesion 0.78 instead of 0.93 per visit
+(LoopSplat's motion rule: 12 submaps, 0.69; ``benchmarks/submaps.py allocation``).
 
 All poses handed to one :class:`SubmapExtent` must be in the same frame (the submap's, in the SLAM system).
 """
@@ -112,14 +123,36 @@ class Frustum:
         return ((z >= self.near) & (z <= self.far) & (x >= x0 * z) & (x <= x1 * z) & (y >= y0 * z) & (y <= y1 * z))
 
 
+def frustum_volume(camera: PinholeCamera, near: float, far: float) -> float:
+    """Volume (m^3) of the frustum between depths ``near`` and ``far``: image-plane area per depth^2 times the
+    integral of z^2."""
+    _check_range(near, far)
+    x0, x1, y0, y1 = _image_bounds(camera)
+    return (x1 - x0) * (y1 - y0) * (far**3 - near**3) / 3
+
+
 @dataclass
 class FrustumUnion:
     """A submap's bounding volume: the union of its keyframes' frusta; grows with every keyframe added."""
 
     frusta: list[Frustum] = field(default_factory=list)
+    _volume: float | None = field(default=None, init=False, repr=False, compare=False)  # cache of :meth:`volume`
 
     def add(self, frustum: Frustum) -> None:
         self.frusta.append(frustum)
+        self._volume = None
+
+    def volume(self, samples: int = 4 * OVERLAP_SAMPLES) -> float:
+        """|V| (m^3): the bounding box's volume times the fraction of a fixed Sobol sample of the box inside the union
+        (0 for an empty union); computed once per set of frusta."""
+        if not self.frusta:
+            return 0.0
+        if self._volume is None:
+            low, high = (b.double() for b in self.bounds())
+            unit = torch.quasirandom.SobolEngine(3, scramble=True, seed=1).draw(samples, dtype=torch.float64)
+            inside = self.contains(low + unit.to(low.device) * (high - low))
+            self._volume = float((high - low).prod()) * float(inside.double().mean())
+        return self._volume
 
     def contains(self, points: torch.Tensor) -> torch.Tensor:
         """(N,) bool: points (N, 3) inside at least one frustum (all False for an empty union)."""
@@ -138,9 +171,20 @@ class FrustumUnion:
 
 def frustum_overlap(camera: PinholeCamera, cam_to_world: torch.Tensor, depth_range: tuple[float, float],
                     volume: FrustumUnion, samples: int = OVERLAP_SAMPLES) -> float:
-    """r_olap in [0, 1]: fraction of the frustum's volume inside ``volume`` (deterministic sample)."""
+    """|F n V| / |F| in [0, 1]: fraction of the frustum's volume inside ``volume`` (deterministic sample)."""
     points = frustum_samples(camera, cam_to_world, *depth_range, n=samples)
     return float(volume.contains(points).double().mean())
+
+
+def frustum_iou(camera: PinholeCamera, cam_to_world: torch.Tensor, depth_range: tuple[float, float],
+                volume: FrustumUnion, samples: int = OVERLAP_SAMPLES) -> float:
+    """|F n V| / |F u V| in [0, 1] of the frustum F and ``volume`` V (deterministic samples)."""
+    frustum = frustum_volume(camera, *depth_range)
+    common = frustum * frustum_overlap(camera, cam_to_world, depth_range, volume, samples)
+    return common / max(frustum + volume.volume() - common, common, 1e-12)
+
+
+OVERLAP_MEASURES = {"iou": frustum_iou, "view": frustum_overlap}
 
 
 # --- class content ------------------------------------------------------------------------------------------------
@@ -234,20 +278,27 @@ class Decision:
 @dataclass(frozen=True)
 class SemanticAllocation:
     """The paper's spatial-semantic rule: new submap iff r_olap < max_overlap AND r_kl > min_class_kl, with
-    hysteresis: never before the active submap holds ``min_keyframes`` keyframes."""
+    hysteresis: never before the active submap holds ``min_keyframes`` keyframes. ``overlap``: how r_olap is measured,
+    "iou" or "view" (module docstring)."""
 
     max_overlap: float = 0.5
     min_class_kl: float = 0.4
     min_keyframes: int = 1
+    overlap: str = "iou"
+
+    def __post_init__(self):
+        if self.overlap not in OVERLAP_MEASURES:
+            raise ValueError(f"submaps.overlap must be one of {', '.join(OVERLAP_MEASURES)}, got {self.overlap!r}")
 
     def should_start_new(self, extent: SubmapExtent, obs: Observation, cam_to_world: torch.Tensor) -> Decision:
         if not bool(obs.valid_depth.any()):
             return Decision(False, math.nan, math.nan, "no valid depth: the keyframe has no frustum")
-        overlap = frustum_overlap(obs.camera, cam_to_world, depth_range(obs.depth), extent.volume)
+        measure = OVERLAP_MEASURES[self.overlap]
+        overlap = measure(obs.camera, cam_to_world, depth_range(obs.depth), extent.volume)
         kl = extent.kl_to_anchor(obs.labels)
         spatial, semantic = overlap < self.max_overlap, kl > self.min_class_kl
         grown = extent.num_keyframes >= self.min_keyframes
-        reason = (f"overlap {overlap:.3f} {'<' if spatial else '>='} {self.max_overlap} and "
+        reason = (f"overlap ({self.overlap}) {overlap:.3f} {'<' if spatial else '>='} {self.max_overlap} and "
                   f"class KL {kl:.3f} {'>' if semantic else '<='} {self.min_class_kl}")
         if not grown:
             reason += f"; the submap holds {extent.num_keyframes} < {self.min_keyframes} keyframes"
@@ -288,7 +339,7 @@ Allocation = SemanticAllocation | MotionAllocation
 def make_allocation(cfg: SubmapConfig) -> Allocation:
     """The policy named by ``cfg.policy`` ("semantic" or "motion") with its thresholds."""
     if cfg.policy == "semantic":
-        return SemanticAllocation(cfg.max_overlap, cfg.min_class_kl, cfg.min_keyframes)
+        return SemanticAllocation(cfg.max_overlap, cfg.min_class_kl, cfg.min_keyframes, cfg.overlap)
     if cfg.policy == "motion":
         return MotionAllocation(cfg.motion_translation, cfg.motion_rotation_deg)
     raise ValueError(f"submaps.policy must be 'semantic' or 'motion', got {cfg.policy!r}")

@@ -88,6 +88,8 @@ def run_pipeline(args: argparse.Namespace, out: Path) -> dict:
     if getattr(dataset, "description", None):
         print(dataset.description)  # where intrinsics and labels came from, what was assumed
     pipeline = Pipeline(dataset, cfg, progress=not args.quiet)
+    if pipeline.semantics.notice:
+        print(pipeline.semantics.notice)
     slam = GauSemSLAM.load(args.resume, pipeline.device, cfg) if args.resume else None
     result = pipeline.run(slam, args.save_session)
     return write_outputs(result, dataset, cfg, out, eval_every=args.eval_every, params_file=params)

@@ -16,7 +16,7 @@ from sensor_msgs.msg import Image
 import msg_adapters as ma
 from gausem_core.config import SlamConfig
 from gausem_core.pipeline import resolve_device
-from gausem_core.semantics import Segmenter, make_segmenter
+from gausem_core.semantics import Segmenter, segmenter_from_config
 
 from ..qos import IMAGE_QOS, input_qos
 from .common import (DropReport, NewestFrameQueue, class_table, declare_parameters, declare_slam_config, run_node,
@@ -31,8 +31,7 @@ def build_segmenter(cfg: SlamConfig) -> Segmenter:
         raise ValueError("segmentation node: semantics.segmenter is 'labels', which passes through class ids that "
                          "come with the data and cannot segment an image by itself; do not run this node -- the "
                          "player (or your robot stack) publishes semantic/labels -- or set semantics.segmenter: dinov2")
-    return make_segmenter(kind, dinov2_weights=cfg.semantics.dinov2_weights or None,
-                          head_weights=cfg.semantics.head_weights or None, device=resolve_device(cfg.device))
+    return segmenter_from_config(cfg.semantics, resolve_device(cfg.device))
 
 
 class SegmentationNode(Node):

@@ -76,7 +76,8 @@ from gausem_core.data.frame import Frame, resize_frame
 from gausem_core.eval.trajectory import Trajectory, write_tum_trajectory
 from gausem_core.geometry import rigid_float64
 from gausem_core.io.ply import write_gaussian_ply
-from gausem_core.pipeline import UNLABELLED_PALETTE, resolve_device
+from gausem_core.pipeline import resolve_device
+from gausem_core.semantics.source import UNLABELLED_PALETTE
 from gausem_core.slam.events import FrameEvents, KeyframeState, SubmapChange
 from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.observation import Observation
