@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 
 from .nodes import NODE_MODULES
 
-DEFAULT_NODES = ("tracking_mapping", "loop_detection", "pose_graph")
+DEFAULT_NODES = ("tracking_mapping",)  # closes loops itself (loop_closure: core); add loop_detection,pose_graph
+# for the distributed loop closure (-p loop_closure:=nodes)
 
 
 def node_command(name: str, params_file: str | None, ros_args: list[str]) -> list[str]:

@@ -7,7 +7,7 @@ by a slow frame and the tracker always sees the newest frame.
 
 Which nodes: tracking_mapping always; segmentation unless ``semantics.segmenter`` is ``labels`` (then the labels come
 with the data); loop_detection (needs labels) and pose_graph when ``loop.enabled`` and tracking_mapping's
-``loop_closure`` is ``nodes`` (the default; with ``core`` the tracking node closes loops itself). The ROS arguments
+``loop_closure`` is ``nodes`` (by default, ``core``, the tracking node closes loops itself, as ``gausem run``). The ROS arguments
 (params file, ``-p``, remappings) apply to every node. With a SOURCE the process ends when the player is done (after
 ``--save`` and ``--report``); without, it runs until Ctrl-C. On Ctrl-C or SIGTERM the frame in progress is
 finished, ``--save`` still writes the map, and the input accounting (frames in, processed, dropped by reason,

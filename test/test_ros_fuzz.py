@@ -380,7 +380,7 @@ def _fuzz(executor, publishers: dict, fuzzer: _Fuzzer, topics, stamp: float, sec
 @pytest.mark.slow
 def test_fuzzed_inputs_never_kill_a_node_and_tracking_goes_on():
     with ros_session(144) as (ctx, executor):
-        session = _Session(ctx, executor)
+        session = _Session(ctx, executor, loop_closure="nodes")  # subscribes to loop candidates and pose graphs
         nodes = {"tracking_mapping": session.node,
                  "loop_detection": LoopDetectionNode(context=ctx, parameter_overrides=overrides(
                      {"loop.exclude_recent": 1, "label_stride": 1})),

@@ -82,7 +82,8 @@ def test_tracking_node_in_lockstep_with_the_player(tmp_path):
     frames = 4
     with ros_session(102) as (ctx, executor):
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(
-            {**FAST_SLAM, "map_publish_period": 0.2, "output_dir": str(tmp_path / "out")}))
+            {**FAST_SLAM, "map_publish_period": 0.2, "output_dir": str(tmp_path / "out"),
+             "loop_closure": "nodes"}))  # applies gausem/pose_graph answers
         player = Player(open_source("synthetic", size=(80, 60), max_frames=frames), rate=0.0, lockstep=True,
                         timeout=30.0, context=ctx)
         recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS), (Path, "gausem/path", LATCHED_QOS),
@@ -319,12 +320,12 @@ def test_pose_graph_node_closes_an_intra_submap_loop():
 def test_run_all_builds_the_node_set_the_parameters_ask_for():
     with ros_session(107) as (ctx, executor):
         del executor
-        nodes = build_nodes(context=ctx, parameter_overrides=overrides({"device": "cpu"}))
+        nodes = build_nodes(context=ctx, parameter_overrides=overrides({"device": "cpu", "loop_closure": "nodes"}))
         names = [n.get_name() for n in nodes]
         without_loops = build_nodes(context=ctx, parameter_overrides=overrides({"device": "cpu",
                                                                                 "loop.enabled": False}))
         names_without = [n.get_name() for n in without_loops]
-        in_core = build_nodes(context=ctx, parameter_overrides=overrides({"device": "cpu", "loop_closure": "core"}))
+        in_core = build_nodes(context=ctx, parameter_overrides=overrides({"device": "cpu"}))  # the default
         names_in_core = [n.get_name() for n in in_core]
         for node in nodes + without_loops + in_core:
             node.destroy_node()
@@ -337,7 +338,7 @@ def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
     slam = {**FAST_SLAM, "mapping.every": 2}  # keyframes 0, 2, 4, 6, 8
     # a loop per check
     loops = {"loop.check_every": 1, "loop.exclude_recent": 0, "loop.max_fallback_descriptor_distance": 2.0,
-             "loop.registration.min_fitness": 2.0}  # none accepted: the constraint below stands in for registration
+             "loop.registration.min_fitness": 2.0, "loop_closure": "nodes"}  # none accepted: the constraint below stands in for registration
     frames = list(open_source("synthetic", size=(80, 60), max_frames=10))
     with ros_session(108) as (ctx, executor):
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides({**slam, **loops}))
@@ -401,7 +402,8 @@ def test_a_loop_candidate_is_registered_optimised_by_pose_graph_and_applied_with
     tracker registers it, re-publishes the submap's keyframes and publishes the constraint; pose_graph answers; the
     tracker moves the keyframes and re-maps the submap."""
     slam = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 30, "device": "cpu",
-            "backend": "torch", "loop.keyframe_every": 1000, "submaps.min_keyframes": 100}  # one submap
+            "backend": "torch", "loop.keyframe_every": 1000, "submaps.min_keyframes": 100,  # one submap
+            "loop_closure": "nodes"}
     frames = list(open_source("synthetic", size=(80, 60), max_frames=5))
     with ros_session(110) as (ctx, executor):
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(slam))
@@ -436,10 +438,11 @@ def test_a_loop_candidate_is_registered_optimised_by_pose_graph_and_applied_with
 
 
 def test_in_core_mode_the_tracker_closes_loops_itself_and_publishes_them():
-    """loop_closure: core: no loop_detection / pose_graph; the core's accepted loop (keyframe 2 -> 0) is published."""
+    """loop_closure: core (the default): no loop_detection / pose_graph; the core's accepted loop (keyframe 2 -> 0)
+    is published."""
     slam = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 30, "device": "cpu",
             "backend": "torch", "submaps.min_keyframes": 100, "loop.keyframe_every": 2, "loop.check_every": 1,
-            "loop.exclude_recent": 0, "loop.max_fallback_descriptor_distance": 2.0, "loop_closure": "core"}
+            "loop.exclude_recent": 0, "loop.max_fallback_descriptor_distance": 2.0}
     with ros_session(111) as (ctx, executor):
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(slam))
         recorder = Recorder(ctx, [(PointCloud2, "gausem/loop_constraints", EVENT_QOS)])

@@ -44,16 +44,16 @@ than ``max_image_pixels`` pixels are downscaled (aspect kept, intrinsics scaled)
 for the whole run. Published poses are projected onto SE(3) in float64.
 Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
 
-- ``nodes`` (default; DESIGN.md §3): loop_detection detects (``gausem/loop_candidates``); this node registers each
+- ``core`` (default): the node's core closes loops itself (detection, registration, pose graphs: the one
+  implementation, :class:`~gausem_core.slam.loop_closure.LoopClosure`), exactly as ``gausem run`` does, so a
+  lock-step replay gives the offline run's loops and trajectory; the accepted loops are published on
+  ``gausem/loop_constraints`` for observers, and loop_detection and pose_graph need not run.
+- ``nodes`` (distributed, DESIGN.md §3): loop_detection detects (``gausem/loop_candidates``); this node registers each
   candidate (keyframe alignment or SGR: it holds the Gaussians) and publishes the accepted ones on
   ``gausem/loop_constraints`` (an intra-submap one after re-publishing that submap's keyframes with their current
-  poses); pose_graph optimises and answers on ``gausem/pose_graph``, applied here when it arrives: ANCHOR nodes move
-  their submaps (Gaussians, keyframes and frames follow, being stored in the submap frame), KEYFRAME nodes set
-  keyframe poses, and their submap is re-mapped with the poses held. Corrections arrive asynchronously, so a run
-  whose loops are accepted depends on timing.
-- ``core``: the node's core closes loops itself, exactly as ``gausem run`` (deterministic); the accepted loops are
-  still published on ``gausem/loop_constraints`` for observers, and loop candidates and pose-graph updates are not
-  subscribed to, so loop_detection and pose_graph need not run.
+  poses); pose_graph optimises (the core's :class:`~gausem_core.slam.loop_graphs.LoopGraphs`) and answers on
+  ``gausem/pose_graph``, applied here when it arrives (``GauSemSLAM.apply_pose_graph``). Corrections arrive
+  asynchronously, so which loops are accepted depends on timing.
 """
 from __future__ import annotations
 
@@ -102,11 +102,11 @@ NODE_DEFAULTS = {
     "min_image_size": 16,        # pixels: frames with a smaller side are dropped (bad_size); >= the pyramids' need
     "max_image_pixels": 1280 * 720,  # larger frames are downscaled to at most this many pixels (aspect kept)
     "output_dir": "gausem_output",
-    "loop_closure": "nodes",     # or "core": see the module docstring
+    "loop_closure": "core",      # or "nodes": see the module docstring
     "save_on_exit": False,       # write map.ply, trajectory.txt and session/ to output_dir when the node shuts down
     "map_path": "",              # a saved session folder to start from (and for gausem/load_map)
 }
-LOOP_CLOSURE_MODES = ("nodes", "core")
+LOOP_CLOSURE_MODES = ("core", "nodes")
 SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched",
                 "lost_in_transport": "lost_in_transport"}
 NO_LABELS_HINT = ("; use_labels is true but no semantic/labels arrived: set -p use_labels:=false for data without "
