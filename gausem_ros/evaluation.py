@@ -16,6 +16,7 @@ from gausem_core.config import SlamConfig
 from gausem_core.data import Frame
 from gausem_core.pipeline import RunResult
 from gausem_core.report import write_outputs
+from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.system import GauSemSLAM
 
 STAMP_TOLERANCE = 1e-6  # seconds; replayed stamps survive float -> Time -> float exactly (msg_adapters.stamps)
@@ -54,19 +55,24 @@ def match_frames(reference: Iterable[Frame], stamps: Sequence[float],
     return [found[i] for i in range(len(wanted))]
 
 
-def run_result(slam: GauSemSLAM, reference, seconds: float) -> tuple[RunResult, ProcessedFrames]:
-    """The offline pipeline's :class:`RunResult` of a ROS run, and the processed reference frames it refers to."""
+def run_result(slam: GauSemSLAM, reference, seconds: float,
+               health: Sequence[tuple[int, float, TrackingHealth]] = ()) -> tuple[RunResult, ProcessedFrames]:
+    """The offline pipeline's :class:`RunResult` of a ROS run (``health``: (frame, stamp, health) of every frame
+    given to the system), and the processed reference frames it refers to."""
     trajectory = slam.trajectory()
     stamps = [t for t, _ in trajectory]
     frames = ProcessedFrames(match_frames(reference, stamps), getattr(reference, "name", None),
                              getattr(reference, "class_table", None))
     poses = np.array([p.detach().cpu().double().numpy() for _, p in trajectory]).reshape(-1, 4, 4)
-    return RunResult(slam, stamps, poses, [f.gt_pose for f in frames], [f.index for f in frames], seconds), frames
+    return RunResult(slam, stamps, poses, [f.gt_pose for f in frames], [f.index for f in frames], seconds,
+                     health=list(health)), frames
 
 
 def write_report(slam: GauSemSLAM, cfg: SlamConfig, reference, out: str | Path, seconds: float, *,
-                 eval_every: int = 5, params_file: str | None = None) -> dict:
-    """Write the run's outputs (trajectories, keyframes, map PLY, metrics JSON, montage, plot) to ``out``; the
-    metrics. ``seconds``: the processing time behind the reported fps (``TrackingMappingNode.seconds``)."""
-    result, frames = run_result(slam, reference, seconds)
+                 health: Sequence[tuple[int, float, TrackingHealth]] = (), eval_every: int = 5,
+                 params_file: str | None = None) -> dict:
+    """Write the run's outputs (trajectories, keyframes, map PLY, metrics JSON, montage, plot, tracking status) to
+    ``out``; the metrics. ``seconds``: the processing time behind the reported fps (``TrackingMappingNode.seconds``);
+    ``health``: the per-frame tracking health (``TrackingMappingNode.health_log``)."""
+    result, frames = run_result(slam, reference, seconds, health)
     return write_outputs(result, frames, cfg, out, eval_every=eval_every, params_file=params_file)

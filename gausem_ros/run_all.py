@@ -98,7 +98,7 @@ def report(tracking: TrackingMappingNode, player, ns: argparse.Namespace, argv: 
     camera = tracking.camera
     reference = open_dataset(ns.reference or ns.source, size=(camera.width, camera.height))
     metrics = write_report(tracking.slam, tracking.cfg, reference, ns.report, tracking.seconds,
-                           eval_every=ns.eval_every, params_file=params_file(argv))
+                           health=tracking.health_log, eval_every=ns.eval_every, params_file=params_file(argv))
     accounting = {**tracking.summary(), "player": {"published": player.published, "timeouts": player.timeouts,
                                                    "playback_seconds": round(player.playback_seconds, 3)}}
     (Path(ns.report) / "input.json").write_text(json.dumps(accounting, indent=2) + "\n")

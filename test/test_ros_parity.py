@@ -85,6 +85,8 @@ def test_all_nodes_in_one_process_on_a_bag_match_the_offline_pipeline(tmp_path, 
 
     metrics = json.loads((out / "metrics.json").read_text())["metrics"]
     assert metrics["frames"] == metrics["ate"]["pairs"] == FRAMES and metrics["rendering"]["frames"] == 2
+    assert sum(metrics["tracking_status"].values()) == FRAMES  # every frame's health, as gausem run writes it
+    assert len((out / "tracking_status.csv").read_text().splitlines()) == FRAMES + 1
     assert 0 <= metrics["rendering"]["miou"] <= 1 and metrics["rendering"]["psnr"] > 0 and metrics["fps"] > 0
     assert {"keyframes.txt", "map.ply", "montage.png", "trajectory_gt.txt", "trajectory.png"} <= {
         p.name for p in out.iterdir()}

@@ -204,6 +204,8 @@ class TrackingMappingNode(Node):
         self._camera_frame = self.params.camera_frame or "camera"
         self._map_dirty = False
         self.health = TrackingHealth("ok")  # the last frame's
+        self.health_log: list[tuple[int, float, TrackingHealth]] = []  # (frame, stamp, health) of every frame given
+        # to the core, dropped ones included (the report's tracking_status.csv)
 
     # --- inputs -------------------------------------------------------------------------------------------------
     @survives_errors(frame=False)
@@ -323,6 +325,7 @@ class TrackingMappingNode(Node):
         result = self.slam.process(obs)
         self._last_stamp = obs.timestamp
         self.health = result.health
+        self.health_log.append((result.frame_id, obs.timestamp, result.health))
         if result.relocalisation is not None:
             if not self._relocalised(result.relocalisation, obs.timestamp):
                 return
