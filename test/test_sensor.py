@@ -6,12 +6,10 @@ import pytest
 
 from gausem_core.config import SensorConfig
 from gausem_core.data import SyntheticDataset, open_dataset
-from gausem_core.data.sensor import AutoExposure, SensorModel, axial_sigma, incidence_angle, projector_shadow
+from gausem_core.data.sensor import (COLOR_EFFECTS, DEPTH_EFFECTS, AutoExposure, SensorModel, axial_sigma,
+                                     incidence_angle, projector_shadow)
 from gausem_core.data.synthetic import default_camera
 
-DEPTH_EFFECTS = ("range_dropout", "grazing_holes", "edge_holes", "projector_shadows", "axial_noise",
-                 "disparity_quantisation")
-COLOR_EFFECTS = ("motion_blur", "vignetting", "auto_exposure", "white_balance", "shot_noise")
 CAMERA = default_camera(160, 120)
 
 

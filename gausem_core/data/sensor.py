@@ -18,6 +18,9 @@ import numpy as np
 from gausem_core.config import SensorConfig
 from gausem_core.geometry import PinholeCamera
 
+DEPTH_EFFECTS = ("range_dropout", "grazing_holes", "edge_holes", "projector_shadows", "axial_noise",
+                 "disparity_quantisation")  # the SensorConfig flags, in the order the depth model applies them
+COLOR_EFFECTS = ("motion_blur", "vignetting", "auto_exposure", "white_balance", "shot_noise")
 LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance weights
 
 
