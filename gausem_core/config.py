@@ -200,6 +200,64 @@ class SlamConfig:
     health: HealthConfig = field(default_factory=HealthConfig)
 
 
+@dataclass
+class SensorConfig:
+    """A Kinect-v1-like RGB-D sensor for the synthetic generator's noisy variants (``gausem_core.data.sensor``).
+
+    Not part of :class:`SlamConfig` (it describes the data, not the system). Each effect has an on/off flag; the
+    defaults are those of a Kinect v1 (structured light, 640x480) where a source gives them, marked "assumed" where
+    none does. Pixel quantities of the depth sensor are in its own 640-pixel-wide IR image, whatever the render size.
+    """
+
+    # --- depth ---
+    range_dropout: bool = True
+    min_range: float = 0.5  # metres; nearer readings are missing (Kinect v1 range 0.5-5 m, Khoshelham & Elberink 2012)
+    max_range: float = 4.5  # metres; farther readings are missing (ibid.: useful range ends at about 4-5 m)
+    dropout_start: float = 3.5  # metres; the chance of a missing reading rises linearly from 0 here to 1 at max_range
+    # (assumed: the projected pattern's return falls with range, so correlation fails more often far away)
+    grazing_holes: bool = True
+    max_incidence_deg: float = 75.0  # no reading where the ray meets the surface more obliquely than this (Nguyen,
+    # Izadi & Lovell 2012: the axial noise grows sharply beyond about 70 deg)
+    edge_holes: bool = True
+    edge_band: float = 3.0  # IR pixels on each side of a depth discontinuity without readings, on average (assumed:
+    # about half the 9x9 correlation window of the Kinect's disparity matching, Konolige & Mihelich 2011)
+    depth_jump: float = 0.05  # neighbouring depths differing by more than this fraction are a discontinuity
+    projector_shadows: bool = True
+    baseline: float = 0.075  # metres, IR projector along +x of the IR camera (Konolige & Mihelich 2011: 7.5 cm)
+    axial_noise: bool = True
+    # sigma_z = a + b (z - z0)^2 + c theta^2 / (sqrt(z) (pi/2 - theta)^2), z in metres, theta the incidence angle
+    # (Nguyen, Izadi & Lovell 2012, fitted on a Kinect v1; the quadratic growth with range as in Khoshelham &
+    # Elberink 2012)
+    axial_noise_a: float = 0.0012
+    axial_noise_b: float = 0.0019
+    axial_noise_z0: float = 0.4
+    axial_noise_c: float = 0.0001
+    disparity_quantisation: bool = True
+    ir_focal: float = 580.0  # IR pixels of focal length at 640x480 (Konolige & Mihelich 2011: about 580)
+    ir_width: int = 640  # the IR image's width, which scales edge_band to the render
+    disparity_step: float = 0.125  # IR pixels; the Kinect reports disparity in 1/8 pixel (Konolige & Mihelich 2011)
+    # --- colour ---
+    motion_blur: bool = True
+    exposure_time: float = 0.015  # seconds (assumed: indoor auto-exposure of a 30 Hz RGB camera, 10-30 ms)
+    blur_samples: int = 5  # sub-frame renders averaged over the exposure, centred on the frame's pose
+    vignetting: bool = True
+    vignetting_corner: float = 0.75  # relative brightness in the image corners; falloff 1 - (1 - this) r^2 with r
+    # the distance from the centre over the half diagonal (assumed: of the order of the 20-40 % corner falloff that
+    # Alexandrov et al. 2016 measured on PrimeSense RGB cameras)
+    auto_exposure: bool = True
+    exposure_target: float = 0.37  # mean luminance the exposure aims at (the clean default walk's average, measured,
+    # so exposure varies around the clean renders rather than shifting them)
+    exposure_rate: float = 0.2  # per frame, fraction of the log-gain error corrected (lag; assumed: settles in ~0.5 s)
+    min_gain: float = 0.25
+    max_gain: float = 4.0
+    white_balance: bool = True
+    white_balance_strength: float = 0.3  # fraction (in log) of the grey-world correction applied (assumed)
+    white_balance_rate: float = 0.05  # per frame, slower than exposure (assumed)
+    shot_noise: bool = True
+    full_well: float = 4000.0  # electrons at full scale and unit gain (assumed: small-pixel CMOS, 2-3 um pixels)
+    read_noise: float = 1.0  # 8-bit levels of Gaussian read noise after the gain (assumed)
+
+
 def flatten(cfg: Any, prefix: str = "") -> dict[str, Any]:
     """Dataclass tree -> {"tracking.iterations": 40, ...} (ROS parameter names)."""
     out: dict[str, Any] = {}

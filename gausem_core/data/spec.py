@@ -4,11 +4,11 @@ from __future__ import annotations
 from gausem_core.data.frame import Dataset
 from gausem_core.data.replica import ReplicaDataset
 from gausem_core.data.scannet import ScanNetDataset
-from gausem_core.data.synthetic import SEQUENCES, SyntheticDataset
+from gausem_core.data.synthetic import SyntheticDataset, sequence_names
 from gausem_core.data.tum import TumDataset
 
 _FOLDER_READERS = {"tum": TumDataset, "scannet": ScanNetDataset, "replica": ReplicaDataset}
-SPEC_HELP = ("'synthetic' or 'synthetic:SEQUENCE' (" + ", ".join(SEQUENCES) + "), 'tum:PATH', 'scannet:PATH', "
+SPEC_HELP = ("'synthetic' or 'synthetic:SEQUENCE' (" + ", ".join(sequence_names()) + "), 'tum:PATH', 'scannet:PATH', "
              "'replica:PATH'")
 
 

@@ -5,7 +5,8 @@ vertical cylinders, in 12 classes (``SYNTHETIC_CLASSES``). Surfaces carry solid 
 stripes, value noise) under view-independent Lambertian shading, so colour is consistent across views and has
 gradients for photometric tracking. The camera walks a closed, hand-held-like loop around the room looking outward,
 so the visible classes change along the way and the last frames revisit the first. Everything (textures, jitter)
-derives from ``seed``; frames are rendered on demand.
+derives from ``seed``; frames are rendered on demand. The ``_noisy`` variants pass each render through a
+Kinect-v1-like sensor model (:mod:`gausem_core.data.sensor`).
 """
 from __future__ import annotations
 
@@ -14,8 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gausem_core.config import SensorConfig
 from gausem_core.data.classes import SYNTHETIC_CLASSES
 from gausem_core.data.frame import Dataset, Frame
+from gausem_core.data.sensor import AutoExposure, SensorModel
 from gausem_core.geometry import PinholeCamera
 
 ROOM_HALF = np.array([3.5, 3.0, 1.25])  # the room spans [-3.5, 3.5] x [-3, 3] x [0, 2.5]
@@ -24,6 +27,7 @@ LIGHT = np.array([0.35, -0.45, 0.82]) / np.linalg.norm([0.35, -0.45, 0.82])
 # Optical camera axes (x right, y down, z forward) in world coordinates when looking along +x with z up.
 OPTICAL_TO_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 NOISE_PERIOD = 32  # value-noise lattice cells per period along each axis (a power of 2)
+NOISY_SUFFIX = "_noisy"  # a sequence name with this suffix is seen through the default sensor model
 
 
 @dataclass(frozen=True)
@@ -292,13 +296,18 @@ class Scene:
         light = 0.6 + 0.4 * np.clip(normals @ LIGHT, 0, None)
         return self.material_color[material] * ((0.6 + 0.4 * pattern) * light)[:, None]
 
-    def render(self, cam_to_world: np.ndarray, camera: PinholeCamera):
-        """Exact ray casting through pixel centres -> rgb (H, W, 3) uint8, depth (H, W) metres, labels (H, W)."""
+    def render_linear(self, cam_to_world: np.ndarray, camera: PinholeCamera):
+        """Exact ray casting through pixel centres -> rgb (H, W, 3) float in [0, 1], depth (H, W) metres, labels."""
         rays = camera.pixel_rays().numpy().reshape(-1, 3)
         t, normals, points, material = self.cast(cam_to_world[:3, 3], rays @ cam_to_world[:3, :3].T.astype(np.float32))
-        rgb = np.clip(self.shade(points, normals, material) * 255 + 0.5, 0, 255).astype(np.uint8)
         shape = (camera.height, camera.width)
-        return rgb.reshape(shape + (3,)), t.reshape(shape), self.material_class[material].reshape(shape)
+        return (self.shade(points, normals, material).reshape(shape + (3,)), t.reshape(shape),
+                self.material_class[material].reshape(shape))
+
+    def render(self, cam_to_world: np.ndarray, camera: PinholeCamera):
+        """:meth:`render_linear` with rgb as (H, W, 3) uint8 (the clean, noise-free camera)."""
+        rgb, depth, labels = self.render_linear(cam_to_world, camera)
+        return np.clip(rgb * 255 + 0.5, 0, 255).astype(np.uint8), depth, labels
 
 
 @dataclass(frozen=True)
@@ -369,27 +378,56 @@ def default_camera(width: int = 160, height: int = 120, hfov_deg: float = 60.0) 
 class SyntheticDataset(Dataset):
     """The procedural room along a named sequence ("default" 180 frames, "loop" 360 frames), with labels and GT.
 
-    resolution: (width, height) rendered natively (default 160x120, 60 deg horizontal field of view);
-    fps: frame rate for the timestamps. ``size``/``stride``/``max_frames`` as for every dataset.
+    A name ending in ``_noisy`` ("default_noisy", "loop_noisy") sees the room through a Kinect-v1-like sensor
+    (:class:`~gausem_core.config.SensorConfig` defaults); ``sensor`` sets one explicitly (labels and ground-truth
+    poses stay exact). resolution: (width, height) rendered natively (default 160x120, 60 deg horizontal field of
+    view); fps: frame rate for the timestamps and the motion over an exposure. ``size``/``stride``/``max_frames`` as
+    for every dataset.
     """
 
     class_table = SYNTHETIC_CLASSES
 
     def __init__(self, sequence: str = "default", *, seed: int = 0, resolution: tuple[int, int] = (160, 120),
-                 fps: float = 30.0, **options):
+                 fps: float = 30.0, sensor: SensorConfig | None = None, **options):
         super().__init__(**options)
-        if sequence not in SEQUENCES:
-            raise ValueError(f"unknown synthetic sequence {sequence!r}; known: {', '.join(SEQUENCES)}")
-        self.name = f"synthetic_{sequence}"
-        self.sequence, self.seed, self.fps = sequence, seed, float(fps)
+        base = sequence.removesuffix(NOISY_SUFFIX)
+        if base not in SEQUENCES:
+            raise ValueError(f"unknown synthetic sequence {sequence!r}; known: {', '.join(sequence_names())}")
+        if sequence.endswith(NOISY_SUFFIX):
+            if sensor is not None:
+                raise ValueError(f"sequence {sequence!r} already names the default sensor; pass {base!r} with sensor")
+            sensor = SensorConfig()
+        self.name = f"synthetic_{base}" + (NOISY_SUFFIX if sensor is not None else "")
+        self.sequence, self.seed, self.fps = base, seed, float(fps)
         self.camera = default_camera(*resolution)
         self.scene = Scene(seed)
-        self.trajectory = Trajectory(SEQUENCES[sequence], seed)
+        self.trajectory = Trajectory(SEQUENCES[base], seed)
+        self.sensor = None if sensor is None else SensorModel(sensor, seed)
+        self.exposure = None if sensor is None else AutoExposure(sensor, self._meter)
 
     def _source_length(self) -> int:
         return SEQUENCES[self.sequence].frames
 
+    def _meter(self, index: int) -> np.ndarray:
+        """Mean clean RGB of frame ``index`` rendered at a quarter of the resolution (the exposure's metering)."""
+        camera = self.camera.scaled(max(8, self.camera.width // 4), max(6, self.camera.height // 4))
+        return self.sensor.meter(self.scene.render_linear(self.trajectory.pose(index), camera)[0], camera)
+
     def _load(self, index: int) -> Frame:
         pose = self.trajectory.pose(index)
-        rgb, depth, labels = self.scene.render(pose, self.camera)
-        return Frame(index, index / self.fps, rgb, depth, labels, self.camera, pose)
+        if self.sensor is None:
+            rgb, depth, labels = self.scene.render(pose, self.camera)
+            return Frame(index, index / self.fps, rgb, depth, labels, self.camera, pose)
+        linear, depth, labels = self.scene.render_linear(pose, self.camera)  # the frame's time is mid-exposure
+        offsets = self.sensor.exposure_offsets()
+        if len(offsets) > 1:  # motion blur: the mean of renders along the camera's motion over the exposure
+            linear = np.mean([self.scene.render_linear(self.trajectory.pose(index + dt * self.fps), self.camera)[0]
+                              for dt in offsets], axis=0)
+        rgb = self.sensor.color(linear, self.camera, index, *self.exposure.gains(index))
+        return Frame(index, index / self.fps, rgb, self.sensor.depth(depth, self.camera, index), labels, self.camera,
+                     pose)
+
+
+def sequence_names() -> list[str]:
+    """Every sequence name :class:`SyntheticDataset` takes: the clean walks, then their noisy variants."""
+    return list(SEQUENCES) + [name + NOISY_SUFFIX for name in SEQUENCES]

@@ -9,7 +9,7 @@ import yaml
 
 from gausem_core.config import SlamConfig, from_flat, load_config
 
-DATASET_HELP = "synthetic[:default|loop], tum:PATH, scannet:PATH or replica:PATH"
+DATASET_HELP = "synthetic[:default|loop][_noisy], tum:PATH, scannet:PATH or replica:PATH"
 
 
 def parse_size(text: str) -> tuple[int, int]:
