@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gausem_core.eval.trajectory import read_tum_trajectory
 from gausem_core.io.metrics import git_commit
+from gausem_core.io.trajectory import read_tum_trajectory
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
