@@ -26,8 +26,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gausem_core.eval.trajectory import read_tum_trajectory
 from gausem_core.io.metrics import git_commit
+from gausem_core.io.trajectory import read_tum_trajectory
+from gausem_core.tools.run import parse_size
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -110,7 +111,7 @@ def markdown(result: dict) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, default=30)
-    parser.add_argument("--size", type=lambda t: tuple(int(v) for v in t.split("x")), default=(160, 120))
+    parser.add_argument("--size", type=parse_size, default=(160, 120))
     parser.add_argument("--params", type=Path, default=REPO / "params" / "synthetic.yaml")
     parser.add_argument("--set", type=lambda t: tuple(t.split("=", 1)), action="append", default=[],
                         metavar="NAME=VALUE", help="parameter override for both paths")

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 import yaml
 
-from gausem_core.bench.suite import load_suite, open_sequence, sequence_from_dict
+from gausem_bench.suite import load_suite, open_sequence, sequence_from_dict
 
 SUITE = "benchmarks/suites/paper.yaml"
 

@@ -33,7 +33,7 @@ from gausem_core.io.metrics import write_metrics_json
 from gausem_core.pipeline import Pipeline, peak_rss_mb
 from gausem_core.slam.allocation import make_allocation, partition_keyframes
 from gausem_core.slam.system import GauSemSLAM
-from gausem_core.slam.tracker import TrackingResult
+from gausem_core.slam.tracker import Tracker, TrackingResult
 from gausem_core.tools.run import parse_override
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,10 +57,12 @@ class RepeatedWalk(SyntheticDataset):
 
 
 class GroundTruthPoses:
-    """Runs the wrapped tracker, then returns the ground-truth pose (in the active submap's frame) instead."""
+    """A tracker for ``GauSemSLAM(tracker=...)``: runs the wrapped tracker, then returns the ground-truth pose (in the
+    active submap's frame) instead. :attr:`slam` is the system it tracks for, set once that exists."""
 
-    def __init__(self, tracker, slam: GauSemSLAM, dataset):
-        self.tracker, self.slam, self.dataset = tracker, slam, dataset
+    def __init__(self, tracker: Tracker, dataset):
+        self.tracker, self.dataset = tracker, dataset
+        self.slam: GauSemSLAM | None = None
         self.first = torch.as_tensor(dataset[0].gt_pose)
 
     def track(self, cloud, obs, init_cam_to_world, alternatives=()) -> TrackingResult:
@@ -109,9 +111,10 @@ def allocation(args) -> dict:
 # --- SLAM runs ----------------------------------------------------------------------------------------------------
 def run_slam(dataset, cfg, poses: str) -> tuple[GauSemSLAM, list, float]:
     pipeline = Pipeline(dataset, cfg, progress=False)
-    slam = GauSemSLAM(cfg, pipeline.device, len(SYNTHETIC_CLASSES))
-    if poses == "ground-truth":
-        slam.tracker = GroundTruthPoses(slam.tracker, slam, dataset)
+    oracle = GroundTruthPoses(Tracker(cfg.tracking, cfg.backend), dataset) if poses == "ground-truth" else None
+    slam = GauSemSLAM(cfg, pipeline.device, len(SYNTHETIC_CLASSES), tracker=oracle)
+    if oracle is not None:
+        oracle.slam = slam
     start = time.perf_counter()
     results = [slam.process(pipeline.observation(dataset[i])) for i in range(len(dataset))]
     return slam, results, time.perf_counter() - start

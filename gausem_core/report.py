@@ -19,13 +19,13 @@ from gausem_core.config import SlamConfig, flatten
 from gausem_core.eval.image import depth_l1, psnr, ssim
 from gausem_core.eval.loops import DEFAULT_PROTOCOL, loop_scores
 from gausem_core.eval.semantic import confusion_matrix, mean_iou, pixel_accuracy
-from gausem_core.eval.trajectory import (Trajectory, absolute_trajectory_error, associate_trajectories,
-                                         write_tum_trajectory)
+from gausem_core.eval.trajectory import absolute_trajectory_error, associate_trajectories
 from gausem_core.geometry import invert_pose
 from gausem_core.io import metrics as metrics_io
 from gausem_core.io.montage import MontageRow, write_montage
 from gausem_core.io.plots import write_trajectory_plot
 from gausem_core.io.ply import write_gaussian_ply
+from gausem_core.io.trajectory import Trajectory, write_tum_trajectory
 from gausem_core.pipeline import Pipeline, RunResult, peak_rss_mb
 from gausem_core.render import render
 from gausem_core.slam.health import SIGNALS, STATUSES

@@ -50,7 +50,8 @@ from std_srvs.srv import Trigger
 import msg_adapters as ma
 from gausem_core.data import Dataset, open_dataset
 from gausem_core.data.spec import SPEC_HELP
-from gausem_core.eval.trajectory import Trajectory, write_tum_trajectory
+from gausem_core.io.trajectory import Trajectory, write_tum_trajectory
+from gausem_core.tools.run import parse_size
 
 from .bags import TUM_TOPICS, BagError, read_bag
 from .nodes.common import DIAGNOSTICS_TOPIC, LAST_FRAME_KEY
@@ -285,18 +286,10 @@ class Player(Node):
         return len(self.ground_truth)
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must be WIDTHxHEIGHT, got {text!r}") from None
-    return width, height
-
-
 def add_source_arguments(parser: argparse.ArgumentParser, required: bool = True) -> None:
     parser.add_argument("source", nargs=None if required else "?",
                         help=f"a ROS 1 .bag file, a ROS 2 bag folder or a dataset spec: {SPEC_HELP}")
-    parser.add_argument("--size", type=_size, help="resize dataset frames to WIDTHxHEIGHT")
+    parser.add_argument("--size", type=parse_size, help="resize dataset frames to WIDTHxHEIGHT")
     parser.add_argument("--stride", type=int, default=1, help="keep every n-th dataset frame")
     parser.add_argument("--max-frames", type=int, help="at most this many dataset frames")
     parser.add_argument("--frame-id", default="camera", help="camera frame id of dataset frames")

@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 import yaml
 
-from gausem_core.bench import tables
-from gausem_core.bench.baselines import import_open3d
-from gausem_core.bench.color_registration import ColorCalibration, ColorRegistered
-from gausem_core.bench.suite import (SuiteError, baseline_parameters, gausem_parameters, load_suite, parse_suite,
-                                     plan)
+from gausem_bench import tables
+from gausem_bench.baselines import import_open3d
+from gausem_bench.color_registration import ColorCalibration, ColorRegistered
+from gausem_bench.suite import SuiteError, baseline_parameters, gausem_parameters, load_suite, parse_suite, plan
 from gausem_core.cli import main
 from gausem_core.data import SyntheticDataset
 
@@ -233,15 +232,24 @@ def test_missing_open3d_gives_an_install_hint(monkeypatch):
 
 
 def test_gausem_core_does_not_import_open3d():
-    code = ("import sys, gausem_core.cli, gausem_core.tools.bench_slam, gausem_core.bench.worker, "
-            "gausem_core.bench.tables; gausem_core.cli.build_parser(); assert 'open3d' not in sys.modules")
+    code = ("import sys, gausem_core.cli; gausem_core.cli.build_parser(); "
+            "import gausem_bench.slam, gausem_bench.worker, gausem_bench.tables; assert 'open3d' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_bench_without_a_checkout_says_where_the_harness_lives(tmp_path):
+    """An installed library has no benchmarks/gausem_bench: `gausem bench` fails clearly, the other commands work."""
+    code = ("import sys, pathlib, gausem_core.tools.bench as bench; bench.BENCHMARKS = pathlib.Path('/nonexistent'); "
+            "from gausem_core.cli import build_parser, main; build_parser().parse_args(['info']); "
+            "sys.exit(main(['bench', 'slam', '--dry-run']))")
+    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)
+    assert done.returncode == 2 and "benchmarks/gausem_bench" in done.stderr and "pip install -e" in done.stderr
 
 
 @pytest.mark.parametrize("method", ["open3d_odometry", "open3d_slam"])
 def test_open3d_baselines_track_the_synthetic_frames(tmp_path, method):
     pytest.importorskip("open3d")
-    from gausem_core.bench.worker import run_case
+    from gausem_bench.worker import run_case
 
     suite = parse_suite({"sequences": [{"dataset": "synthetic", "frames": 8, "open3d": {"depth_max": 6.0}}],
                          "configurations": [{"name": "b", "method": method}]}, "s")

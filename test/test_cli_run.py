@@ -3,8 +3,8 @@ import json
 import math
 
 from gausem_core.cli import main
-from gausem_core.eval.trajectory import read_tum_trajectory
 from gausem_core.io.ply import read_gaussian_ply
+from gausem_core.io.trajectory import read_tum_trajectory
 
 FAST = ["--set", "mapping.init_iterations=60", "--set", "tracking.iterations=10", "--set", "mapping.iterations=5"]
 

@@ -8,10 +8,10 @@ import torch
 from gausem_core.eval.image import LPIPS_NOT_AVAILABLE, depth_l1, image_metrics, lpips, psnr, ssim
 from gausem_core.eval.loops import ground_truth_loops, loop_scores
 from gausem_core.eval.semantic import confusion_matrix, mean_iou, per_class_iou, pixel_accuracy, semantic_scores
-from gausem_core.eval.trajectory import (Trajectory, absolute_trajectory_error, associate_trajectories,
-                                         read_tum_trajectory, relative_pose_error, umeyama_alignment,
-                                         write_tum_trajectory)
+from gausem_core.eval.trajectory import (absolute_trajectory_error, associate_trajectories, relative_pose_error,
+                                         umeyama_alignment)
 from gausem_core.geometry import se3_exp, so3_exp
+from gausem_core.io.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
 
 
 # --- trajectories ---------------------------------------------------------------------------------------------------

@@ -17,8 +17,9 @@ import torch
 from gausem_core.config import from_flat
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.eval.loops import loop_scores
-from gausem_core.eval.trajectory import Trajectory, absolute_trajectory_error
+from gausem_core.eval.trajectory import absolute_trajectory_error
 from gausem_core.geometry import invert_pose, se3_exp
+from gausem_core.io.trajectory import Trajectory
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
 from gausem_core.slam.tracker import TrackingResult

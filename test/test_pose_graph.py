@@ -1,13 +1,11 @@
-"""GTSAM pose graphs (loop closure with robust loop edges) and the rigid submap correction after an anchor moves."""
+"""GTSAM pose graphs: loop closure with robust loop edges, per-edge sigmas, the two levels of LoopGraphs."""
 import math
 
 import numpy as np
 import pytest
 import torch
 
-from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import invert_pose, make_pose, se3_exp, so3_exp, transform_points
-from gausem_core.slam.correction import anchor_correction, correct_poses, correct_submap
+from gausem_core.geometry import make_pose, se3_exp, so3_exp
 
 pytest.importorskip("gtsam")
 from gausem_core.slam.pose_graph import PoseGraph  # noqa: E402
@@ -101,26 +99,6 @@ def test_pose_graph_rejects_bad_input():
         graph.add_odometry(0, 1)
     with pytest.raises(ValueError, match="rigid"):
         graph.add_node(1, 2 * np.eye(4))
-
-
-# --- rigid submap correction --------------------------------------------------------------------------------------
-def test_correction_keeps_camera_coordinates_of_gaussians():
-    g = torch.Generator().manual_seed(0)
-    old_anchor = se3_exp(torch.randn(6, generator=g, dtype=torch.float64))
-    new_anchor = se3_exp(0.3 * torch.randn(6, generator=g, dtype=torch.float64)) @ old_anchor
-    keyframes = [old_anchor @ se3_exp(0.5 * torch.randn(6, generator=g, dtype=torch.float64)) for _ in range(3)]
-    points = torch.randn(50, 3, generator=g, dtype=torch.float64)
-    rgb = torch.rand(50, 3, dtype=torch.float64)
-    cloud = GaussianCloud.from_points(points, rgb, rgb.flip(1), torch.full((50,), 0.01, dtype=torch.float64))
-    moved, poses = correct_submap(cloud, [k.numpy() for k in keyframes], old_anchor, new_anchor)
-    assert poses.shape == (3, 4, 4)
-    for before, after in zip(keyframes, poses):
-        torch.testing.assert_close(transform_points(invert_pose(after), moved.means),
-                                   transform_points(invert_pose(before), points))
-    torch.testing.assert_close(correct_poses(old_anchor, anchor_correction(old_anchor, new_anchor))[0], new_anchor)
-    torch.testing.assert_close(moved.colors, cloud.colors)
-    with pytest.raises(ValueError, match="4x4"):
-        correct_poses(torch.eye(3), torch.eye(4))
 
 
 def test_per_edge_sigmas_weight_loop_against_odometry():

@@ -10,9 +10,9 @@ import torch
 from gausem_core.config import SlamConfig
 from gausem_core.data import SyntheticDataset
 from gausem_core.eval.loops import DEFAULT_PROTOCOL
-from gausem_core.eval.trajectory import read_tum_trajectory
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.io.ply import read_gaussian_ply
+from gausem_core.io.trajectory import read_tum_trajectory
 from gausem_core.pipeline import Pipeline, RunResult
 from gausem_core.report import format_summary, loop_metrics, nearest_palette_class, write_outputs
 from gausem_core.slam.loop_closure import LoopRecord

@@ -21,7 +21,7 @@ from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
 import msg_adapters as ma  # noqa: E402
 from gausem_core.config import load_config  # noqa: E402
 from gausem_core.data import SYNTHETIC_CLASSES, open_dataset  # noqa: E402
-from gausem_core.eval.trajectory import read_tum_trajectory  # noqa: E402
+from gausem_core.io.trajectory import read_tum_trajectory  # noqa: E402
 from gausem_core.pipeline import Pipeline  # noqa: E402
 from gausem_ros import convert  # noqa: E402
 from gausem_ros.player import Player, open_source  # noqa: E402

@@ -1,8 +1,7 @@
-"""Image metrics on [0, 1] images: PSNR, SSIM (differentiable, also a mapping loss), depth L1, LPIPS.
+"""Image metrics on [0, 1] images: PSNR, SSIM (:mod:`gausem_core.image_ops`), depth L1, LPIPS.
 
-SSIM follows 3DGS / SplaTAM: 11x11 Gaussian window (sigma 1.5), zero padding, C1 = 0.01^2, C2 = 0.03^2, mean of
-the SSIM map over pixels and channels. LPIPS needs a network GauSem does not ship: it runs a ``torch.export``-ed
-LPIPS program from a local file (``lpips_weights``) and is reported as ``"not available"`` without one.
+LPIPS needs a network GauSem does not ship: it runs a ``torch.export``-ed LPIPS program from a local file
+(``lpips_weights``) and is reported as ``"not available"`` without one.
 """
 from __future__ import annotations
 
@@ -11,60 +10,10 @@ from functools import lru_cache
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
+
+from gausem_core.image_ops import as_bchw, check_pair, ssim
 
 LPIPS_NOT_AVAILABLE = "not available"
-_WINDOW_SIZE, _WINDOW_SIGMA = 11, 1.5
-_C1, _C2 = 0.01**2, 0.03**2
-
-
-def _as_bchw(image: torch.Tensor, name: str) -> torch.Tensor:
-    """(H, W, C) -> (1, C, H, W); (B, C, H, W) unchanged."""
-    if image.ndim == 3:
-        return image.permute(2, 0, 1)[None]
-    if image.ndim == 4:
-        return image
-    raise ValueError(f"{name} must be (H, W, C) or (B, C, H, W), got shape {tuple(image.shape)}")
-
-
-def _check_pair(img1: torch.Tensor, img2: torch.Tensor) -> None:
-    if img1.shape != img2.shape:
-        raise ValueError(f"images differ in shape: {tuple(img1.shape)} vs {tuple(img2.shape)}")
-
-
-def gaussian_window(size: int = _WINDOW_SIZE, sigma: float = _WINDOW_SIGMA, dtype=torch.float32,
-                    device=None) -> torch.Tensor:
-    """Normalised 1-D Gaussian (size,); the 2-D SSIM window is its outer product."""
-    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
-    g = torch.exp(-(x**2) / (2 * sigma**2))
-    return g / g.sum()
-
-
-def _blur(x: torch.Tensor, window: torch.Tensor) -> torch.Tensor:
-    """Separable zero-padded Gaussian filter of every channel of (B, C, H, W)."""
-    c, k = x.shape[1], window.numel()
-    x = F.conv2d(x, window.view(1, 1, 1, k).expand(c, 1, 1, k), padding=(0, k // 2), groups=c)
-    return F.conv2d(x, window.view(1, 1, k, 1).expand(c, 1, k, 1), padding=(k // 2, 0), groups=c)
-
-
-def ssim_map(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
-    """Per-pixel, per-channel SSIM (B, C, H, W) of (H, W, C) or (B, C, H, W) images in [0, 1]; differentiable.
-    Channels are independent, so one call on stacked images costs half of two calls on their halves."""
-    _check_pair(img1, img2)
-    x, y = _as_bchw(img1, "img1"), _as_bchw(img2, "img2")
-    window = gaussian_window(dtype=x.dtype, device=x.device)
-    mu_x, mu_y = _blur(x, window), _blur(y, window)
-    var_x = _blur(x * x, window) - mu_x**2
-    var_y = _blur(y * y, window) - mu_y**2
-    cov = _blur(x * y, window) - mu_x * mu_y
-    num = (2 * mu_x * mu_y + _C1) * (2 * cov + _C2)
-    den = (mu_x**2 + mu_y**2 + _C1) * (var_x + var_y + _C2)
-    return num / den
-
-
-def ssim(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of (H, W, C) or (B, C, H, W) images in [0, 1]; a differentiable scalar tensor (1 = identical)."""
-    return ssim_map(img1, img2).mean()
 
 
 def psnr(img1: torch.Tensor, img2: torch.Tensor, mask: torch.Tensor | None = None) -> float:
@@ -72,7 +21,7 @@ def psnr(img1: torch.Tensor, img2: torch.Tensor, mask: torch.Tensor | None = Non
 
     Identical images give inf; an empty mask is a ValueError.
     """
-    _check_pair(img1, img2)
+    check_pair(img1, img2)
     if img1.ndim != 3:
         raise ValueError(f"psnr takes (H, W, C) images, got shape {tuple(img1.shape)}")
     sq = (img1.detach().double() - img2.detach().double()) ** 2
@@ -88,7 +37,7 @@ def psnr(img1: torch.Tensor, img2: torch.Tensor, mask: torch.Tensor | None = Non
 
 def depth_l1(rendered: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> float:
     """Mean |rendered - target| (metres) over pixels with a valid target depth (> 0), within ``mask`` if given."""
-    _check_pair(rendered, target)
+    check_pair(rendered, target)
     valid = target > 0
     if mask is not None:
         if mask.shape != target.shape:
@@ -115,8 +64,8 @@ def lpips(img1: torch.Tensor, img2: torch.Tensor, lpips_weights: str | Path | No
     if path is None or not path.is_file():
         raise FileNotFoundError(f"LPIPS needs a local exported LPIPS program: lpips_weights={lpips_weights!r} "
                                 "is not a file (report LPIPS as not available instead)")
-    _check_pair(img1, img2)
-    x, y = (_as_bchw(img, name).float().cpu() * 2 - 1 for img, name in ((img1, "img1"), (img2, "img2")))
+    check_pair(img1, img2)
+    x, y = (as_bchw(img, name).float().cpu() * 2 - 1 for img, name in ((img1, "img1"), (img2, "img2")))
     with torch.no_grad():
         return float(_load_lpips(path.resolve())(x, y).mean())
 

@@ -1,1 +1,2 @@
-"""User-facing outputs: the Gaussian map as PLY, PNG montages and trajectory plots, metrics JSON and summaries."""
+"""Files in and out: the Gaussian map as PLY, TUM trajectories, PNG montages and trajectory plots, metrics JSON and
+summaries."""

@@ -15,9 +15,9 @@ detected loop (k, j) is closed as follows.
   its fine step starting from the coarse estimate or the anchors' current one, whichever the views agree with more; an
   anchor pose graph with odometry edges between consecutive anchors and every accepted inter-submap loop edge so far
   moves the anchors. Keyframe poses and Gaussian centres are stored in their submap's frame, so a submap moves
-  rigidly with its anchor: its world-frame keyframe poses and centres become C T and C x with C = A' A^-1
-  (:func:`~gausem_core.slam.correction.anchor_correction`, the paper's T <- (T_a')^-1 T_a T for camera-from-world
-  anchors), and every frame stored relative to a keyframe follows.
+  rigidly with its anchor (:meth:`LoopClosure.move_anchors`): its world-frame keyframe poses and centres become C T
+  and C x with C = A' A^-1 (the paper's T <- (T_a')^-1 T_a T for camera-from-world anchors), and every frame stored
+  relative to a keyframe follows.
 
 A loop is closed only when its registration is accepted (overlap, fitness and per-view consistency, see
 ``RegistrationConfig``) and the correction it implies is plausible: within ``max_correction_sigmas`` of the odometry

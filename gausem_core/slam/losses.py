@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from gausem_core.eval.image import ssim_map
+from gausem_core.image_ops import ssim_map
 from gausem_core.render import RenderOutput
 from gausem_core.slam.observation import Observation
 

@@ -1,26 +1,43 @@
-"""``gausem bench <target>``: benchmarks written as JSON plus Markdown tables, one module per target.
+"""``gausem bench``: the benchmark harness ``gausem_bench`` of a source checkout (``benchmarks/gausem_bench``).
 
-``render`` (:mod:`gausem_core.tools.bench_render`): renderer timing and memory. ``slam``
-(:mod:`gausem_core.tools.bench_slam`): the offline pipeline and the Open3D baselines over sequences x configurations.
-Each target module exposes ``add_arguments(parser)`` and ``main(args)``; it is imported when the parser is built.
+The harness is not installed with the library: the command finds it next to the ``gausem_core`` it runs from (an
+editable install or ``PYTHONPATH`` pointing at a checkout) or on the Python path, and says so when it cannot.
 """
 from __future__ import annotations
 
+import argparse
 import importlib
+import sys
+from pathlib import Path
 
-TARGETS = {
-    "render": ("gausem_core.tools.bench_render", "renderer forward/backward time and peak memory"),
-    "slam": ("gausem_core.tools.bench_slam", "the offline pipeline and baselines over a suite (the paper's tables)"),
-}
-
-
-def add_arguments(parser) -> None:
-    sub = parser.add_subparsers(dest="target", required=True, metavar="TARGET")
-    for name, (module, help_text) in TARGETS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
-        p.set_defaults(_bench_module=module)
-        importlib.import_module(module).add_arguments(p)
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"  # the checkout's folder holding gausem_bench
 
 
-def main(args) -> int:
-    return int(importlib.import_module(args._bench_module).main(args) or 0)
+def harness():
+    """The ``gausem_bench.cli`` module, or None when it is neither in the checkout nor on the Python path."""
+    if (BENCHMARKS / "gausem_bench").is_dir() and str(BENCHMARKS) not in sys.path:
+        sys.path.append(str(BENCHMARKS))
+    try:
+        return importlib.import_module("gausem_bench.cli")
+    except ModuleNotFoundError as exc:
+        if exc.name != "gausem_bench":
+            raise
+        return None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    cli = harness()
+    if cli is None:
+        parser.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    else:
+        cli.add_arguments(parser)
+
+
+def main(args: argparse.Namespace) -> int:
+    cli = harness()
+    if cli is None:
+        print(f"gausem bench: the benchmark harness (benchmarks/gausem_bench) comes with a source checkout of GauSem "
+              f"and is not installed with the library; none at {BENCHMARKS}. Run `gausem bench` from a checkout "
+              "installed with `pip install -e .` (or with the checkout on PYTHONPATH).", file=sys.stderr)
+        return 2
+    return cli.main(args)

@@ -73,9 +73,9 @@ from std_srvs.srv import Trigger
 import msg_adapters as ma
 from gausem_core.config import SlamConfig
 from gausem_core.data.frame import Frame, resize_frame
-from gausem_core.eval.trajectory import Trajectory, write_tum_trajectory
 from gausem_core.geometry import rigid_float64
 from gausem_core.io.ply import write_gaussian_ply
+from gausem_core.io.trajectory import Trajectory, write_tum_trajectory
 from gausem_core.pipeline import resolve_device
 from gausem_core.semantics.source import UNLABELLED_PALETTE
 from gausem_core.slam.events import FrameEvents, KeyframeState, SubmapChange

@@ -1,6 +1,6 @@
 """``gausem bench slam``: GauSem's offline pipeline and the Open3D baselines over sequences x configurations.
 
-Sequences and configurations come from a suite file (:mod:`gausem_core.bench.suite`, default
+Sequences and configurations come from a suite file (:mod:`gausem_bench.suite`, default
 ``benchmarks/suites/paper.yaml``) or from ``--dataset``. Each run executes in a fresh process, so peak memory is per
 run. Results: ``<out>/slam_<name>.json`` (every run's record) and ``.md`` (the paper-shaped tables), rewritten after
 each run; each run's own outputs (trajectories, map, montage, metrics.json) go to
@@ -21,9 +21,9 @@ from pathlib import Path
 
 import torch
 
-from gausem_core.bench.baselines import BASELINES
-from gausem_core.bench.suite import (Case, Configuration, Suite, SuiteError, load_suite, plan, sequence_from_dict)
-from gausem_core.bench.tables import markdown_report
+from gausem_bench.baselines import BASELINES
+from gausem_bench.suite import (Case, Configuration, Suite, SuiteError, load_suite, plan, sequence_from_dict)
+from gausem_bench.tables import markdown_report
 from gausem_core.tools.run import DATASET_HELP, parse_override, parse_size
 
 DEFAULT_SUITE = Path("benchmarks/suites/paper.yaml")
@@ -74,7 +74,7 @@ def build_suite(args: argparse.Namespace) -> Suite:
 def run_in_fresh_process(case: Case) -> dict:
     """``worker.run_case`` in a new interpreter (spawn). A process that dies is recorded as a failed run; one still
     running when this one is interrupted (Ctrl-C, or SIGTERM under :func:`main`) is terminated with it."""
-    from gausem_core.bench import worker
+    from gausem_bench import worker
     from gausem_core.io.metrics import to_jsonable
 
     context = multiprocessing.get_context("spawn")
@@ -171,7 +171,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _run_suite(args: argparse.Namespace) -> int:
-    from gausem_core.tools.bench_render import environment
+    from gausem_bench.render import environment
 
     try:
         suite = build_suite(args)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gausem_core.bench.suite import Case, open_sequence
+from gausem_bench.suite import Case, open_sequence
 from gausem_core.io.metrics import git_commit, to_jsonable
 
 
@@ -60,8 +60,8 @@ def run_gausem(case: Case) -> tuple[dict, str]:
 
 def run_open3d(case: Case) -> tuple[dict, str]:
     """An Open3D baseline; writes ``trajectory.txt`` (and ``trajectory_gt.txt``) in TUM format to ``case.out_dir``."""
-    from gausem_core.bench.baselines import Open3DParams, run_baseline
-    from gausem_core.eval.trajectory import Trajectory, write_tum_trajectory
+    from gausem_bench.baselines import Open3DParams, run_baseline
+    from gausem_core.io.trajectory import Trajectory, write_tum_trajectory
     from gausem_core.pipeline import peak_rss_mb
     from gausem_core.report import ground_truth_trajectory, trajectory_metrics
 

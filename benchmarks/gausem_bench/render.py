@@ -22,6 +22,7 @@ import torch
 
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, se3_exp
+from gausem_core.tools.run import parse_size
 
 ROOM_CAMERA = PinholeCamera(fx=262.5, fy=262.5, cx=160.0, cy=120.0, width=320, height=240)  # 1 px radius here
 
@@ -155,7 +156,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats per case, median reported")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results"), help="output folder")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--sizes", nargs="+", default=["160x120", "320x240", "640x480"], help="WxH image sizes")
+    parser.add_argument("--sizes", nargs="+", type=parse_size, default=[(160, 120), (320, 240), (640, 480)],
+                        help="WxH image sizes")
     parser.add_argument("--counts", nargs="+", type=int, default=[5000, 20000, 50000, 200000], help="Gaussian counts")
     parser.add_argument("--backend", nargs="+", choices=["torch", "cpu", "gsplat"], help="default: every available one")
     parser.add_argument("--case-seconds", type=float, default=30.0,
@@ -165,15 +167,11 @@ def add_arguments(parser) -> None:
 def run_render(args) -> list[dict]:
     backends = args.backend or _render_backends(torch.device(args.device))
     rows = []
-    for size in args.sizes:
-        match = re.fullmatch(r"(\d+)x(\d+)", size)
-        if not match:
-            raise ValueError(f"--sizes: expected WIDTHxHEIGHT, got {size!r}")
+    for width, height in args.sizes:
         for n in args.counts:
             for backend in backends:
-                case = {"backend": backend, "gaussians": n, "width": int(match.group(1)),
-                        "height": int(match.group(2)), "device": args.device, "repeats": args.repeats,
-                        "case_seconds": args.case_seconds}
+                case = {"backend": backend, "gaussians": n, "width": width, "height": height, "device": args.device,
+                        "repeats": args.repeats, "case_seconds": args.case_seconds}
                 # one fresh process per case, so that the peak memory of one case is not hidden by another's
                 with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
                     row = pool.submit(_render_case, case).result()

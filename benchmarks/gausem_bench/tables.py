@@ -1,4 +1,4 @@
-"""Markdown tables shaped like the paper's, from benchmark run records (:func:`gausem_core.bench.worker.run_case`).
+"""Markdown tables shaped like the paper's, from benchmark run records (:func:`gausem_bench.worker.run_case`).
 
 Columns are sequences (after ``Avg.``, the mean over sequences, shown where every sequence has a value) and rows are
 configurations, in suite order; ``–`` marks a value a run did not produce (a failed run, or a metric its method does

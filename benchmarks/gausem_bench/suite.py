@@ -16,11 +16,11 @@ the working directory), ``params`` (GauSem parameter file; default ``params/<kin
 ``stride``, ``frames``, ``eval_every``, ``open3d`` (parameter values for the Open3D baselines on this sequence,
 e.g. its depth range) and ``color_calibration`` (for depth that is not registered to colour: the colour camera's
 ``intrinsics`` [fx, fy, cx, cy] at ``size`` [w, h] and an optional ``depth_to_color`` 3x4/4x4 transform; colour is
-then resampled into the depth camera, :mod:`~gausem_core.bench.color_registration`).
+then resampled into the depth camera, :mod:`~gausem_bench.color_registration`).
 
 Configuration keys: ``name``, ``method`` (``gausem``, ``open3d_odometry`` or ``open3d_slam``), ``overrides``
 (parameter values, dotted or nested names; GauSem's are those of :class:`~gausem_core.config.SlamConfig`, the
-baselines' those of :class:`~gausem_core.bench.baselines.Open3DParams`) and ``note``. Every name is checked
+baselines' those of :class:`~gausem_bench.baselines.Open3DParams`) and ``note``. Every name is checked
 before anything runs: an unknown key or parameter raises :class:`SuiteError`.
 """
 from __future__ import annotations
@@ -35,9 +35,10 @@ from typing import Any
 
 import yaml
 
-from gausem_core.bench.baselines import BASELINES
-from gausem_core.bench.color_registration import ColorCalibration
+from gausem_bench.baselines import BASELINES
+from gausem_bench.color_registration import ColorCalibration
 from gausem_core.config import SlamConfig, flatten, load_config
+from gausem_core.tools.run import default_params_file, parse_size
 
 METHODS = ("gausem", *BASELINES)
 SEQUENCE_KEYS = {"name", "dataset", "params", "size", "stride", "frames", "eval_every", "open3d", "color_calibration"}
@@ -147,13 +148,12 @@ def check_parameter_names(values: dict, known, where: str) -> None:
             raise SuiteError(f"{where}: unknown parameter '{name}'{_did_you_mean(name, known)}")
 
 
-def parse_size(text) -> tuple[int, int] | None:
-    from gausem_core.tools.run import parse_size as parse
-
+def suite_size(text) -> tuple[int, int] | None:
+    """A sequence's ``size`` (WxH, or None): :func:`~gausem_core.tools.run.parse_size` raising SuiteError."""
     if text is None:
         return None
     try:
-        return parse(str(text))
+        return parse_size(str(text))
     except argparse.ArgumentTypeError as exc:
         raise SuiteError(str(exc)) from None
 
@@ -167,7 +167,7 @@ def sequence_from_dict(entry: dict, defaults: dict | None = None) -> SequenceSpe
     if "dataset" not in values:
         raise SuiteError(f"{where}: 'dataset' is required (e.g. synthetic:default or tum:PATH)")
     values.setdefault("name", sequence_name(values["dataset"]))
-    values["size"] = parse_size(values.get("size"))
+    values["size"] = suite_size(values.get("size"))
     values["open3d"] = flatten_names(values.get("open3d"))
     check_parameter_names(values["open3d"], dataclasses.asdict(BASELINES["open3d_odometry"]), f"{where}: open3d")
     if values.get("color_calibration") is not None:
@@ -246,8 +246,6 @@ def _coerce(name: str, value, default, where: str):
 def gausem_parameters(sequence: SequenceSpec, configuration: Configuration,
                       extra: dict[str, Any]) -> tuple[str | None, dict[str, Any], dict[str, Any]]:
     """(parameter file, overrides, flattened SlamConfig) of a GauSem run: file < configuration < ``extra``."""
-    from gausem_core.tools.run import default_params_file
-
     where = f"configuration '{configuration.name}'"
     overrides = {**configuration.overrides, **extra}
     check_parameter_names(overrides, flatten(SlamConfig()), where)
@@ -273,7 +271,7 @@ def baseline_parameters(sequence: SequenceSpec,
 
 def open_sequence(sequence: SequenceSpec):
     """The sequence's frames; with a ``color_calibration``, colour resampled into the depth camera."""
-    from gausem_core.bench.color_registration import ColorRegistered
+    from gausem_bench.color_registration import ColorRegistered
     from gausem_core.data import open_dataset
 
     options = {"size": sequence.size, "stride": sequence.stride, "max_frames": sequence.frames}

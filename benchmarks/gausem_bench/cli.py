@@ -1,0 +1,26 @@
+"""``gausem bench <target>``: benchmarks written as JSON plus Markdown tables, one module per target.
+
+``render`` (:mod:`gausem_bench.render`): renderer timing and memory. ``slam`` (:mod:`gausem_bench.slam`): the offline
+pipeline and the Open3D baselines over sequences x configurations. Each target module exposes
+``add_arguments(parser)`` and ``main(args)``; it is imported when the parser is built.
+"""
+from __future__ import annotations
+
+import importlib
+
+TARGETS = {
+    "render": ("gausem_bench.render", "renderer forward/backward time and peak memory"),
+    "slam": ("gausem_bench.slam", "the offline pipeline and baselines over a suite (the paper's tables)"),
+}
+
+
+def add_arguments(parser) -> None:
+    sub = parser.add_subparsers(dest="target", required=True, metavar="TARGET")
+    for name, (module, help_text) in TARGETS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_bench_module=module)
+        importlib.import_module(module).add_arguments(p)
+
+
+def main(args) -> int:
+    return int(importlib.import_module(args._bench_module).main(args) or 0)
