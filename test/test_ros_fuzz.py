@@ -205,7 +205,7 @@ def test_loop_detection_pose_graph_and_segmentation_count_an_exception_and_go_on
                 i, i, np.eye(4), ma.SubmapEventKind.CREATED)], header))
             pubs["rgb/image"].publish(ma.rgb_to_image(np.zeros((30, 40, 3), np.uint8), header))
             assert spin_until(executor, lambda: all(n.drops.counts["processing_error"] == 1 for n in (loop, graph, seg))
-                              and loop.keyframes_checked == i and len(graph.anchors) == i
+                              and loop.keyframes_checked == i and len(graph.graphs.anchors) == i
                               and seg.frames_segmented == i, 5.0), [dict(n.drops.counts) for n in (loop, graph, seg)]
         assert spin_until(executor, lambda: len(recorder.messages["semantic/color"]) == 1, 5.0)
     assert all(dict(n.drops.counts) == {"processing_error": 1} for n in (loop, graph, seg))
