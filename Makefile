@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 PYTEST_ARGS ?=
 DEMO_OUT ?= out/demo
 
-.PHONY: setup test demo bench clean
+.PHONY: setup test test-slow test-all demo bench clean
 
 setup: $(STAMP)
 
@@ -20,7 +20,14 @@ $(STAMP): requirements.txt requirements-dev.txt constraints.txt setup.py
 	$(VENV)/bin/gausem info  # also compiles the C++ CPU renderer (once per machine)
 	touch $@
 
+# `make test`: the fast selection (tests not marked slow); `make test-slow` the rest; CI runs both (.ci/run).
 test: $(STAMP)
+	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -m slow $(PYTEST_ARGS)
+
+test-all: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 # The ROS 2 node suite end to end: the synthetic sequence of `gausem demo` (30 frames, 160x120) as a ROS 2 bag, replayed

@@ -2,6 +2,8 @@
 import json
 import math
 
+import pytest
+
 from gausem_core.cli import main
 from gausem_core.io.ply import read_gaussian_ply
 from gausem_core.io.trajectory import read_tum_trajectory
@@ -31,6 +33,7 @@ def test_gausem_run_writes_the_outputs(tmp_path, capsys):
     assert 0 < metrics["rendering"]["miou"] <= 1
 
 
+@pytest.mark.slow
 def test_gausem_run_saves_and_resumes_a_session(tmp_path):
     common = ["--dataset", "synthetic", "--size", "80x60", *FAST, "--quiet", "--eval-every", "10"]
     session = tmp_path / "session"

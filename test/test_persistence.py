@@ -75,6 +75,7 @@ def assert_same_state(a, b):
             assert tensor.dtype == other.dtype and torch.equal(tensor, other), f"{name}:{key}"
 
 
+@pytest.mark.slow
 def test_a_loaded_session_goes_on_bit_identically(sequence, saved):
     observations, _ = sequence
     original, folder = saved

@@ -54,6 +54,7 @@ class Unlabelled(SyntheticDataset):
         return frame
 
 
+@pytest.mark.slow
 def test_gausem_run_segments_with_dinov2_and_describes_with_it(weights, tmp_path):
     assert (weights[0] / "config.json").is_file() and (weights[0] / "model.safetensors").is_file()
     out = tmp_path / "run"

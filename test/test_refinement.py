@@ -1,4 +1,5 @@
 """Two-stage global refinement: per-submap L_refine optimisation, then alignment of submaps to the global map."""
+import pytest
 import torch
 
 from gausem_core.config import LoopConfig, MappingConfig, RegistrationConfig
@@ -75,6 +76,7 @@ def test_the_system_refines_after_the_last_frame_with_or_without_loop_closure():
     assert torch.equal(*means[False])  # ablation "w/o global refinement": untouched
 
 
+@pytest.mark.slow
 def test_stage_one_decays_the_centres_learning_rate_and_uses_its_own_depth_weight():
     def refine(**options):
         submap = make_submap(0, [0, 4, 8], size=(80, 60))

@@ -213,6 +213,7 @@ def test_gausem_ros_replays_in_real_time_with_sim_time(tmp_path):
     assert len((tmp_path / "out" / "trajectory.txt").read_text().splitlines()) - 1 in (processed, processed + 1)
 
 
+@pytest.mark.slow
 def test_a_restarted_tracker_loads_its_saved_map_relocalises_and_goes_on(tmp_path):
     """save_map writes the session; a new tracker started with map_path holds the same map, re-publishes its
     keyframes (pose_graph rebuilds), relocalises the next frames and tracks on; a bad map_path is a clear error."""
