@@ -223,22 +223,25 @@ class LoopClosure:
         return record
 
     def nearest_keyframes(self, obs: Observation, k: int) -> list[int]:
-        """Frame ids of the ``k`` keyframes most like an observation, most alike first: by bag-of-words score
-        among the database's keyframes (place recognition "bow"), else by the L2 distance between the unit global
-        descriptors of the semantic images (as the loop database)."""
+        """Frame ids of the ``k`` keyframes most like an observation, most alike first: with place recognition
+        "bow", the database keyframes whose bag-of-words score reaches ``bow.min_score`` (best first); then, or
+        else, every described keyframe by the L2 distance between the unit global descriptors of the semantic images
+        (as the loop database)."""
         if k <= 0:
             return []
+        recognised = []
         if self.place_recognition == "bow":
-            ids, _ = self.detector.database.search(self._features(obs), k=k)
-            return ids.tolist()
+            ids, distances = self.detector.database.search(self._features(obs), k=k)
+            recognised = ids[distances <= self.detector.max_descriptor_distance].tolist()
         if not self._descriptors:
-            return []
+            return recognised
         ids = list(self._descriptors)
         query = torch.from_numpy(np.asarray(self.descriptor.describe(obs.semantic.detach().cpu()))).double()
         stack = torch.stack([self._descriptors[i] for i in ids]).double()
         unit = torch.nn.functional.normalize
         distances = (unit(stack, dim=1) - unit(query, dim=0)).norm(dim=1)
-        return [ids[i] for i in torch.argsort(distances, stable=True)[:k].tolist()]
+        by_descriptor = [ids[i] for i in torch.argsort(distances, stable=True).tolist() if ids[i] not in recognised]
+        return (recognised + by_descriptor)[:k]
 
     # --- persistence ----------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
