@@ -159,7 +159,7 @@ class LoopConfig:
     odometry_sigma_translation: float = 0.01  # pose-graph odometry edges per keyframe step (metres, radians)
     odometry_sigma_rotation: float = 0.005
     max_correction_sigmas: float = 4.0  # reject loops implying a larger jump than this many odometry sigmas
-    remap_iterations_per_keyframe: int = 10  # mapping with fixed poses after an intra-submap loop
+    remap_iterations_per_keyframe: int = 10  # mapping with fixed poses after an intra-submap loop, per displaced keyframe
     global_refinement: bool = True  # ablation "w/o global refinement" when false
     refine_iterations_per_keyframe: int = 10  # both refinement stages
     refine_w_depth: float = 1.0  # lambda_D of L_map in stage 1 (the mapping keeps mapping.w_depth)

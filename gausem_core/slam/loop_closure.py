@@ -16,7 +16,8 @@ detected loop (k, j) is closed as follows.
 - Intra-submap (k and j in one submap): the relative pose of the two keyframes is measured from their images
   (:func:`~gausem_core.slam.registration.align_keyframes`); a keyframe pose graph with odometry edges between
   consecutive keyframes and the loop edge moves the keyframes (the submap's first keyframe is held), and the submap
-  is then re-mapped for ``remap_iterations_per_keyframe`` iterations per keyframe with the poses fixed.
+  is then re-mapped for ``remap_iterations_per_keyframe`` iterations per keyframe the correction moved beyond the loop
+  edges' standard-deviation floors, with the poses fixed.
 - Inter-submap: Semantic-Guided Registration of the submap with fewer keyframes (source) to the other (target),
   its fine step starting from the coarse estimate or the anchors' current one, whichever the views agree with more; an
   anchor pose graph with odometry edges between consecutive anchors and every accepted inter-submap loop edge so far
@@ -263,9 +264,14 @@ class LoopClosure:
 
     def load_state_dict(self, state: dict) -> None:
         """Restore what :meth:`state_dict` returned (onto a loop closure built with the same configuration)."""
+        saved_bow = "words" in state["database"]
+        if saved_bow != (self.place_recognition == "bow"):
+            raise ValueError(f"the saved loop closure's place recognition was {'bow' if saved_bow else 'a descriptor'}"
+                             f", this one's is {self.place_recognition}: load it with loop.place_recognition: "
+                             f"{'bow' if saved_bow else 'descriptor'}")
         self.palette.colors = state["palette"]
         self._descriptors = {int(frame_id): d for frame_id, d in state["descriptors"]}
-        if self.place_recognition == "bow":
+        if saved_bow:
             self.detector.database = BagOfWords(self.cfg.bow)
             self.detector.database.load_state_dict(state["database"])
         else:
@@ -273,7 +279,7 @@ class LoopClosure:
                                                                    self.detector.database.backend)
             for frame_id, vector in zip(state["database"]["ids"].tolist(), state["database"]["vectors"].numpy()):
                 database._append(frame_id, vector)  # stored unit vectors, not normalised again (bit-identical)
-        self.rejected_candidates = int(state["rejected_candidates"])
+        self.rejected_candidates = int(state.get("rejected_candidates", 0))  # sessions saved before verification
         self.detector._keyframes = {int(f): (int(s), scores) for f, s, scores in state["landmarks"]}
         self.records = [LoopRecord(**r) for r in state["records"]]
         self.constraints = [LoopConstraint(**{**c, "sigmas": tuple(c["sigmas"])}) for c in state["constraints"]]
@@ -429,18 +435,25 @@ class LoopClosure:
         self.seconds["correct"] += time.perf_counter() - start
 
     def move_keyframes(self, submap, poses: dict[int, object]) -> int:
-        """Set the poses (submap frame, by frame id) of ``submap``'s non-fixed keyframes, then re-map the submap for
-        ``remap_iterations_per_keyframe`` iterations per keyframe with the poses held. Returns how many moved."""
-        moved = 0
+        """Set the poses (submap frame, by frame id) of ``submap``'s non-fixed keyframes, then re-map the submap with
+        the poses held for ``remap_iterations_per_keyframe`` iterations per keyframe that moved by more than the loop
+        edges' standard-deviation floors (``registration.sigma_translation`` / ``sigma_rotation``): a correction
+        within the measurement's own uncertainty leaves the map as it is. Returns how many moved."""
+        moved, displaced = 0, 0
+        reg = self.cfg.registration
         for kf in submap.keyframes:
             if kf.frame_id in poses and not kf.fixed:
-                kf.cam_to_world = torch.as_tensor(np.array(poses[kf.frame_id]), dtype=kf.cam_to_world.dtype,
-                                                  device=kf.cam_to_world.device)
+                pose = torch.as_tensor(np.array(poses[kf.frame_id]), dtype=kf.cam_to_world.dtype,
+                                       device=kf.cam_to_world.device)
+                change = invert_pose(kf.cam_to_world.detach().cpu().double()) @ pose.detach().cpu().double()
+                displaced += (float(change[:3, 3].norm()) > reg.sigma_translation
+                              or float(se3_log(change)[3:].norm()) > reg.sigma_rotation)
+                kf.cam_to_world = pose
                 moved += 1
-        if moved:
+        if displaced:
             keyframes = [Keyframe(kf.frame_id, submap.observation(kf, self.device), kf.cam_to_world.to(self.device),
                                   True) for kf in submap.keyframes]
-            iterations = self.cfg.remap_iterations_per_keyframe * len(keyframes)
+            iterations = self.cfg.remap_iterations_per_keyframe * displaced
             submap.cloud, _ = self.mapper.optimise(submap.load_cloud(self.device), keyframes, iterations,
                                                    optimise_poses=False)
         return moved
