@@ -115,8 +115,6 @@ class BagOfWords:
     ids added in increasing order, ``search`` returns ids and distances (``1 - score``), closest first.
     """
 
-    kind = "bow"
-
     def __init__(self, cfg: BowConfig):
         self.cfg = cfg
         self.vocabulary = Vocabulary(cfg.word_radius)
