@@ -122,10 +122,31 @@ class RegistrationConfig:
 
 
 @dataclass
+class BowConfig:
+    """Place recognition without weights (``slam.loop.words``, ``slam.loop.verification``): a bag of binary ORB
+    words with a vocabulary built online, and geometric verification of a candidate before registration."""
+
+    features: int = 500  # ORB keypoints per keyframe
+    fast_threshold: int = 5  # ORB's FAST corner threshold (grey levels); low: weakly textured images keep features
+    min_image_side: int = 240  # images with a shorter side are upscaled by an integer factor for ORB
+    word_radius: int = 40  # bits: a descriptor this close (Hamming) to a word is that word, else a new word
+    min_score: float = 0.05  # candidates: tf-idf L1 similarity at least this (in [0, 1]) ...
+    candidates: int = 3  # ... the best this many (after the landmark re-ranking) are verified, in order
+    match_ratio: float = 0.8  # feature matches: nearest / second-nearest Hamming distance below this
+    max_reprojection_error: float = 3.0  # RANSAC PnP inlier bound, in pixels of the (upscaled) ORB image
+    min_inliers: int = 20  # a verified candidate has at least this many PnP inliers ...
+    min_overlap: float = 0.2  # ... and under their pose this fraction of the match keyframe's depth lands in the
+    min_fitness: float = 0.7  # query's view, agreeing in depth (registration.max_depth_residual) on this fraction
+
+
+@dataclass
 class LoopConfig:
     """Semantic-aware loop closure (paper §III-C, Algorithm 1) and the global refinement after the last frame."""
 
     enabled: bool = True  # ablation "w/o loop closure" when false
+    # "auto": the semantic image's global descriptor when it is DINOv2 (weights given), else "bow" (the images' bag of
+    # ORB words, verified geometrically); "descriptor": the global descriptor of semantics.descriptor (Algorithm 1)
+    place_recognition: str = "auto"
     keyframe_every: int = 5  # d_k: mapping keyframes whose frame index is a multiple of this enter the database
     check_every: int = 6
     max_descriptor_distance: float = 0.2  # loop candidates: DINOv2 CLS distance below this (paper)
@@ -139,19 +160,32 @@ class LoopConfig:
     odometry_sigma_translation: float = 0.01  # pose-graph odometry edges per keyframe step (metres, radians)
     odometry_sigma_rotation: float = 0.005
     max_correction_sigmas: float = 4.0  # reject loops implying a larger jump than this many odometry sigmas
-    remap_iterations_per_keyframe: int = 10  # mapping with fixed poses after an intra-submap loop
+    remap_iterations_per_keyframe: int = 10  # mapping with fixed poses after an intra-submap loop, per displaced keyframe
     global_refinement: bool = True  # ablation "w/o global refinement" when false
     refine_iterations_per_keyframe: int = 10  # both refinement stages
     refine_w_depth: float = 1.0  # lambda_D of L_map in stage 1 (the mapping keeps mapping.w_depth)
     refine_final_lr_means_fraction: float = 1.0  # stage 1: the centres' learning rate decays to this fraction
     refine_final_lr_pose_fraction: float = 1.0  # ... and the keyframe poses' to this one
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    bow: BowConfig = field(default_factory=BowConfig)
+
+    def place_recognition_for(self, descriptor_kind: str) -> str:
+        """What finds loop candidates with global descriptors of ``descriptor_kind``: "bow", or that kind ("dinov2",
+        "fallback"). ``place_recognition`` "auto" picks the descriptor when it is DINOv2, else "bow"."""
+        if self.place_recognition not in ("auto", "descriptor", "bow"):
+            raise ValueError(f"loop.place_recognition must be auto, descriptor or bow, got {self.place_recognition!r}")
+        if self.place_recognition == "bow" or (self.place_recognition == "auto" and descriptor_kind != "dinov2"):
+            return "bow"
+        return descriptor_kind
 
     def descriptor_threshold(self, kind: str) -> float:
-        """The loop-candidate distance threshold for descriptors of this kind ("dinov2" or "fallback")."""
-        if kind not in ("dinov2", "fallback"):
-            raise ValueError(f"unknown descriptor kind {kind!r}; expected 'dinov2' or 'fallback'")
-        return self.max_descriptor_distance if kind == "dinov2" else self.max_fallback_descriptor_distance
+        """The loop-candidate distance threshold for signatures of this kind ("dinov2", "fallback" or "bow", whose
+        distance is 1 - score)."""
+        thresholds = {"dinov2": self.max_descriptor_distance, "fallback": self.max_fallback_descriptor_distance,
+                      "bow": 1.0 - self.bow.min_score}
+        if kind not in thresholds:
+            raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {', '.join(thresholds)}")
+        return thresholds[kind]
 
 
 @dataclass

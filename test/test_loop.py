@@ -252,3 +252,24 @@ def test_database_leaves_the_thread_count_of_torch_alone():
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_detector_without_classes_keeps_descriptor_order_and_verifies_in_order():
+    """One class: landmark vectors say nothing, the closest descriptor comes first; a verifier is tried on the ranked
+    candidates (at most verify_candidates) and the first it confirms is the loop."""
+    g = torch.Generator().manual_seed(4)
+    place = _unit(torch.randn(8, generator=g))
+    detector = LoopDetector(check_every=1, max_descriptor_distance=0.5, exclude_recent=0, descriptor_dim=8,
+                            backend="torch", verify_candidates=2)
+    for kf, noise in enumerate([0.3, 0.1, 0.2, 2.0]):  # keyframe 1 is the closest, 3 is no candidate
+        detector.add_keyframe(kf, 0, _unit(place + noise * _unit(torch.randn(8, generator=g))),
+                              torch.tensor([float(kf)]))  # one class: differing scores must not re-rank
+    tried = []
+
+    def second_only(candidate):
+        tried.append(candidate.match_keyframe)
+        return candidate if len(tried) == 2 else None
+
+    loop = detector.add_keyframe(4, 1, place, torch.tensor([0.0]), verify=second_only)
+    assert tried == [1, 2] and loop.match_keyframe == 2
+    assert detector.add_keyframe(5, 1, place, torch.tensor([0.0]), verify=lambda c: None) is None

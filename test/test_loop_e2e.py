@@ -16,10 +16,12 @@ import torch
 
 from gausem_core.config import from_flat
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
-from gausem_core.eval.loops import loop_scores
+from gausem_core.data.frame import Frame
+from gausem_core.eval.loops import loop_scores, view_overlap
 from gausem_core.eval.trajectory import absolute_trajectory_error
 from gausem_core.geometry import invert_pose, se3_exp
 from gausem_core.io.trajectory import Trajectory
+from gausem_core.semantics.source import UNLABELLED_PALETTE
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
 from gausem_core.slam.tracker import TrackingResult
@@ -68,24 +70,55 @@ def ate_rmse(poses, truth) -> float:
                                      Trajectory(stamps, np.stack([p.double().numpy() for p in truth]))).rmse
 
 
-def drifting_run(revisit: int = REVISIT, overrides: dict | None = None) -> tuple[GauSemSLAM, list[torch.Tensor]]:
-    """SLAM with drifting odometry over the loop (every STRIDE-th frame, 80x60) and the first ``revisit`` frames
-    again; returns the finished system and the ground-truth poses (first frame = identity)."""
+def panned(frame: Frame, scene, degrees: float) -> Frame:
+    """The frame seen from a camera turned ``degrees`` about its vertical axis (re-rendered)."""
+    pose = frame.gt_pose @ se3_exp(torch.tensor([0, 0, 0, 0, math.radians(degrees), 0.0])).double().numpy()
+    rgb, depth, labels = scene.render(pose, frame.camera)
+    return Frame(frame.index, frame.timestamp, rgb, depth, labels, frame.camera, pose)
+
+
+def revisit_frames(revisit: int = REVISIT, revisit_pan_deg: float = 0.0) -> tuple[SyntheticDataset, list[Frame]]:
+    """The loop (every STRIDE-th frame, 80x60) and its first ``revisit`` frames again, turned ``revisit_pan_deg``
+    (less overlap with the first visit)."""
     data = SyntheticDataset("loop", resolution=(80, 60), stride=STRIDE)
-    frames = [data[i % len(data)] for i in range(len(data) + revisit)]
+    frames = [data[i] for i in range(len(data))]
+    frames += [panned(data[i], data.scene, revisit_pan_deg) if revisit_pan_deg else data[i] for i in range(revisit)]
+    return data, frames
+
+
+def drifting_run(revisit: int = REVISIT, overrides: dict | None = None, labelled: bool = True,
+                 revisit_pan_deg: float = 0.0) -> tuple[GauSemSLAM, list[torch.Tensor]]:
+    """SLAM with drifting odometry over :func:`revisit_frames`; returns the finished system and the ground-truth
+    poses (first frame = identity). Without ``labelled`` every pixel has one class (as data without labels)."""
+    _, frames = revisit_frames(revisit, revisit_pan_deg)
     first = torch.tensor(frames[0].gt_pose)
     truth = [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]
-    slam = GauSemSLAM(from_flat({**CONFIG, **(overrides or {})}), "cpu", len(SYNTHETIC_CLASSES))
+    palette = SYNTHETIC_CLASSES.palette if labelled else UNLABELLED_PALETTE
+    slam = GauSemSLAM(from_flat({**CONFIG, **(overrides or {})}), "cpu", len(palette))
     slam.tracker = DriftingOdometry(slam, truth)
     for n, f in enumerate(frames):
-        slam.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette, n / 10))
+        labels = f.labels if labelled else np.zeros_like(f.labels)
+        slam.process(Observation.from_arrays(f.rgb, f.depth, labels, f.camera, palette, n / 10))
     slam.finish()
     return slam, truth
 
 
+def true_view_overlap(data: SyntheticDataset, query: int, match: int) -> float:
+    """Ground-truth overlap of two processed frames of :func:`drifting_run` (the sequence wraps around)."""
+    observe = [Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette)
+               for f in (data[match % len(data)], data[query % len(data)])]
+    return view_overlap(observe[0], data[match % len(data)].gt_pose, observe[1], data[query % len(data)].gt_pose)
+
+
 @pytest.mark.slow
-def test_loop_closure_lowers_the_ate_of_a_drifting_run():
-    slam, truth = drifting_run()
+@pytest.mark.parametrize("place_recognition, labelled", [("descriptor", True), ("auto", True), ("auto", False)])
+def test_loop_closure_lowers_the_ate_of_a_drifting_run(place_recognition, labelled):
+    """The paper's descriptor of the semantic image with labels, and (no DINOv2 weights: "auto") the bag of ORB
+    words with and without labels. Every closed loop joins two views of one place (ground-truth view overlap); the
+    paper's protocol judges by intervals and calls the revisit of the loop's last interval to its first false,
+    the rest of that interval being far away, so only its recall is asserted."""
+    slam, truth = drifting_run(overrides={"loop.place_recognition": place_recognition}, labelled=labelled)
+    assert slam.loop_closure.place_recognition == ("fallback" if place_recognition == "descriptor" else "bow")
     estimate = [pose for _, pose in slam.trajectory()]
     closed = slam.loop_closure.loops
     assert closed and all(not r.intra for r in closed)
@@ -95,10 +128,10 @@ def test_loop_closure_lowers_the_ate_of_a_drifting_run():
     torch.testing.assert_close(torch.stack([estimate[n] for n in in_first]),
                                torch.stack([drifted[n] for n in in_first]), atol=1e-4, rtol=0)
     ate_without, ate_with = ate_rmse(drifted, truth), ate_rmse(estimate, truth)
-    assert ate_with < 0.65 * ate_without
-    # every closed loop joins two visits of one place (the paper's protocol: 10-frame intervals, here 1 m)
+    assert ate_with <= 0.5 * ate_without
+    data = SyntheticDataset("loop", resolution=(80, 60), stride=STRIDE)
+    assert all(true_view_overlap(data, r.query_frame, r.match_frame) >= 0.5 for r in closed)
     positions = np.stack([p[:3, 3].numpy() for p in truth])
     scores = loop_scores([(r.query_frame, r.match_frame) for r in closed], positions, min_frame_gap=30,
                          tau_loop=1.0)
-    assert scores.precision == 1.0 and scores.true_positives == len(closed)
     assert scores.recall >= 0.8  # issue 5's target: the revisit's ground-truth loops are closed

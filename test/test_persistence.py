@@ -176,3 +176,10 @@ def test_loop_records_and_constraints_survive(saved, tmp_path):
     assert torch.equal(a.relative, b.relative) and a.relative.dtype == b.relative.dtype
     assert (a.keyframe_a, a.submap_b, a.sigmas, a.fitness, a.intra) == (b.keyframe_a, b.submap_b, b.sigmas,
                                                                         b.fitness, b.intra)
+
+
+def test_a_session_loads_only_with_the_place_recognition_it_was_saved_with(saved):
+    _, folder = saved
+    other = from_flat({**SETTINGS, "loop.place_recognition": "descriptor"})
+    with pytest.raises(ValueError, match="place_recognition: bow"):
+        GauSemSLAM.load(folder, cfg=other)

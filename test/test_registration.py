@@ -206,12 +206,13 @@ def test_align_keyframes_measures_the_relative_pose_of_two_views():
     (ref, ref_pose), (cur, cur_pose) = frame(30), frame(36)
     truth = invert_pose(cur_pose) @ ref_pose  # current-from-reference
     init = perturbation(0.05, 3.0, 4).float() @ truth
-    motion, fitness = align_keyframes(ref, cur, init, RegistrationConfig(pyramid_levels=3))
+    motion, (overlap, fitness) = align_keyframes(ref, cur, init, RegistrationConfig(pyramid_levels=3))
     translation, rotation = pose_error(motion, truth)
     assert translation < 0.01 and rotation < 0.3
-    assert fitness > 0.7  # the rest left the view
-    _, fitness_far = align_keyframes(ref, frame(120)[0], init, RegistrationConfig(pyramid_levels=3))
-    assert fitness_far < 0.5 * fitness  # another place: little overlap at any pose near the guess
+    assert 0.7 < overlap < 0.95  # the rest left the view ...
+    assert fitness > 0.95  # ... and what stayed agrees in depth
+    _, (overlap_far, fitness_far) = align_keyframes(ref, frame(120)[0], init, RegistrationConfig(pyramid_levels=3))
+    assert overlap_far * fitness_far < 0.5 * overlap * fitness  # another place: little agreement near the guess
 
 
 def test_consistent_pairs_drop_look_alike_views_of_other_places():

@@ -166,10 +166,14 @@ def test_loop_metrics_score_the_detections_against_ground_truth_loops():
         pose[0, 3] = value
         gt_poses.append(pose)
     records = [LoopRecord(55, 3, 1, 0, False, True, 0.9, 0.5), LoopRecord(40, 5, 1, 0, False, False, 0.2, 0.25)]
-    slam = SimpleNamespace(loop_closure=SimpleNamespace(records=records))
-    result = RunResult(slam, list(range(60)), np.stack(gt_poses), gt_poses, list(range(60)), seconds=1.0)
+    phases = {"describe": 0.05, "detect": 0.1, "verify": 0.1, "register": 0.7, "correct": 0.05}
+    slam = SimpleNamespace(loop_closure=SimpleNamespace(records=records, place_recognition="bow",
+                                                        rejected_candidates=3, seconds=phases))
+    result = RunResult(slam, list(range(60)), np.stack(gt_poses), gt_poses, list(range(60)), seconds=4.0)
     metrics = loop_metrics(result)
     assert metrics["detected"] == 2 and metrics["accepted"] == 1 and metrics["seconds"] == pytest.approx(0.75)
+    assert metrics["place_recognition"] == "bow" and metrics["rejected_by_verification"] == 3
+    assert metrics["seconds_by_phase"] == phases and metrics["fraction_of_run_time"] == pytest.approx(0.25)
     assert metrics["precision"] == pytest.approx(0.5)
     assert metrics["ground_truth_loops"] >= 1 and metrics["true_positives"] == 1
     assert metrics["protocol"] == DEFAULT_PROTOCOL

@@ -8,6 +8,10 @@ intervals of k and j form a ground-truth loop (frames of one interval never do).
 
 Precision = true-positive detections / detections; recall = ground-truth loops hit by at least one detection /
 ground-truth loops. An undefined ratio (nothing detected, no ground-truth loop) is NaN, and so is F1 then.
+
+The protocol judges positions only, by whole intervals: it misses revisits seen from afar and calls a revisit false
+when the rest of its interval is far away. :func:`view_overlap` measures what a loop needs instead: how much of one
+view the other sees, from the two depth images and the ground-truth poses.
 """
 from __future__ import annotations
 
@@ -15,6 +19,11 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import torch
+
+from gausem_core.geometry import invert_pose
+from gausem_core.slam.observation import Observation
+from gausem_core.slam.registration import warp_agreement
 
 
 # the paper gives no values for Δt_min and τ_loop; these are ours (frames of the processed sequence, metres)
@@ -89,3 +98,13 @@ def loop_scores(detections, gt_positions, *, min_frame_gap: int, tau_loop: float
     detected = len(truth.intersection(hit))
     precision, recall = _ratio(true_positives, len(pairs)), _ratio(detected, len(truth))
     return LoopScores(precision, recall, _f1(precision, recall), len(pairs), true_positives, len(truth), detected)
+
+
+def view_overlap(reference: Observation, reference_pose, current: Observation, current_pose,
+                 max_depth_residual: float = 0.1) -> float:
+    """Ground-truth view overlap: the fraction of the reference's valid-depth pixels that, moved by the ground-truth
+    poses (cam_to_world 4x4), land in the current image on a depth reading within ``max_depth_residual``."""
+    motion = invert_pose(torch.as_tensor(np.asarray(current_pose), dtype=torch.float64)) @ torch.as_tensor(
+        np.asarray(reference_pose), dtype=torch.float64)
+    overlap, fitness = warp_agreement(reference, current, motion.float(), max_depth_residual)
+    return overlap * fitness

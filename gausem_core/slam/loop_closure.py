@@ -2,7 +2,13 @@
 
 Per keyframe: the global descriptor of its semantic image is computed (and kept for SGR); keyframes whose frame index
 is a multiple of ``keyframe_every`` enter the loop database with their landmark score vector over their submap's
-Gaussians, and every ``check_every``-th of them queries it. With ``proximity_radius`` > 0, the past keyframes near
+Gaussians, and every ``check_every``-th of them queries it. Place recognition (``loop.place_recognition``) is either
+the paper's: the database holds the global descriptors (DINOv2 of the semantic image when weights are given); or,
+without weights ("auto"), a bag of binary ORB words of the keyframe's own image with a vocabulary learned online
+(:mod:`~gausem_core.slam.loop.words`), whose candidates must pass geometric verification (feature matches + depth ->
+RANSAC PnP, then the views' depth agreement, :mod:`~gausem_core.slam.loop.verification`) before registration; the
+verified relative pose is one more start for it. The landmark re-ranking of Algorithm 1 applies to both when there
+are classes. With ``proximity_radius`` > 0, the past keyframes near
 the new one in the current pose estimate (centre within the radius, similar viewing direction) are candidates at every
 keyframe as well: under small drift a revisit is found where a weak descriptor (the fallback) does not see it. A
 detected loop (k, j) is closed as follows.
@@ -10,7 +16,8 @@ detected loop (k, j) is closed as follows.
 - Intra-submap (k and j in one submap): the relative pose of the two keyframes is measured from their images
   (:func:`~gausem_core.slam.registration.align_keyframes`); a keyframe pose graph with odometry edges between
   consecutive keyframes and the loop edge moves the keyframes (the submap's first keyframe is held), and the submap
-  is then re-mapped for ``remap_iterations_per_keyframe`` iterations per keyframe with the poses fixed.
+  is then re-mapped for ``remap_iterations_per_keyframe`` iterations per keyframe the correction moved beyond the loop
+  edges' standard-deviation floors, with the poses fixed.
 - Inter-submap: Semantic-Guided Registration of the submap with fewer keyframes (source) to the other (target),
   its fine step starting from the coarse estimate or the anchors' current one, whichever the views agree with more; an
   anchor pose graph with odometry edges between consecutive anchors and every accepted inter-submap loop edge so far
@@ -41,8 +48,11 @@ from gausem_core.semantics.descriptors import DescriptorExtractor, make_descript
 from gausem_core.slam.events import Correction
 from gausem_core.slam.loop import (DescriptorDatabase, LoopCandidate, LoopDetector, gaussian_idf, landmark_scores,
                                    nearby_keyframes, observed_gaussians)
+from gausem_core.slam.loop.verification import verify
+from gausem_core.slam.loop.words import BagOfWords, extract_features
 from gausem_core.slam.loop_graphs import LoopGraphs, PoseGraphUpdate, odometry_sigmas
 from gausem_core.slam.mapper import Keyframe, Mapper
+from gausem_core.slam.observation import Observation
 from gausem_core.slam.registration import align_keyframes, semantic_guided_registration
 
 
@@ -58,6 +68,7 @@ class LoopRecord:
     accepted: bool
     fitness: float
     seconds: float  # registration, pose graph and (intra) re-mapping
+    inliers: int = 0  # geometric verification's PnP inliers (bag of words; 0 without verification)
 
 
 @dataclass(frozen=True)
@@ -165,7 +176,8 @@ class LoopClosure:
 
     ``mapper`` re-maps submaps after intra-submap loops; ``descriptor`` gives the global descriptors and the dense
     features of the SGR feature term (default: the colour-layout fallback); ``device``: where submaps are loaded for
-    registration and re-mapping.
+    registration and re-mapping. :attr:`place_recognition` names what finds candidates ("bow", or the descriptor's
+    kind); :attr:`seconds` accumulates the time per phase (describe, detect, verify, register, correct).
     """
 
     def __init__(self, cfg: LoopConfig, mapper: Mapper, descriptor: DescriptorExtractor | None = None,
@@ -175,8 +187,12 @@ class LoopClosure:
         self.backend = backend
         self.device = torch.device(device)
         self.descriptor = descriptor if descriptor is not None else make_descriptor("fallback")
-        self.detector = LoopDetector.from_config(cfg, self.descriptor.kind, descriptor_dim=self.descriptor.dim,
-                                                 backend=database_backend)
+        self.place_recognition = cfg.place_recognition_for(self.descriptor.kind)
+        database = BagOfWords(cfg.bow) if self.place_recognition == "bow" else None
+        self.detector = LoopDetector.from_config(cfg, self.place_recognition, descriptor_dim=self.descriptor.dim,
+                                                 backend=database_backend, database=database)
+        self.seconds = dict.fromkeys(PHASES, 0.0)
+        self.rejected_candidates = 0  # candidates geometric verification turned down
         self.palette = SemanticPalette()
         self.records: list[LoopRecord] = []
         self.graphs = LoopGraphs(cfg)
@@ -197,13 +213,22 @@ class LoopClosure:
         query the loop database and close a detected loop (register, then correct when accepted)."""
         if not self.cfg.enabled:
             return None
+        start = time.perf_counter()
         self.palette.update(keyframe.obs.semantic)
         descriptor = self._descriptor(submap, keyframe)
         if not detect or not self.detector.is_keyframe(keyframe.frame_id):
+            self.seconds["describe"] += time.perf_counter() - start
             return None
-        candidate = self.detector.add_keyframe(keyframe.frame_id, submap.submap_id, descriptor,
+        obs = submap.observation(keyframe)
+        signature = self._features(obs) if self.place_recognition == "bow" else descriptor
+        checking = time.perf_counter()
+        self.seconds["describe"] += checking - start
+        verifying = self.seconds["verify"]
+        check = self._verifier(submaps, obs, signature) if self.place_recognition == "bow" else None
+        candidate = self.detector.add_keyframe(keyframe.frame_id, submap.submap_id, signature,
                                                self._landmark_scores(submap, keyframe),
-                                               self._nearby(submaps, submap.world_pose(keyframe)))
+                                               self._nearby(submaps, submap.world_pose(keyframe)), check)
+        self.seconds["detect"] += time.perf_counter() - checking - (self.seconds["verify"] - verifying)
         if candidate is None:
             return None
         start = time.perf_counter()
@@ -213,17 +238,26 @@ class LoopClosure:
         self.records[-1] = record
         return LoopOutcome(record, outcome.constraint, correction)
 
-    def nearest_keyframes(self, semantic: torch.Tensor, k: int) -> list[int]:
-        """Frame ids of the ``k`` described keyframes whose global descriptors are nearest (L2 between unit
-        vectors, as the loop database) to that of a semantic image (H, W, 3); nearest first."""
-        if not self._descriptors or k <= 0:
+    def nearest_keyframes(self, obs: Observation, k: int) -> list[int]:
+        """Frame ids of the ``k`` keyframes most like an observation, most alike first: with place recognition
+        "bow", the database keyframes whose bag-of-words score reaches ``bow.min_score`` (best first); then, or
+        else, every described keyframe by the L2 distance between the unit global descriptors of the semantic images
+        (as the loop database)."""
+        if k <= 0:
             return []
+        recognised = []
+        if self.place_recognition == "bow":
+            ids, distances = self.detector.database.search(self._features(obs), k=k)
+            recognised = ids[distances <= self.detector.max_descriptor_distance].tolist()
+        if not self._descriptors:
+            return recognised
         ids = list(self._descriptors)
-        query = torch.from_numpy(np.asarray(self.descriptor.describe(semantic.detach().cpu()))).double()
+        query = torch.from_numpy(np.asarray(self.descriptor.describe(obs.semantic.detach().cpu()))).double()
         stack = torch.stack([self._descriptors[i] for i in ids]).double()
         unit = torch.nn.functional.normalize
         distances = (unit(stack, dim=1) - unit(query, dim=0)).norm(dim=1)
-        return [ids[i] for i in torch.argsort(distances, stable=True)[:k].tolist()]
+        by_descriptor = [ids[i] for i in torch.argsort(distances, stable=True).tolist() if ids[i] not in recognised]
+        return (recognised + by_descriptor)[:k]
 
     # --- persistence ----------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -233,8 +267,10 @@ class LoopClosure:
         return {
             "palette": self.palette.colors,
             "descriptors": [[frame_id, d] for frame_id, d in self._descriptors.items()],
-            "database": {"ids": torch.from_numpy(database.ids.copy()),
-                         "vectors": torch.from_numpy(database.vectors.copy())},
+            "database": (database.state_dict() if self.place_recognition == "bow" else
+                         {"ids": torch.from_numpy(database.ids.copy()),
+                          "vectors": torch.from_numpy(database.vectors.copy())}),
+            "rejected_candidates": self.rejected_candidates,
             "landmarks": [[frame_id, submap_id, scores] for frame_id, (submap_id, scores)
                           in self.detector._keyframes.items()],
             "records": [dataclasses.asdict(r) for r in self.records],
@@ -243,12 +279,22 @@ class LoopClosure:
 
     def load_state_dict(self, state: dict) -> None:
         """Restore what :meth:`state_dict` returned (onto a loop closure built with the same configuration)."""
+        saved_bow = "words" in state["database"]
+        if saved_bow != (self.place_recognition == "bow"):
+            raise ValueError(f"the saved loop closure's place recognition was {'bow' if saved_bow else 'a descriptor'}"
+                             f", this one's is {self.place_recognition}: load it with loop.place_recognition: "
+                             f"{'bow' if saved_bow else 'descriptor'}")
         self.palette.colors = state["palette"]
         self._descriptors = {int(frame_id): d for frame_id, d in state["descriptors"]}
-        database = self.detector.database = DescriptorDatabase(self.detector.database.dim,
-                                                               self.detector.database.backend)
-        for frame_id, vector in zip(state["database"]["ids"].tolist(), state["database"]["vectors"].numpy()):
-            database._append(frame_id, vector)  # stored unit vectors, not normalised again (bit-identical)
+        if saved_bow:
+            self.detector.database = BagOfWords(self.cfg.bow)
+            self.detector.database.load_state_dict(state["database"])
+        else:
+            database = self.detector.database = DescriptorDatabase(self.detector.database.dim,
+                                                                   self.detector.database.backend)
+            for frame_id, vector in zip(state["database"]["ids"].tolist(), state["database"]["vectors"].numpy()):
+                database._append(frame_id, vector)  # stored unit vectors, not normalised again (bit-identical)
+        self.rejected_candidates = int(state.get("rejected_candidates", 0))  # sessions saved before verification
         self.detector._keyframes = {int(f): (int(s), scores) for f, s, scores in state["landmarks"]}
         self.records = [LoopRecord(**r) for r in state["records"]]
         self.graphs.constraints = [LoopConstraint(**{**c, "sigmas": tuple(c["sigmas"])}) for c in state["constraints"]]
@@ -260,6 +306,27 @@ class LoopClosure:
             semantic = submap.observation(keyframe).semantic.detach().cpu()
             self._descriptors[keyframe.frame_id] = torch.from_numpy(np.asarray(self.descriptor.describe(semantic)))
         return self._descriptors[keyframe.frame_id]
+
+    def _features(self, obs: Observation):
+        return extract_features(obs.rgb, obs.depth, obs.camera, self.cfg.bow)
+
+    def _verifier(self, submaps: Sequence, obs: Observation, features):
+        """Geometric verification of candidates for a query keyframe (its observation and ORB features): the
+        candidate with the verified relative pose, or None (counted in :attr:`rejected_candidates`)."""
+        keyframes = {kf.frame_id: (s, kf) for s in submaps for kf in s.keyframes}
+
+        def check(candidate: LoopCandidate) -> LoopCandidate | None:
+            start = time.perf_counter()
+            submap, keyframe = keyframes[candidate.match_keyframe]
+            result = verify(features, self.detector.database.features[candidate.match_keyframe], obs,
+                            submap.observation(keyframe, obs.depth.device), self.cfg.bow,
+                            self.cfg.registration.max_depth_residual)
+            self.seconds["verify"] += time.perf_counter() - start
+            if not result.passed:
+                self.rejected_candidates += 1
+                return None
+            return dataclasses.replace(candidate, relative=result.relative, inliers=result.inliers)
+        return check
 
     def _landmark_scores(self, submap, keyframe: Keyframe) -> torch.Tensor:
         """Eq. 7 over the submap's Gaussians that the keyframe observes, computed where they are; (C,) on the CPU."""
@@ -300,9 +367,11 @@ class LoopClosure:
                                  f"{frame_id} in submap {submap_id}")
         measure = self._register_intra if candidate.intra else self._register_inter
         constraint, accepted = measure(candidate, by_id)
+        seconds = time.perf_counter() - start
+        self.seconds["register"] += seconds
         record = LoopRecord(candidate.query_keyframe, candidate.match_keyframe, candidate.query_submap,
-                            candidate.match_submap, candidate.intra, accepted, constraint.fitness,
-                            time.perf_counter() - start)
+                            candidate.match_submap, candidate.intra, accepted, constraint.fitness, seconds,
+                            candidate.inliers)
         self.records.append(record)
         return LoopOutcome(record, constraint if accepted else None)
 
@@ -312,14 +381,16 @@ class LoopClosure:
         index = {kf.frame_id: i for i, kf in enumerate(keyframes)}
         j, k = index[candidate.match_keyframe], index[candidate.query_keyframe]
         init = invert_pose(keyframes[k].cam_to_world) @ keyframes[j].cam_to_world
-        motion, fitness = align_keyframes(submap.observation(keyframes[j], self.device),
-                                          submap.observation(keyframes[k], self.device), init,
-                                          self.cfg.registration)
+        start = init if candidate.relative is None else invert_pose(candidate.relative).to(init)
+        motion, (overlap, fitness) = align_keyframes(submap.observation(keyframes[j], self.device),
+                                                     submap.observation(keyframes[k], self.device), start,
+                                                     self.cfg.registration)
         reg = self.cfg.registration
         constraint = LoopConstraint(candidate.match_keyframe, candidate.query_keyframe, candidate.match_submap,
                                     candidate.query_submap, invert_pose(motion.detach().cpu().double()),
                                     (reg.sigma_rotation, reg.sigma_translation), fitness, True)
-        return constraint, fitness >= reg.min_fitness and self._plausible(init, motion, abs(k - j))
+        accepted = overlap >= reg.min_overlap and fitness >= reg.min_fitness
+        return constraint, accepted and self._plausible(init, motion, abs(k - j))
 
     def _register_inter(self, candidate: LoopCandidate, by_id: dict) -> tuple[LoopConstraint, bool]:
         query, match = by_id[candidate.query_submap], by_id[candidate.match_submap]
@@ -331,13 +402,26 @@ class LoopClosure:
             source.load_cloud(self.device), self._poses(source), self._descriptor_stack(source),
             target.load_cloud(self.device), self._poses(target), self._descriptor_stack(target),
             source.keyframes[0].obs.camera, self.cfg.registration, self.descriptor, self.backend,
-            self.detector.max_descriptor_distance, loop_pair, current.detach().cpu().double())
+            self.cfg.descriptor_threshold(self.descriptor.kind), loop_pair, current.detach().cpu().double(),
+            self._verified_transform(candidate, source, target, loop_pair))
         first, last = sorted((target.submap_id, source.submap_id))
         between = sum(len(s.keyframes) for s in by_id.values() if first <= s.submap_id < last)
         constraint = LoopConstraint(ends[target.submap_id], ends[source.submap_id], target.submap_id,
                                     source.submap_id, registration.transform.detach().cpu().double(),
                                     registration.sigmas, registration.fine.fitness, False)
         return constraint, registration.accepted and self._plausible(current, registration.transform, between)
+
+    @staticmethod
+    def _verified_transform(candidate: LoopCandidate, source, target, loop_pair: tuple[int, int]) -> tuple:
+        """The source -> target submap transform that geometric verification measured (none without it):
+        T = T_t C T_s^-1 with the loop keyframes' poses T_s, T_t in their submaps and C target-camera-from-source."""
+        if candidate.relative is None:
+            return ()
+        target_from_source = (candidate.relative if target.submap_id == candidate.match_submap
+                              else invert_pose(candidate.relative))
+        pose_s, pose_t = (s.keyframes[i].cam_to_world.detach().cpu().double()
+                          for s, i in ((source, loop_pair[0]), (target, loop_pair[1])))
+        return (pose_t @ target_from_source.double() @ invert_pose(pose_s),)
 
     def _poses(self, submap) -> torch.Tensor:
         return torch.stack([kf.cam_to_world.detach().double().cpu() for kf in submap.keyframes])
@@ -349,11 +433,14 @@ class LoopClosure:
     def correct(self, submaps: Sequence, constraint: LoopConstraint) -> Correction:
         """Add an accepted loop to the pose graph of its level (:class:`LoopGraphs`, given the current keyframe poses
         and anchors), optimise it with every loop of that level so far and move the map (:meth:`apply`)."""
+        start = time.perf_counter()
         for s in submaps:
             self.graphs.set_anchor(s.submap_id, s.anchor)
             for kf in s.keyframes:
                 self.graphs.set_keyframe(kf.frame_id, s.submap_id, kf.cam_to_world)
-        return self.apply(submaps, self.graphs.add(constraint))
+        correction = self.apply(submaps, self.graphs.add(constraint))
+        self.seconds["correct"] += time.perf_counter() - start
+        return correction
 
     def apply(self, submaps: Sequence, update: PoseGraphUpdate) -> Correction:
         """Move the map to a pose-graph answer: anchors (:meth:`move_anchors`), then keyframes grouped by their
@@ -369,18 +456,25 @@ class LoopClosure:
         return Correction(anchors, keyframes, tuple(sorted(grouped)))
 
     def move_keyframes(self, submap, poses: dict[int, object]) -> int:
-        """Set the poses (submap frame, by frame id) of ``submap``'s non-fixed keyframes, then re-map the submap for
-        ``remap_iterations_per_keyframe`` iterations per keyframe with the poses held. Returns how many moved."""
-        moved = 0
+        """Set the poses (submap frame, by frame id) of ``submap``'s non-fixed keyframes, then re-map the submap with
+        the poses held for ``remap_iterations_per_keyframe`` iterations per keyframe that moved by more than the loop
+        edges' standard-deviation floors (``registration.sigma_translation`` / ``sigma_rotation``): a correction
+        within the measurement's own uncertainty leaves the map as it is. Returns how many moved."""
+        moved, displaced = 0, 0
+        reg = self.cfg.registration
         for kf in submap.keyframes:
             if kf.frame_id in poses and not kf.fixed:
-                kf.cam_to_world = torch.as_tensor(np.array(poses[kf.frame_id]), dtype=kf.cam_to_world.dtype,
-                                                  device=kf.cam_to_world.device)
+                pose = torch.as_tensor(np.array(poses[kf.frame_id]), dtype=kf.cam_to_world.dtype,
+                                       device=kf.cam_to_world.device)
+                change = invert_pose(kf.cam_to_world.detach().cpu().double()) @ pose.detach().cpu().double()
+                displaced += (float(change[:3, 3].norm()) > reg.sigma_translation
+                              or float(se3_log(change)[3:].norm()) > reg.sigma_rotation)
+                kf.cam_to_world = pose
                 moved += 1
-        if moved:
+        if displaced:
             keyframes = [Keyframe(kf.frame_id, submap.observation(kf, self.device), kf.cam_to_world.to(self.device),
                                   True) for kf in submap.keyframes]
-            iterations = self.cfg.remap_iterations_per_keyframe * len(keyframes)
+            iterations = self.cfg.remap_iterations_per_keyframe * displaced
             submap.cloud, _ = self.mapper.optimise(submap.load_cloud(self.device), keyframes, iterations,
                                                    optimise_poses=False)
         return moved
@@ -395,3 +489,5 @@ class LoopClosure:
                                             device=submap.anchor.device)
         return len(moved)
 
+
+PHASES = ("describe", "detect", "verify", "register", "correct")  # LoopClosure.seconds

@@ -391,12 +391,14 @@ def semantic_guided_registration(source_cloud: GaussianCloud, source_poses: torc
                                  features: DescriptorExtractor | None = None, backend: str = "auto",
                                  max_pair_distance: float | None = None,
                                  loop_pair: tuple[int, int] | None = None,
-                                 prior: torch.Tensor | None = None) -> Registration:
+                                 prior: torch.Tensor | None = None,
+                                 seeds: Sequence[torch.Tensor] = ()) -> Registration:
     """Coarse (Eq. 5, top-k descriptor pairs closer than ``max_pair_distance`` that agree with each other, or with
     ``loop_pair`` (source index, target index) when given) then fine (Eq. 6) registration of the source submap to
     the target. ``prior``: the current estimate of the transform (from the anchors); the fine step starts from it
     instead of the coarse estimate when more source pixels agree with the target there (look-alike views can mislead
-    Eq. 5, and a revisit under little drift is closer to the prior).
+    Eq. 5, and a revisit under little drift is closer to the prior). ``seeds``: more such starts (a transform
+    measured by geometric verification of the loop's keyframes).
 
     Keyframe poses (S, 4, 4) / (T, 4, 4) are cam_to_world in their own submap's frame, descriptors (S, D) / (T, D).
     Accepted by :func:`is_acceptable`.
@@ -409,7 +411,7 @@ def semantic_guided_registration(source_cloud: GaussianCloud, source_poses: torc
     middle = time.perf_counter()
     views = fine_views(coarse.pairs, source_poses, cfg.views)
     fine = fine_registration(source_cloud, target_cloud, source_poses[views], camera, coarse.transform, cfg,
-                             features, backend, () if prior is None else (prior,))
+                             features, backend, (*(() if prior is None else (prior,)), *seeds))
     end = time.perf_counter()
     return Registration(fine.transform, coarse, fine, is_acceptable(fine, cfg), edge_sigmas(fine, cfg),
                         middle - start, end - middle)
@@ -431,13 +433,12 @@ def edge_sigmas(fine: FineRegistration, cfg: RegistrationConfig) -> tuple[float,
 
 
 def align_keyframes(reference: Observation, current: Observation, init: torch.Tensor,
-                    cfg: RegistrationConfig) -> tuple[torch.Tensor, float]:
+                    cfg: RegistrationConfig) -> tuple[torch.Tensor, tuple[float, float]]:
     """Relative pose of two keyframes from their images (intra-submap loops): the colour + lambda_sem * semantic
     (+ w_depth * depth) residuals of Eq. 6 between the two observations, minimised coarse-to-fine by Gauss-Newton.
 
-    ``init``: current-camera-from-reference-camera (4x4) to start from. Returns that motion refined (float64) and the
-    fitness: the fraction of the reference's valid-depth pixels that land in the current image on a depth reading
-    within ``max_depth_residual``.
+    ``init``: current-camera-from-reference-camera (4x4) to start from. Returns that motion refined (float64) and
+    :func:`warp_agreement` (overlap, fitness) under it, with ``max_depth_residual``.
     """
     weights = AlignmentWeights(1.0, cfg.lambda_sem, cfg.w_depth, max_depth_residual=cfg.max_depth_residual)
     reference_pyramid = _pyramid(ObservedImages.build(reference.rgb, reference.semantic, reference.depth,
@@ -451,18 +452,23 @@ def align_keyframes(reference: Observation, current: Observation, init: torch.Te
             model = ModelView(stack[:3].permute(1, 2, 0), stack[3:6].permute(1, 2, 0), stack[6], stack[6] > 0,
                               ref.camera)
             motion, _ = align_level(model, cur, motion, weights, cfg.iterations)
-        fitness = _warp_fitness(reference, current, motion, cfg.max_depth_residual)
-    return motion.to("cpu", torch.float64), fitness
+        agreement = warp_agreement(reference, current, motion, cfg.max_depth_residual)
+    return motion.to("cpu", torch.float64), agreement
 
 
-def _warp_fitness(reference: Observation, current: Observation, motion: torch.Tensor, max_residual: float) -> float:
-    """Fraction of the reference's valid-depth pixels that ``motion`` maps onto a current depth within the bound."""
+def warp_agreement(reference: Observation, current: Observation, motion: torch.Tensor,
+                   max_residual: float) -> tuple[float, float]:
+    """(overlap, fitness) of two depth images under ``motion`` (current-camera-from-reference-camera): the fraction
+    of the reference's valid-depth pixels that land in the current image on a depth reading (overlap), and the
+    fraction of those whose depth agrees within ``max_residual`` (fitness)."""
     valid = reference.valid_depth
+    motion = motion.to(reference.depth.device, reference.depth.dtype)
     points = reference.camera.backproject(reference.depth)[valid] @ motion[:3, :3].T + motion[:3, 3]
     cam = current.camera
     uv = cam.project(points)
     u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
     inside = (points[:, 2] > 1e-3) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    measured = current.depth[v[inside], u[inside]]
-    hits = (measured > 0) & ((measured - points[inside, 2]).abs() < max_residual)
-    return int(hits.sum()) / max(int(valid.sum()), 1)
+    measured = current.depth.to(points.dtype)[v[inside], u[inside]]
+    seen = measured > 0
+    hits = seen & ((measured - points[inside, 2]).abs() < max_residual)
+    return int(seen.sum()) / max(int(valid.sum()), 1), int(hits.sum()) / max(int(seen.sum()), 1)

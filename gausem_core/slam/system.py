@@ -302,7 +302,7 @@ class GauSemSLAM:
             cfg = replace(cfg, min_inlier_fraction=min(cfg.min_inlier_fraction,
                                                        self.cfg.health.recovery_inlier_fraction))
         last = next(f for f in reversed(self.frames) if not f.lost)
-        ranked = (self.loop_closure.nearest_keyframes(obs.semantic, cfg.candidates)
+        ranked = (self.loop_closure.nearest_keyframes(obs, cfg.candidates)
                   if self.loop_closure is not None else [])
         local = invert_pose(last.submap.anchor) @ last.cam_to_world
         starts = relocalisation_starts(self.submaps, (last.submap, local), ranked, cfg.candidates)

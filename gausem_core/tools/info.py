@@ -6,8 +6,28 @@ import importlib.metadata
 import platform
 
 
-def add_arguments(parser) -> None:  # no options
-    del parser
+PLACE_RECOGNITION = {"bow": "bag of binary ORB words of the images, vocabulary learned online, verified by PnP",
+                     "dinov2": "DINOv2 CLS descriptor of the semantic image (the paper's)",
+                     "fallback": "colour-layout descriptor of the semantic image"}
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--params", default=None, help="ROS-format parameter YAML whose loop closure to describe "
+                                                       "(default: the built-in defaults)")
+
+
+def place_recognition(params: str | None = None) -> str:
+    """What a run with these parameters uses to find loop candidates (without loading any weights)."""
+    from gausem_core.config import load_config
+
+    cfg = load_config(params)
+    if not cfg.loop.enabled:
+        return "off (loop.enabled: false)"
+    semantics = cfg.semantics
+    kind = "dinov2" if semantics.descriptor == "dinov2" or (semantics.descriptor == "auto"
+                                                          and semantics.dinov2_weights) else "fallback"
+    chosen = cfg.loop.place_recognition_for(kind)
+    return f"{chosen}: {PLACE_RECOGNITION[chosen]}"
 
 
 def component_status() -> dict[str, str]:
@@ -20,7 +40,7 @@ def component_status() -> dict[str, str]:
 
     error = kernel_error()
     status["cpu renderer"] = "compiled C++ kernel" if error is None else f"torch only ({error})".splitlines()[0]
-    for dist, module in [("numpy", "numpy"), ("gtsam", "gtsam"), ("faiss-cpu", "faiss"), ("gsplat", "gsplat"),
+    for dist, module in [("numpy", "numpy"), ("opencv-python-headless", "cv2"), ("gtsam", "gtsam"), ("faiss-cpu", "faiss"), ("gsplat", "gsplat"),
                          ("transformers", "transformers"), ("rosbags", "rosbags"), ("rclpy", "rclpy")]:
         try:
             importlib.import_module(module)
@@ -31,7 +51,7 @@ def component_status() -> dict[str, str]:
 
 
 def main(args) -> int:
-    del args
-    for name, value in component_status().items():
-        print(f"{name:>14}  {value}")
+    status = {**component_status(), "place recognition": place_recognition(args.params)}
+    for name, value in status.items():
+        print(f"{name:>17}  {value}")
     return 0

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
 import torch
@@ -22,6 +22,8 @@ class LoopCandidate:
     match_submap: int
     descriptor_distance: float
     landmark_distance: float
+    relative: torch.Tensor | None = None  # geometric verification's match-camera-from-query-camera (float64 4x4)
+    inliers: int = 0  # geometric verification's PnP inliers
 
     @property
     def intra(self) -> bool:
@@ -36,6 +38,14 @@ class LoopDetector:
     score vector is closest to the query's is the loop. Stored keyframes the caller names as ``nearby`` (close in the
     current pose estimate) are candidates too, at every keyframe: a revisit under small drift needs no descriptor.
 
+    ``database`` holds the keyframes' place signatures: by default a
+    :class:`~gausem_core.slam.loop.DescriptorDatabase` of global descriptors; anything with its ``add``, ``search``
+    (ids and distances, closest first), ``ids`` and ``len`` will do (the bag of words,
+    :class:`~gausem_core.slam.loop.words.BagOfWords`). The landmark re-ranking needs classes: with score vectors of
+    fewer than two classes the candidates keep their descriptor order. A caller's ``verify`` (candidate -> the
+    candidate it confirms, or None) is tried on the ranked candidates, at most ``verify_candidates`` of them, and the
+    first it confirms is the loop.
+
     Landmark score vectors (:func:`~gausem_core.slam.loop.landmarks.landmark_scores`) are computed by the caller, who
     owns the Gaussians; a stored keyframe is compared with the vector it was added with. Vectors may grow as classes
     are discovered (classes appended at the end): a shorter vector is compared zero-padded, which is exact, since a
@@ -43,9 +53,11 @@ class LoopDetector:
     """
 
     def __init__(self, *, keyframe_every: int = 5, check_every: int = 6, max_descriptor_distance: float = 0.2,
-                 exclude_recent: int = 6, min_submap_gap: int = 0, descriptor_dim: int = 384, backend: str = "auto"):
+                 exclude_recent: int = 6, min_submap_gap: int = 0, descriptor_dim: int = 384, backend: str = "auto",
+                 database=None, verify_candidates: int = 1):
         for name, value, low in (("keyframe_every", keyframe_every, 1), ("check_every", check_every, 1),
-                                 ("exclude_recent", exclude_recent, 0), ("min_submap_gap", min_submap_gap, 0)):
+                                 ("exclude_recent", exclude_recent, 0), ("min_submap_gap", min_submap_gap, 0),
+                                 ("verify_candidates", verify_candidates, 1)):
             if value < low:
                 raise ValueError(f"LoopDetector: {name} must be >= {low}, got {value}")
         if max_descriptor_distance <= 0:
@@ -55,12 +67,16 @@ class LoopDetector:
         self.max_descriptor_distance = max_descriptor_distance
         self.exclude_recent = exclude_recent
         self.min_submap_gap = min_submap_gap
-        self.database = DescriptorDatabase(descriptor_dim, backend)
+        self.verify_candidates = verify_candidates
+        self.database = database if database is not None else DescriptorDatabase(descriptor_dim, backend)
         self._keyframes: dict[int, tuple[int, torch.Tensor]] = {}  # keyframe id -> (submap id, landmark scores)
 
     @classmethod
     def from_config(cls, cfg: LoopConfig, descriptor_kind: str, **kwargs) -> "LoopDetector":
-        """The detector of ``cfg`` for descriptors of ``descriptor_kind`` (which picks the distance threshold)."""
+        """The detector of ``cfg`` for signatures of ``descriptor_kind`` (which picks the distance threshold; "bow":
+        pass the :class:`~gausem_core.slam.loop.words.BagOfWords` as ``database``)."""
+        if descriptor_kind == "bow":
+            kwargs.setdefault("verify_candidates", cfg.bow.candidates)
         return cls(keyframe_every=cfg.keyframe_every, check_every=cfg.check_every,
                    max_descriptor_distance=cfg.descriptor_threshold(descriptor_kind),
                    exclude_recent=cfg.exclude_recent, **kwargs)
@@ -69,28 +85,33 @@ class LoopDetector:
         """Algorithm 1, line 1: a keyframe every ``keyframe_every`` frames (frame 0 is one)."""
         return frame_index % self.keyframe_every == 0
 
-    def add_keyframe(self, keyframe_id: int, submap_id: int, descriptor: torch.Tensor,
-                     landmark_scores: torch.Tensor, nearby: Iterable[int] = ()) -> LoopCandidate | None:
+    def add_keyframe(self, keyframe_id: int, submap_id: int, descriptor, landmark_scores: torch.Tensor,
+                     nearby: Iterable[int] = (),
+                     verify: Callable[[LoopCandidate], LoopCandidate | None] | None = None) -> LoopCandidate | None:
         """Check the keyframe for a loop (descriptors on every ``check_every``-th call, ``nearby`` keyframe ids on
-        every call), then store it. Returns the loop or None."""
+        every call), then store it. ``descriptor``: the keyframe's signature for the database. Returns the loop or
+        None."""
         if landmark_scores.dim() != 1:
             raise ValueError(f"LoopDetector.add_keyframe: landmark scores of keyframe {keyframe_id} must be a vector, "
                              f"got shape {tuple(landmark_scores.shape)}")
         is_check = (len(self.database) + 1) % self.check_every == 0
         nearby = set(nearby)
-        loop = (self._detect(keyframe_id, submap_id, descriptor, landmark_scores, is_check, nearby)
-                if is_check or nearby else None)
+        ranked = (self._candidates(keyframe_id, submap_id, descriptor, landmark_scores, is_check, nearby)
+                  if is_check or nearby else [])
+        loop = next((c for c in map(verify, ranked[:self.verify_candidates]) if c is not None), None) \
+            if verify is not None else next(iter(ranked), None)
         self.database.add(keyframe_id, descriptor)
         self._keyframes[keyframe_id] = (submap_id, landmark_scores.detach().cpu())
         return loop
 
-    def _detect(self, keyframe_id, submap_id, descriptor, landmark_scores, by_descriptor: bool,
-                nearby: set[int]) -> LoopCandidate | None:
+    def _candidates(self, keyframe_id, submap_id, descriptor, landmark_scores, by_descriptor: bool,
+                    nearby: set[int]) -> list[LoopCandidate]:
+        """The candidates, closest landmark vector first when there are classes (ties: closest descriptor first)."""
         searchable = len(self.database) - self.exclude_recent
         if searchable <= 0:
-            return None
+            return []
         ids, distances = self.database.search(descriptor, k=searchable, exclude_recent=self.exclude_recent)
-        best = None
+        candidates = []
         for match, desc_dist in zip(ids.tolist(), distances.tolist()):
             if not ((by_descriptor and desc_dist < self.max_descriptor_distance) or match in nearby):
                 continue
@@ -98,9 +119,10 @@ class LoopDetector:
             if submap_id - match_submap < self.min_submap_gap:
                 continue
             land_dist = landmark_distance(*_zero_padded(landmark_scores.detach().cpu(), match_scores))
-            if best is None or land_dist < best.landmark_distance:
-                best = LoopCandidate(keyframe_id, match, submap_id, match_submap, desc_dist, land_dist)
-        return best
+            candidates.append(LoopCandidate(keyframe_id, match, submap_id, match_submap, desc_dist, land_dist))
+        if len(landmark_scores) > 1:
+            candidates.sort(key=lambda c: c.landmark_distance)  # stable: descriptor order on ties
+        return candidates
 
 
 def nearby_keyframes(query: torch.Tensor, poses: Mapping[int, torch.Tensor], radius: float,

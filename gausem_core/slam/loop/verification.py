@@ -1,0 +1,79 @@
+"""Geometric verification of a loop candidate before registration: feature matches + depth -> RANSAC PnP, then the
+whole views' depth agreement under that pose.
+
+The query's ORB descriptors are matched to the match keyframe's (nearest neighbour whose Hamming distance is below
+``match_ratio`` times the second nearest's, and mutual); the matches whose match-keyframe point has depth give 3D-2D
+correspondences for RANSAC PnP (EPnP inside, then Levenberg-Marquardt on the inliers). A candidate passes when at least ``min_inliers`` correspondences agree on a pose and,
+under it, the match keyframe's depth image lands in the query's view (``min_overlap``) and agrees with its depth there
+(``min_fitness``). The last test rejects perceptual aliasing: a texture repeated elsewhere (the same poster on
+another wall) gives a consistent PnP pose on its own pixels, but the rest of the view is somewhere else.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from gausem_core.config import BowConfig
+from gausem_core.geometry import invert_pose
+from gausem_core.slam.loop.words import OrbFeatures
+from gausem_core.slam.observation import Observation
+from gausem_core.slam.registration import warp_agreement
+
+
+@dataclass(frozen=True)
+class Verification:
+    """A candidate's check: ``matches`` with depth, PnP ``inliers``, the views' ``overlap`` and ``fitness`` under
+    the PnP pose, whether it passed, and ``relative``: the query camera's pose in the match camera's frame
+    (match-camera-from-query-camera, float64 4x4; None when PnP found none)."""
+
+    passed: bool
+    matches: int
+    inliers: int
+    overlap: float
+    fitness: float
+    relative: torch.Tensor | None
+
+
+def match_features(query: OrbFeatures, match: OrbFeatures, ratio: float) -> np.ndarray:
+    """(M, 2) index pairs (query, match) of mutual nearest neighbours passing the ratio test."""
+    if len(query) < 2 or len(match) < 2:
+        return np.zeros((0, 2), np.int64)
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    forward = matcher.knnMatch(query.descriptors, match.descriptors, k=2)
+    backward = {m.queryIdx: m.trainIdx for m in matcher.match(match.descriptors, query.descriptors)}
+    pairs = [(m.queryIdx, m.trainIdx) for m, n in (p for p in forward if len(p) == 2)
+             if m.distance < ratio * n.distance and backward.get(m.trainIdx) == m.queryIdx]
+    return np.array(pairs, np.int64).reshape(-1, 2)
+
+
+def verify(query: OrbFeatures, match: OrbFeatures, query_obs: Observation, match_obs: Observation,
+           cfg: BowConfig, max_depth_residual: float) -> Verification:
+    """Check that the query keyframe sees the match keyframe's place (see the module docstring)."""
+    pairs = match_features(query, match, cfg.match_ratio)
+    if len(pairs):
+        pairs = pairs[np.isfinite(match.points[pairs[:, 1], 2])]
+    if len(pairs) < max(cfg.min_inliers, 4):
+        return Verification(False, len(pairs), 0, 0.0, 0.0, None)
+    camera = query_obs.camera
+    intrinsics = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]], np.float64)
+    found, rotation, translation, inliers = cv2.solvePnPRansac(
+        match.points[pairs[:, 1]].astype(np.float64), query.keypoints[pairs[:, 0]].astype(np.float64), intrinsics,
+        None, iterationsCount=200, reprojectionError=cfg.max_reprojection_error / query.scale, confidence=0.999,
+        flags=cv2.SOLVEPNP_EPNP)
+    count = 0 if inliers is None else len(inliers)
+    if not found or count < cfg.min_inliers:
+        return Verification(False, len(pairs), count, 0.0, 0.0, None)
+    kept = pairs[inliers.reshape(-1)]
+    rotation, translation = cv2.solvePnPRefineLM(match.points[kept[:, 1]].astype(np.float64),
+                                                 query.keypoints[kept[:, 0]].astype(np.float64), intrinsics, None,
+                                                 rotation, translation)
+    query_from_match = torch.eye(4, dtype=torch.float64)
+    query_from_match[:3, :3] = torch.from_numpy(cv2.Rodrigues(rotation)[0])
+    query_from_match[:3, 3] = torch.from_numpy(translation.reshape(3))
+    with torch.no_grad():
+        overlap, fitness = warp_agreement(match_obs, query_obs, query_from_match, max_depth_residual)
+    passed = overlap >= cfg.min_overlap and fitness >= cfg.min_fitness
+    return Verification(passed, len(pairs), count, overlap, fitness, invert_pose(query_from_match))
