@@ -33,7 +33,8 @@ from gausem_core.config import load_config  # noqa: E402
 from gausem_core.data.tum import TumDataset  # noqa: E402
 from gausem_core.eval.loops import DEFAULT_PROTOCOL, loop_scores, view_overlap  # noqa: E402
 from gausem_core.io.metrics import git_commit  # noqa: E402
-from gausem_core.pipeline import UNLABELLED_PALETTE, Pipeline  # noqa: E402
+from gausem_core.pipeline import Pipeline  # noqa: E402
+from gausem_core.semantics.source import UNLABELLED_PALETTE  # noqa: E402
 from gausem_core.report import estimated_trajectory, ground_truth_trajectory, trajectory_metrics  # noqa: E402
 from gausem_core.slam.observation import Observation  # noqa: E402
 

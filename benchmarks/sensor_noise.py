@@ -17,8 +17,9 @@ from pathlib import Path
 from gausem_core.config import SensorConfig, load_config
 from gausem_core.data import SyntheticDataset
 from gausem_core.data.sensor import COLOR_EFFECTS, DEPTH_EFFECTS
-from gausem_core.eval.trajectory import absolute_trajectory_error, associate_trajectories, read_tum_trajectory
+from gausem_core.eval.trajectory import absolute_trajectory_error, associate_trajectories
 from gausem_core.io.metrics import git_commit
+from gausem_core.io.trajectory import read_tum_trajectory
 from gausem_core.pipeline import Pipeline
 from gausem_core.report import write_outputs
 from gausem_core.tools.run import default_params_file, parse_override, parse_size
