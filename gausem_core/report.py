@@ -206,11 +206,26 @@ def write_tracking_status(path: Path, result: RunResult) -> dict[str, int]:
     return {status: counts[status] for status in STATUSES}
 
 
+LOOP_COLUMNS = ("query_frame", "match_frame", "query_submap", "match_submap", "intra", "accepted", "fitness", "inliers",
+                "seconds")
+
+
+def write_loops(path: Path, records) -> None:
+    """Write one CSV row per detected loop (:class:`~gausem_core.slam.loop_closure.LoopRecord`), accepted or not."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(LOOP_COLUMNS)
+        for record in records:
+            writer.writerow([f"{v:.6g}" if isinstance(v, float) else int(v) for v in
+                             (getattr(record, name) for name in LOOP_COLUMNS)])
+
+
 def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, *, eval_every: int = 5,
                   params_file: str | Path | None = None) -> dict:
     """Write a run's outputs into ``out`` and return its metrics.
 
-    Files: ``trajectory.txt`` (TUM, estimate), ``tracking_status.csv`` (per-frame tracking health, its counts per
+    Files: ``trajectory.txt`` (TUM, estimate), ``loops.csv`` (every detected loop, with loop closure on),
+    ``tracking_status.csv`` (per-frame tracking health, its counts per
     status in the metrics' ``tracking_status``), ``keyframes.txt`` (TUM, keyframe poses), ``map.ply`` (3DGS-style,
     class ids unless the run has no labels and no segmenter), ``metrics.json``, ``montage.png`` and, with ground truth,
     ``trajectory_gt.txt`` and ``trajectory.png`` (SE(3)-aligned estimate vs ground truth).
@@ -247,6 +262,7 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
                             "descriptor": descriptor.kind if descriptor is not None else None}
     if result.slam.loop_closure is not None:
         metrics["loops"] = loop_metrics(result)
+        write_loops(out / "loops.csv", result.slam.loop_closure.records)
 
     parameters = {**flatten(cfg), "params_file": params_file, "dataset": getattr(dataset, "name", None),
                   "eval_every": eval_every}

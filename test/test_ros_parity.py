@@ -1,7 +1,8 @@
-"""Lock-step ROS runs give the offline pipeline's trajectory (max pose difference <= 1 mm): all nodes in one process
+"""Lock-step ROS runs give the offline pipeline's trajectory (max pose difference <= 1 mm) and loops: all nodes in one process
 (``gausem-ros`` on a ROS 2 bag written by ``gausem-bag``, evaluated with ``--report``, as ``make demo`` runs it) and the
 nodes as separate processes (``gausem-launch``) fed from a ROS 1 bag with the TUM topic names, seen by a plain rclpy
 subscriber."""
+import csv
 import json
 import os
 import signal
@@ -50,12 +51,31 @@ def _env(domain_id: int) -> dict:
             "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 
 
+# every keyframe checks every earlier one, and keyframes within 1 m are candidates too: keyframe 4 -> 0 is a loop
+# (the global-descriptor place recognition: 80x60 frames give the bag of words too few ORB features to verify it)
+LOOPS = {**SLAM, "loop.keyframe_every": 4, "loop.check_every": 1, "loop.exclude_recent": 0,
+         "loop.proximity_radius": 1.0, "loop.place_recognition": "descriptor"}
+
+
+def _offline_run(overrides: dict):
+    cfg = load_config(PARAMS, overrides)
+    return Pipeline(open_dataset("synthetic", size=SIZE, max_frames=FRAMES), cfg, progress=False).run()
+
+
 @pytest.fixture(scope="module")
 def offline():
     """(timestamps, poses) of the offline pipeline with the same parameter file and overrides."""
-    cfg = load_config(PARAMS, SLAM)
-    result = Pipeline(open_dataset("synthetic", size=SIZE, max_frames=FRAMES), cfg, progress=False).run()
+    result = _offline_run(SLAM)
     return result.timestamps, result.poses
+
+
+@pytest.fixture(scope="module")
+def offline_with_loops():
+    """(timestamps, poses, loop records as (query, match, query submap, match submap, accepted))."""
+    result = _offline_run(LOOPS)
+    records = [(r.query_frame, r.match_frame, r.query_submap, r.match_submap, r.accepted)
+               for r in result.slam.loop_closure.records]
+    return result.timestamps, result.poses, records
 
 
 def _assert_same_trajectory(stamps, poses, offline) -> None:
@@ -71,17 +91,22 @@ def _assert_same_trajectory(stamps, poses, offline) -> None:
 
 
 @pytest.mark.slow
-def test_all_nodes_in_one_process_on_a_bag_match_the_offline_pipeline(tmp_path, offline):
+def test_all_nodes_in_one_process_on_a_bag_match_the_offline_pipeline_and_its_loops(tmp_path, offline_with_loops):
     bag, out = _bag(tmp_path / "bag", "sqlite3"), tmp_path / "out"
     cmd = [sys.executable, "-m", "gausem_ros.run_all", str(bag), "--rate", "0", "--lockstep", "--timeout", "60",
            "--report", str(out), "--reference", "synthetic", "--ros-args", "--params-file", str(PARAMS),
-           *ros_param_args(SLAM)]
+           *ros_param_args(LOOPS)]
     result = subprocess.run(cmd, env=_env(121), cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-3000:]
     assert (f"frames in {FRAMES}, processed {FRAMES}, dropped 0, pending 0; latency" in result.stderr
             and f"player published {FRAMES} frames (0 lock-step timeouts)" in result.stderr)
     estimate = read_tum_trajectory(out / "trajectory.txt")
-    _assert_same_trajectory(estimate.stamps, estimate.poses, offline)
+    stamps, poses, loops = offline_with_loops
+    _assert_same_trajectory(estimate.stamps, estimate.poses, (stamps, poses))
+    rows = list(csv.DictReader((out / "loops.csv").open()))  # the same loops as gausem run, accepted or not
+    assert [(int(r["query_frame"]), int(r["match_frame"]), int(r["query_submap"]), int(r["match_submap"]),
+             bool(int(r["accepted"]))) for r in rows] == loops
+    assert [(q, m) for q, m, *_ in loops] == [(4, 0)]
 
     metrics = json.loads((out / "metrics.json").read_text())["metrics"]
     assert metrics["frames"] == metrics["ate"]["pairs"] == FRAMES and metrics["rendering"]["frames"] == 2
