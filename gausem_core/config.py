@@ -26,6 +26,9 @@ class TrackingConfig:
     huber_delta: float = 0.01  # Gauss-Newton: |r| below this is weighted quadratically (IRLS floor of the L1 weights)
     max_depth_residual: float = 0.1  # Gauss-Newton: metres; larger depth residuals are treated as occlusions
     max_depth_slope: float = 3.0  # Gauss-Newton: observed depth slopes beyond this (~72 deg) are discontinuities
+    # Gauss-Newton: compare colour divided by its local mean (a Gaussian of sigma this fraction of the image width),
+    # blind to vignetting, exposure and white balance (slam.photometric); 0: raw colour
+    color_normalisation_width: float = 0.1
     iterations: int = 60  # Adam iterations
     lr_translation: float = 1e-2
     lr_rotation: float = 1e-2

@@ -35,7 +35,7 @@ def gaussian_window(size: int = _WINDOW_SIZE, sigma: float = _WINDOW_SIGMA, dtyp
     return g / g.sum()
 
 
-def _blur(x: torch.Tensor, window: torch.Tensor) -> torch.Tensor:
+def gaussian_blur(x: torch.Tensor, window: torch.Tensor) -> torch.Tensor:
     """Separable zero-padded Gaussian filter of every channel of (B, C, H, W)."""
     c, k = x.shape[1], window.numel()
     x = F.conv2d(x, window.view(1, 1, 1, k).expand(c, 1, 1, k), padding=(0, k // 2), groups=c)
@@ -48,10 +48,10 @@ def ssim_map(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
     check_pair(img1, img2)
     x, y = as_bchw(img1, "img1"), as_bchw(img2, "img2")
     window = gaussian_window(dtype=x.dtype, device=x.device)
-    mu_x, mu_y = _blur(x, window), _blur(y, window)
-    var_x = _blur(x * x, window) - mu_x**2
-    var_y = _blur(y * y, window) - mu_y**2
-    cov = _blur(x * y, window) - mu_x * mu_y
+    mu_x, mu_y = gaussian_blur(x, window), gaussian_blur(y, window)
+    var_x = gaussian_blur(x * x, window) - mu_x**2
+    var_y = gaussian_blur(y * y, window) - mu_y**2
+    cov = gaussian_blur(x * y, window) - mu_x * mu_y
     num = (2 * mu_x * mu_y + _C1) * (2 * cov + _C2)
     den = (mu_x**2 + mu_y**2 + _C1) * (var_x + var_y + _C2)
     return num / den

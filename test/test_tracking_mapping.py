@@ -7,6 +7,7 @@ import torch
 
 from gausem_core.config import SlamConfig
 from gausem_core.data import open_dataset
+from gausem_core.data.sensor import vignetting
 from gausem_core.geometry import invert_pose, project_to_se3, se3_exp, so3_log
 from gausem_core.pipeline import Pipeline
 from gausem_core.render import render
@@ -68,6 +69,27 @@ def test_tracker_follows_the_next_frames_with_constant_velocity(scene):
         translation, rotation = pose_error(poses[-1], truths[k])
         motion = float((truths[k][:3, 3] - truths[k - 1][:3, 3]).norm())
         assert translation < 0.25 * motion and rotation < 0.5, (k, translation, rotation)
+
+
+def test_gauss_newton_tracking_on_local_contrast_is_not_pulled_by_vignetting_and_gains(scene):
+    """Map and frames all darkened to 75 % in the corners, the tracked frame with other exposure and white-balance
+    gains than the mapped one: on raw colour a surface's brightness changes as it moves across the image, which
+    pulls the estimate towards no motion; colour over its local mean is blind to that."""
+    cfg, _, observations, truths, _ = scene
+    falloff = torch.from_numpy(vignetting(observations[0].camera, 0.75)).to(torch.float32)[..., None]
+    mapped = dataclasses.replace(observations[0], rgb=observations[0].rgb * falloff)
+    seen = dataclasses.replace(observations[2], rgb=(observations[2].rgb * falloff * torch.tensor([1.0, 1.2, 1.4]))
+                               .clamp(0, 1))
+    mapper = Mapper(cfg.mapping, "torch", seed=0)
+    cloud, _ = mapper.optimise(mapper.initialise(mapped, torch.eye(4)), [Keyframe(0, mapped, torch.eye(4), fixed=True)],
+                               cfg.mapping.init_iterations)
+    motion = float((truths[2][:3, 3] - truths[0][:3, 3]).norm())
+    width = cfg.tracking.color_normalisation_width
+    assert width > 0  # on by default
+    errors = {w: pose_error(Tracker(dataclasses.replace(cfg.tracking, color_normalisation_width=w), "torch")
+                            .track(cloud, seen, truths[0]).cam_to_world, truths[2]) for w in (0.0, width)}
+    assert errors[width][0] < 0.1 * motion and errors[width][1] < 0.25, errors
+    assert errors[width][0] < 0.75 * errors[0.0][0] and errors[width][1] < 0.6 * errors[0.0][1], errors
 
 
 def test_constant_velocity_repeats_the_last_motion_and_stays_rigid():

@@ -14,6 +14,7 @@ from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, Obse
                                                 alignment_cost, model_samples, normal_equations)
 from gausem_core.slam.losses import tracking_loss
 from gausem_core.slam.observation import Observation
+from gausem_core.slam.photometric import local_contrast
 
 METHODS = ("gauss_newton", "adam")
 
@@ -91,6 +92,7 @@ class Tracker:
         pyramid = [ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera)]
         for _ in range(cfg.pyramid_levels - 1):
             pyramid.append(pyramid[-1].downsampled())
+        pyramid = [self._compared_colour(level) for level in pyramid]
         eye = torch.eye(4, dtype=cloud.dtype, device=cloud.means.device)
         with torch.no_grad():
             coarse = [self._align(cloud, start.to(cloud.dtype), pyramid[-1], weights, eye) for start in starts]
@@ -117,7 +119,17 @@ class Tracker:
         return pose
 
     def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
-        return model_view(cloud, cam_to_world, camera, self.cfg, self.backend)
+        view = model_view(cloud, cam_to_world, camera, self.cfg, self.backend)
+        view.color = local_contrast(view.color, self.cfg.color_normalisation_width, view.mask)
+        return view
+
+    def _compared_colour(self, level: ObservedImages) -> ObservedImages:
+        """The level with the colour that is compared with the model views' (``slam.photometric``)."""
+        if self.cfg.color_normalisation_width <= 0:
+            return level
+        s = level.stack
+        return ObservedImages.build(local_contrast(s[:3].permute(1, 2, 0), self.cfg.color_normalisation_width),
+                                    s[3:6].permute(1, 2, 0), s[6], level.camera)
 
     def _track_adam(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor) -> TrackingResult:
         cfg = self.cfg
