@@ -69,7 +69,10 @@ def test_outputs_of_an_exact_run(tmp_path):
 
     names = {p.name for p in tmp_path.iterdir()}
     assert names == {"trajectory.txt", "trajectory_gt.txt", "keyframes.txt", "map.ply", "metrics.json",
-                     "tracking_status.csv", "montage.png", "trajectory.png"}
+                     "tracking_status.csv", "loops.csv", "montage.png", "trajectory.png"}
+    loops = (tmp_path / "loops.csv").read_text().splitlines()
+    assert loops[0].split(",")[:6] == ["query_frame", "match_frame", "query_submap", "match_submap", "intra",
+                                       "accepted"] and len(loops) == 1 + metrics["loops"]["detected"]
     gt = np.stack([dataset[i].gt_pose for i in range(4)])
     estimate = read_tum_trajectory(tmp_path / "trajectory.txt")
     np.testing.assert_allclose(estimate.stamps, [0, 0.1, 0.2, 0.3], atol=1e-6)
@@ -119,7 +122,7 @@ def test_run_without_labels_or_ground_truth(tmp_path):
     metrics = write_outputs(result, dataset, config(), tmp_path, eval_every=1)
     names = {p.name for p in tmp_path.iterdir()}
     assert names == {"trajectory.txt", "keyframes.txt", "map.ply", "metrics.json", "montage.png",
-                     "tracking_status.csv"}
+                     "tracking_status.csv", "loops.csv"}
     assert "ate" not in metrics and math.isnan(metrics["rendering"]["miou"])
     assert metrics["rendering"]["frames"] == 4
     assert read_gaussian_ply(tmp_path / "map.ply")[1] is None  # no class table: no class ids
