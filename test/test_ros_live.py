@@ -77,8 +77,9 @@ def test_a_slow_tracker_skips_to_the_newest_frame_and_accounts_for_every_input()
         assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == summary["frames_processed"],
                           5.0)
     # 29 frame periods (~1 s) of recorded time: the player is not starved by the tracker (with one executor thread
-    # for all, each frame waited for the tracker's 0.2+ s)
-    assert player.published == frames and player.playback_seconds < 4.0
+    # for all, each frame waited for the tracker's 0.2+ s: >= 5.8 s); after the player tests in one process it took
+    # up to 4.4 s (the test alone passes the old 4 s bound), hence the margin
+    assert player.published == frames and player.playback_seconds < 5.0
     assert summary["frames_in"] == frames, summary
     dropped = summary["dropped"]
     assert summary["frames_processed"] + sum(dropped.values()) == frames
