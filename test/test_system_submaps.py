@@ -124,7 +124,7 @@ def test_apply_pose_graph_moves_anchors_and_keyframes_and_frames_follow(sequence
                              anchors={1: (shift @ slam.submaps[1].anchor.double()).numpy(), 7: shift.numpy()})
     correction = slam.apply_pose_graph(update)
     after = [p for _, p in slam.trajectory()]
-    assert (correction.anchors, correction.keyframes, correction.remapped) == (1, 1, (0,))  # unknown ids ignored
+    assert (correction.anchors, correction.keyframes, correction.submaps) == (1, 1, (0,))  # unknown ids ignored
     assert torch.allclose(slam.submaps[0].keyframes[1].cam_to_world.double(), moved_kf, atol=1e-6)
     for i in range(6, 10):  # frames of submap 1 follow its anchor
         assert torch.allclose(after[i].double(), shift @ before[i].double(), atol=1e-5)

@@ -5,8 +5,12 @@ onto SE(3) when finite)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
+
+if TYPE_CHECKING:  # loop_closure imports this module
+    from gausem_core.slam.loop_closure import LoopOutcome
 
 
 @dataclass(frozen=True)
@@ -32,11 +36,12 @@ class SubmapChange:
 
 @dataclass(frozen=True)
 class Correction:
-    """A pose-graph answer applied to the map: how many anchors and keyframes moved, which submaps were re-mapped."""
+    """A pose-graph answer applied to the map: how many anchors and keyframes moved, and the submaps whose keyframes
+    moved (each re-mapped when a keyframe moved beyond the loop edges' sigma floors)."""
 
     anchors: int
     keyframes: int
-    remapped: tuple[int, ...] = ()
+    submaps: tuple[int, ...] = ()
 
     def __bool__(self) -> bool:
         return bool(self.anchors or self.keyframes)
@@ -45,9 +50,9 @@ class Correction:
 @dataclass(frozen=True)
 class FrameEvents:
     """The events of one processed frame: the keyframe it made (if any), the submaps closed and opened (in that
-    order) and the loop closure's outcome (a ``LoopOutcome``: detected, registered, accepted or not, the correction)."""
+    order) and the loop closure's outcome (detected, registered, accepted or not, the correction applied)."""
 
     keyframe: KeyframeState | None = None
     submaps: tuple[SubmapChange, ...] = ()
-    loop: object | None = None
+    loop: LoopOutcome | None = None
 

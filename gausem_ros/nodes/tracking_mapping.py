@@ -466,7 +466,7 @@ class TrackingMappingNode(Node):
             return
         correction = self.slam.apply_pose_graph(ma.pose_graph_update_to_core(update))
         self.get_logger().info(f"pose graph update of {len(update.nodes)} poses: moved {correction.anchors} submaps "
-                               f"and {correction.keyframes} keyframes (re-mapped {len(correction.remapped)} submaps)")
+                               f"and {correction.keyframes} keyframes (in {len(correction.submaps)} submaps)")
         if correction:
             self._publish_path()
             self._map_dirty = True
