@@ -8,7 +8,7 @@ import torch
 from gausem_core.config import SubmapConfig
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.eval.fragmentation import allocation_cohesion, object_instances, split_visits, submap_cohesion
-from gausem_core.geometry import PinholeCamera, make_pose, se3_exp
+from gausem_core.geometry import PinholeCamera, se3_exp
 from gausem_core.slam.allocation import (
     Frustum, FrustumUnion, MotionAllocation, SemanticAllocation, SubmapExtent, class_histogram, class_kl,
     depth_range, euler_xyz_deg, frustum_corners, frustum_iou, frustum_overlap, frustum_volume, make_allocation,
