@@ -49,23 +49,23 @@ def test_the_player_paces_on_the_wall_clock_even_when_told_to_use_sim_time():
     assert player.get_parameter("use_sim_time").value is False
 
 
-@pytest.mark.xfail(strict=False, reason="flaky in the full suite: after the player tests in one process the player's "
-                   "30 frames took 4.1-7.3 s to publish (passes alone); cause not found yet")
 def test_a_slow_tracker_skips_to_the_newest_frame_and_accounts_for_every_input():
-    """30 frames at 30 Hz into a tracker that needs >= 0.2 s a frame: the player is not starved, the tracker never
-    builds a backlog (latency within two processing times plus a frame period), and frames in = processed + dropped
-    + pending."""
+    """30 frames at 30 Hz into a tracker that needs >= 0.2 s a frame: the player is not starved (it publishes while a
+    frame is processed), the tracker never builds a backlog (latency within two processing times plus a frame
+    period), and frames in = processed + dropped + pending."""
     frames = 30
     durations = []
+    published_during = []  # frames the player published while the tracker processed one
     with ros_session(131) as (ctx, executor):
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
         process = tracking.slam.process
 
         def slow(obs):
-            start = time.monotonic()
+            start, before = time.monotonic(), player.published
             time.sleep(0.2)
             result = process(obs)
             durations.append(time.monotonic() - start)
+            published_during.append(player.published - before)
             return result
 
         tracking.slam.process = slow
@@ -78,10 +78,9 @@ def test_a_slow_tracker_skips_to_the_newest_frame_and_accounts_for_every_input()
         summary = tracking.summary()
         assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == summary["frames_processed"],
                           5.0)
-    # 29 frame periods (~1 s) of recorded time: the player is not starved by the tracker (with one executor thread
-    # for all, each frame waited for the tracker's 0.2+ s: >= 5.8 s); after the player tests in one process it took
-    # up to 4.4 s (the test alone passes the old 4 s bound), hence the margin
-    assert player.published == frames and player.playback_seconds < 5.0
+    # not starved: it keeps publishing while a frame is processed (a wall-clock bound on the playback flaked on a
+    # loaded machine)
+    assert player.published == frames and max(published_during, default=0) >= 2, published_during
     assert summary["frames_in"] == frames, summary
     dropped = summary["dropped"]
     assert summary["frames_processed"] + sum(dropped.values()) == frames
