@@ -3,10 +3,10 @@
 Stage 1, per submap: Gaussians and (non-fixed) keyframe poses are optimised jointly with
 L_refine = L_map + lambda_feat * ||F(S_pix) - F(S)||^2, the mapping loss plus the squared distance between the dense
 semantic features of the input segmentation and of the rendered semantics, visiting every keyframe
-``refine_iterations_per_keyframe`` times (in a shuffled order per pass). L_map's depth weight is the refinement's own
-(``refine_w_depth``), and the learning rates of the Gaussian centres and of the keyframe poses can decay
-exponentially over the passes (to ``refine_final_lr_means_fraction`` and ``refine_final_lr_pose_fraction``, as 3DGS
-does for the centres), so map and poses settle instead of jittering between views that disagree (motion blur,
+``refinement.iterations_per_keyframe`` times (in a shuffled order per pass). L_map's depth weight is the refinement's
+own (``refinement.w_depth``), and the learning rates of the Gaussian centres and of the keyframe poses can decay
+exponentially over the passes (to ``refinement.final_lr_means_fraction`` and ``refinement.final_lr_pose_fraction``,
+as 3DGS does for the centres), so map and poses settle instead of jittering between views that disagree (motion blur,
 rolling shutter on real sequences).
 
 Stage 2, alignment to the global map: each submap's anchor is refined by registering the submap (its keyframe views,
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gausem_core.config import LoopConfig, RegistrationConfig
+from gausem_core.config import RefinementConfig, RegistrationConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_exp
 from gausem_core.render import render
@@ -125,22 +125,24 @@ def align_to_global(submap, others: Sequence, cfg: RegistrationConfig, features:
     return True
 
 
-def global_refinement(submaps: Sequence, mapper: Mapper, cfg: LoopConfig, features: DescriptorExtractor | None,
-                      backend: str = "auto", device: torch.device | str = "cpu") -> RefinementReport:
-    """Both stages over all submaps (edited in place; offloaded ones are loaded onto ``device`` and written back).
-    The first submap is the world's reference: stage 2 aligns the others and leaves its anchor alone."""
+def global_refinement(submaps: Sequence, mapper: Mapper, cfg: RefinementConfig, registration: RegistrationConfig,
+                      features: DescriptorExtractor | None, backend: str = "auto",
+                      device: torch.device | str = "cpu") -> RefinementReport:
+    """Both stages over all submaps (edited in place; offloaded ones are loaded onto ``device`` and written back);
+    ``registration``: loop closure's, whose ``lambda_feat`` weighs stage 1's feature term and which stage 2 registers
+    with. The first submap is the world's reference: stage 2 aligns the others and leaves its anchor alone."""
     first, last, aligned = {}, {}, {}
     for submap in submaps:
-        if not submap.keyframes or cfg.refine_iterations_per_keyframe <= 0:
+        if not submap.keyframes or cfg.iterations_per_keyframe <= 0:
             continue
         observations = [submap.observation(kf, device) for kf in submap.keyframes]
         submap.cloud, losses = refine_submap(submap.load_cloud(device), submap.keyframes, observations, mapper,
-                                             cfg.refine_iterations_per_keyframe, features,
-                                             cfg.registration.lambda_feat, backend, cfg.refine_w_depth,
-                                             cfg.refine_final_lr_means_fraction, cfg.refine_final_lr_pose_fraction)
+                                             cfg.iterations_per_keyframe, features, registration.lambda_feat,
+                                             backend, cfg.w_depth, cfg.final_lr_means_fraction,
+                                             cfg.final_lr_pose_fraction)
         first[submap.submap_id], last[submap.submap_id] = losses[0], losses[-1]
     for submap in submaps[1:]:
         if submap.keyframes:
             others = [s for s in submaps if s is not submap]
-            aligned[submap.submap_id] = align_to_global(submap, others, cfg.registration, features, backend, device)
+            aligned[submap.submap_id] = align_to_global(submap, others, registration, features, backend, device)
     return RefinementReport(first, last, aligned)
