@@ -27,8 +27,9 @@ from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_exp
 from gausem_core.render import render
 from gausem_core.semantics.descriptors import DescriptorExtractor
+from gausem_core.slam.adam import AdamSteps, ParameterGroup
 from gausem_core.slam.losses import mapping_loss
-from gausem_core.slam.mapper import Keyframe, Mapper
+from gausem_core.slam.mapper import Keyframe, Mapper, gaussian_groups
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.registration import fine_registration, is_acceptable
 
@@ -58,29 +59,19 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
     cfg = mapper.cfg
     w_depth = cfg.w_depth if w_depth is None else w_depth
     params = cloud.clone().requires_grad_(True)
-    lrs = {"means": cfg.lr_means, "log_radii": cfg.lr_log_radii, "opacity_logits": cfg.lr_opacity,
-           "colors": cfg.lr_colors, "semantics": cfg.lr_semantics}
-    # "final": the fraction of its initial learning rate a group decays to (exponentially) by the last step
-    groups = [{"params": [t], "lr": lrs[name], "initial": lrs[name],
-               "final": final_lr_means_fraction if name == "means" else 1.0}
-              for name, t in params.parameters().items()]
+    groups = gaussian_groups(params, cfg, {"means": final_lr_means_fraction})
     twists = [None if kf.fixed else torch.zeros(6, dtype=params.dtype, device=params.device, requires_grad=True)
               for kf in keyframes]
     movable = [t for t in twists if t is not None]
     if movable:
-        groups.append({"params": movable, "lr": cfg.lr_pose, "initial": cfg.lr_pose, "final": final_lr_pose_fraction})
-    optimiser = torch.optim.Adam(groups)
-    steps = max(passes * len(keyframes) - 1, 1)
+        groups.append(ParameterGroup(movable, cfg.lr_pose, final_lr_pose_fraction))
+    adam = AdamSteps(groups, horizon=max(passes * len(keyframes) - 1, 1))  # the last step at the final rates
     with torch.no_grad():
         targets = [features.dense_features(obs.semantic) if features is not None else None for obs in observations]
     pass_losses = []
-    step = 0
     for _ in range(passes):
         losses = []
         for i in torch.randperm(len(keyframes), generator=mapper.generator).tolist():
-            for group in optimiser.param_groups:
-                group["lr"] = group["initial"] * group["final"] ** (step / steps)
-            step += 1
             obs = observations[i]
             w2c = invert_pose(keyframes[i].cam_to_world.to(params.device, params.dtype))
             if twists[i] is not None:
@@ -89,9 +80,7 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
             loss = mapping_loss(out, obs, cfg.w_color, w_depth, cfg.w_semantic, cfg.ssim_lambda)
             if targets[i] is not None:
                 loss = loss + lambda_feat * (features.dense_features(out.semantic) - targets[i]).pow(2).sum(-1).mean()
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            optimiser.step()
+            adam.step(loss)
             losses.append(loss.detach())
         pass_losses.append(sum(torch.stack(losses).tolist()) / max(len(keyframes), 1) if losses else 0.0)
     with torch.no_grad():

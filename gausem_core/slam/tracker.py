@@ -10,6 +10,7 @@ from gausem_core.config import TrackingConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, project_to_se3, se3_exp
 from gausem_core.render import render
+from gausem_core.slam.adam import AdamSteps, ParameterGroup, has_stalled
 from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, align_level,
                                                 alignment_cost, model_samples, normal_equations)
 from gausem_core.slam.losses import tracking_loss
@@ -138,9 +139,9 @@ class Tracker:
         w2c0 = invert_pose(init_cam_to_world.detach()).to(frozen.dtype)
         rho = torch.zeros(3, dtype=w2c0.dtype, device=w2c0.device, requires_grad=True)
         omega = torch.zeros(3, dtype=w2c0.dtype, device=w2c0.device, requires_grad=True)
-        optimiser = torch.optim.Adam([{"params": [rho], "lr": cfg.lr_translation},
-                                      {"params": [omega], "lr": cfg.lr_rotation}])
-        decay = torch.optim.lr_scheduler.ExponentialLR(optimiser, cfg.final_lr_fraction ** (1 / max(cfg.iterations, 1)))
+        adam = AdamSteps([ParameterGroup([rho], cfg.lr_translation, cfg.final_lr_fraction),
+                          ParameterGroup([omega], cfg.lr_rotation, cfg.final_lr_fraction)],
+                         horizon=max(cfg.iterations, 1))
         best_loss, best_w2c, history = float("inf"), w2c0, []
         iterations = 0
         for iterations in range(1, cfg.iterations + 1):
@@ -152,17 +153,7 @@ class Tracker:
             if value < best_loss:
                 best_loss, best_w2c = value, w2c.detach()
             history.append(value)
-            if self._converged(history):
+            if has_stalled(history, cfg.patience, cfg.convergence_tolerance):
                 break
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            optimiser.step()
-            decay.step()
+            adam.step(loss)
         return TrackingResult(invert_pose(best_w2c), best_loss, iterations)
-
-    def _converged(self, history: list[float]) -> bool:
-        p = self.cfg.adam.patience
-        if len(history) <= p:
-            return False
-        old, new = min(history[:-p]), min(history[-p:])
-        return old - new <= self.cfg.adam.convergence_tolerance * max(abs(old), 1e-12)
