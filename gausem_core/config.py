@@ -2,12 +2,14 @@
 
 The files in ``params/`` use the ROS 2 layout (``/**: ros__parameters: {section: {name: value}}``) so the nodes load
 them with ``--params-file`` and the offline pipeline reads the very same files through :func:`load_config`. Nested
-sections become dotted ROS parameter names (``tracking.iterations``); :func:`flatten` and :func:`from_flat` convert.
+sections become dotted ROS parameter names (``tracking.adam.iterations``); :func:`flatten` and :func:`from_flat`
+convert. A parameter that moved (:data:`RENAMED`) is an error under its old name, one that names the new name.
 """
 from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -16,31 +18,46 @@ import yaml
 
 
 @dataclass
-class TrackingConfig:
-    """Frame-to-model pose optimisation (paper Eq. 2)."""
+class GaussNewtonTrackingConfig:
+    """What only the Gauss-Newton tracker reads (``tracking.method: gauss_newton``; ``slam.direct_alignment``)."""
 
-    method: str = "gauss_newton"  # "gauss_newton" (coarse-to-fine IRLS) or "adam" (through the renderer)
     pyramid_levels: int = 3
-    renders_per_level: int = 2  # model re-renders per pyramid level (Gauss-Newton)
+    renders_per_level: int = 2  # model re-renders per pyramid level
     level_iterations: int = 8  # Gauss-Newton iterations per render
-    huber_delta: float = 0.01  # Gauss-Newton: |r| below this is weighted quadratically (IRLS floor of the L1 weights)
-    max_depth_residual: float = 0.1  # Gauss-Newton: metres; larger depth residuals are treated as occlusions
-    max_depth_slope: float = 3.0  # Gauss-Newton: observed depth slopes beyond this (~72 deg) are discontinuities
-    # Gauss-Newton: compare colour divided by its local mean (a Gaussian of sigma this fraction of the image width),
-    # blind to vignetting, exposure and white balance (slam.photometric); 0: raw colour
+    # compare colour divided by its local mean (a Gaussian of sigma this fraction of the image width), blind to
+    # vignetting, exposure and white balance (slam.photometric); 0: raw colour
     color_normalisation_width: float = 0.1
-    iterations: int = 60  # Adam iterations
+
+
+@dataclass
+class AdamTrackingConfig:
+    """What only the Adam tracker reads (``tracking.method: adam``: the paper's optimiser, through the renderer)."""
+
+    iterations: int = 60
     lr_translation: float = 1e-2
     lr_rotation: float = 1e-2
     final_lr_fraction: float = 0.02  # learning rates decay exponentially to this fraction over the iterations
+    # stop when the loss improved by less than this fraction over `patience` iterations
+    convergence_tolerance: float = 1e-4
+    patience: int = 10
+
+
+@dataclass
+class TrackingConfig:
+    """Frame-to-model pose optimisation (paper Eq. 2): what either method reads, then each method's own section."""
+
+    method: str = "gauss_newton"  # "gauss_newton" (coarse-to-fine IRLS) or "adam" (through the renderer)
+    # the Gauss-Newton alignment's robust weighting, also behind the tracking-health Hessian under either method:
+    huber_delta: float = 0.01  # |r| below this is weighted quadratically (IRLS floor of the L1 weights)
+    max_depth_residual: float = 0.1  # metres; larger depth residuals are treated as occlusions
+    max_depth_slope: float = 3.0  # observed depth slopes beyond this (~72 deg) are discontinuities
     w_color: float = 1.0
     w_depth: float = 0.5
     w_semantic: float = 0.5
     silhouette_threshold: float = 0.99
     constant_velocity: bool = True
-    # stop when the loss improved by less than this fraction over `patience` iterations
-    convergence_tolerance: float = 1e-4
-    patience: int = 10
+    gauss_newton: GaussNewtonTrackingConfig = field(default_factory=GaussNewtonTrackingConfig)
+    adam: AdamTrackingConfig = field(default_factory=AdamTrackingConfig)
 
 
 @dataclass
@@ -144,7 +161,7 @@ class BowConfig:
 
 @dataclass
 class LoopConfig:
-    """Semantic-aware loop closure (paper §III-C, Algorithm 1) and the global refinement after the last frame."""
+    """Semantic-aware loop closure (paper §III-C, Algorithm 1)."""
 
     enabled: bool = True  # ablation "w/o loop closure" when false
     # "auto": the semantic image's global descriptor when it is DINOv2 (weights given), else "bow" (the images' bag of
@@ -164,11 +181,6 @@ class LoopConfig:
     odometry_sigma_rotation: float = 0.005
     max_correction_sigmas: float = 4.0  # reject loops implying a larger jump than this many odometry sigmas
     remap_iterations_per_keyframe: int = 10  # mapping with fixed poses after an intra-submap loop, per displaced keyframe
-    global_refinement: bool = True  # ablation "w/o global refinement" when false
-    refine_iterations_per_keyframe: int = 10  # both refinement stages
-    refine_w_depth: float = 1.0  # lambda_D of L_map in stage 1 (the mapping keeps mapping.w_depth)
-    refine_final_lr_means_fraction: float = 1.0  # stage 1: the centres' learning rate decays to this fraction
-    refine_final_lr_pose_fraction: float = 1.0  # ... and the keyframe poses' to this one
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     bow: BowConfig = field(default_factory=BowConfig)
 
@@ -189,6 +201,19 @@ class LoopConfig:
         if kind not in thresholds:
             raise ValueError(f"unknown descriptor kind {kind!r}; expected one of {', '.join(thresholds)}")
         return thresholds[kind]
+
+
+@dataclass
+class RefinementConfig:
+    """Two-stage global map refinement after the last frame (paper §III-C; ``slam.refinement``), with or without loop
+    closure. Stage 1's feature weight is ``loop.registration.lambda_feat``; stage 2 registers with
+    ``loop.registration``."""
+
+    enabled: bool = True  # ablation "w/o global refinement" when false
+    iterations_per_keyframe: int = 10  # both stages
+    w_depth: float = 1.0  # lambda_D of L_map in stage 1 (the mapping keeps mapping.w_depth)
+    final_lr_means_fraction: float = 1.0  # stage 1: the centres' learning rate decays to this fraction
+    final_lr_pose_fraction: float = 1.0  # ... and the keyframe poses' to this one
 
 
 @dataclass
@@ -233,6 +258,7 @@ class SlamConfig:
     submaps: SubmapConfig = field(default_factory=SubmapConfig)
     semantics: SemanticsConfig = field(default_factory=SemanticsConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
+    refinement: RefinementConfig = field(default_factory=RefinementConfig)
     relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
     health: HealthConfig = field(default_factory=HealthConfig)
 
@@ -295,8 +321,28 @@ class SensorConfig:
     read_noise: float = 1.0  # 8-bit levels of Gaussian read noise after the gain (assumed)
 
 
+# old name -> new name of the parameters that moved into each tracking method's own section and the refinement's
+RENAMED = {
+    **{f"tracking.{name}": f"tracking.gauss_newton.{name}"
+       for name in ("pyramid_levels", "renders_per_level", "level_iterations", "color_normalisation_width")},
+    **{f"tracking.{name}": f"tracking.adam.{name}" for name in ("iterations", "lr_translation", "lr_rotation",
+                                                                "final_lr_fraction", "convergence_tolerance",
+                                                                "patience")},
+    "loop.global_refinement": "refinement.enabled",
+    **{f"loop.refine_{name}": f"refinement.{name}" for name in ("iterations_per_keyframe", "w_depth",
+                                                                "final_lr_means_fraction", "final_lr_pose_fraction")},
+}
+
+
+def reject_renamed(names: Iterable[str]) -> None:
+    """ValueError naming each old parameter name among ``names`` with its new name (see :data:`RENAMED`)."""
+    moved = [f"'{name}' is now '{RENAMED[name]}'" for name in names if name in RENAMED]
+    if moved:
+        raise ValueError(f"renamed parameter{'s' if len(moved) > 1 else ''}: {', '.join(moved)}")
+
+
 def flatten(cfg: Any, prefix: str = "") -> dict[str, Any]:
-    """Dataclass tree -> {"tracking.iterations": 40, ...} (ROS parameter names)."""
+    """Dataclass tree -> {"tracking.adam.iterations": 40, ...} (ROS parameter names)."""
     out: dict[str, Any] = {}
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
@@ -308,7 +354,9 @@ def flatten(cfg: Any, prefix: str = "") -> dict[str, Any]:
 
 
 def from_flat(values: dict[str, Any], base: SlamConfig | None = None) -> SlamConfig:
-    """Apply dotted-name values onto a config (defaults when ``base`` is None); unknown names are an error."""
+    """Apply dotted-name values onto a config (defaults when ``base`` is None); unknown and old (renamed) names are
+    an error."""
+    reject_renamed(values)
     cfg = copy.deepcopy(base) if base else SlamConfig()
     known = flatten(cfg)
     for name, value in values.items():

@@ -11,7 +11,7 @@ from rclpy.parameter import Parameter
 from gausem_ros.executor import NodeExecutor
 
 # Few iterations, few Gaussians, one keyframe: a frame of 80x60 takes well under a second on a CPU core.
-FAST_SLAM = {"tracking.iterations": 3, "mapping.iterations": 2, "mapping.init_iterations": 3,
+FAST_SLAM = {"mapping.iterations": 2, "mapping.init_iterations": 3,
              "mapping.init_samples_fraction": 0.1, "mapping.every": 100, "device": "cpu", "backend": "torch"}
 
 

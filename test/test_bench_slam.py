@@ -23,8 +23,8 @@ from gausem_core.data import SyntheticDataset
 
 ROOT = Path(__file__).resolve().parents[1]
 SUITES = sorted((ROOT / "benchmarks" / "suites").glob("*.yaml"))
-TINY = {"device": "cpu", "mapping.init_iterations": 3, "mapping.iterations": 2, "tracking.iterations": 2,
-        "tracking.level_iterations": 2}
+TINY = {"device": "cpu", "mapping.init_iterations": 3, "mapping.iterations": 2,
+        "tracking.gauss_newton.level_iterations": 2}
 
 
 def write_suite(path: Path, document: dict) -> Path:
@@ -83,10 +83,14 @@ def test_bad_suites_fail_clearly(document, message):
 
 
 def test_unknown_parameters_fail_before_anything_runs(tmp_path, capsys):
-    code = main(["bench", "slam", "--dataset", "synthetic", "--set", "tracking.iteratons=3", "--dry-run",
+    code = main(["bench", "slam", "--dataset", "synthetic", "--set", "mapping.iteratons=3", "--dry-run",
                  "--out", str(tmp_path / "res")])
     err = capsys.readouterr().err
-    assert code == 2 and "unknown parameter 'tracking.iteratons'" in err and "did you mean 'tracking.iterations'" in err
+    assert code == 2 and "unknown parameter 'mapping.iteratons'" in err and "did you mean 'mapping.iterations'" in err
+    suite = tiny_suite(tmp_path, [{"name": "old", "overrides": {"tracking.iterations": 3}}])
+    assert main(["bench", "slam", "--suite", str(suite), "--dry-run"]) == 2
+    assert ("configuration 'old': renamed parameter: 'tracking.iterations' is now 'tracking.adam.iterations'"
+            in capsys.readouterr().err)
     suite = tiny_suite(tmp_path, [{"name": "abl", "overrides": {"submap.policy": "motion"}}])
     assert main(["bench", "slam", "--suite", str(suite), "--dry-run"]) == 2
     assert "configuration 'abl': unknown parameter 'submap.policy'" in capsys.readouterr().err

@@ -122,13 +122,13 @@ def test_montage_rejects_mixed_sizes(tmp_path):
 def test_metrics_json_with_provenance(tmp_path):
     metrics = {"ate": {"rmse": np.float64(0.0123), "max": 0.05}, "psnr": math.inf, "loop": {"precision": math.nan},
                "frames": np.int64(200), "per_class_iou": np.array([0.5, 0.25])}
-    written = write_metrics_json(tmp_path / "metrics.json", metrics, parameters={"tracking.iterations": 40,
+    written = write_metrics_json(tmp_path / "metrics.json", metrics, parameters={"mapping.iterations": 40,
                                                                                  "out": tmp_path})
     loaded = json.loads((tmp_path / "metrics.json").read_text())
     assert loaded == written
     assert loaded["metrics"] == {"ate": {"rmse": 0.0123, "max": 0.05}, "psnr": None, "loop": {"precision": None},
                                  "frames": 200, "per_class_iou": [0.5, 0.25]}
-    assert loaded["parameters"] == {"tracking.iterations": 40, "out": str(tmp_path)}
+    assert loaded["parameters"] == {"mapping.iterations": 40, "out": str(tmp_path)}
     assert loaded["device"].startswith("cpu") and loaded["timestamp"].endswith("+00:00")
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True)
     assert loaded["git_commit"] == (head.stdout.strip() if head.returncode == 0 else None)

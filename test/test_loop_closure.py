@@ -14,8 +14,7 @@ from gausem_core.slam.loop_closure import LoopClosure, SemanticPalette  # noqa: 
 
 
 def _closure(**overrides) -> LoopClosure:
-    cfg = LoopConfig(**{"check_every": 1, "max_fallback_descriptor_distance": 0.45, "global_refinement": False,
-                        **overrides})
+    cfg = LoopConfig(**{"check_every": 1, "max_fallback_descriptor_distance": 0.45, **overrides})
     return LoopClosure(cfg, Mapper(MappingConfig()), backend="torch", database_backend="torch")
 
 

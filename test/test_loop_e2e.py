@@ -35,7 +35,7 @@ CONFIG = {"backend": "torch", "device": "cpu", "mapping.every": 2, "mapping.iter
           "submaps.policy": "motion", "submaps.motion_translation": 0.8, "submaps.motion_rotation_deg": 60.0,
           "submaps.boundary_iterations": 5, "loop.keyframe_every": 2, "loop.check_every": 3,
           "loop.odometry_sigma_rotation": 0.01,  # per keyframe: the injected drift is 0.16 degrees (0.003 rad)
-          "loop.registration.downsample": 1, "loop.registration.pyramid_levels": 2, "loop.global_refinement": False}
+          "loop.registration.downsample": 1, "loop.registration.pyramid_levels": 2, "refinement.enabled": False}
 
 
 def rigid(pose: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,7 @@ from gausem_core.slam.persistence import SESSION_FILE, SessionError, _state_tree
 from gausem_core.slam.system import GauSemSLAM
 
 SETTINGS = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 60,
-            "submaps.boundary_iterations": 2, "submaps.memory_budget_mb": 0.0, "loop.global_refinement": False}
+            "submaps.boundary_iterations": 2, "submaps.memory_budget_mb": 0.0, "refinement.enabled": False}
 SWITCH_AT = (6, 12, 18)  # frames that start a new submap: three submaps when saved, the first two on disk; one more
 SAVED, NEXT = 16, 4
 

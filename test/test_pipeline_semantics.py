@@ -19,7 +19,7 @@ from gausem_core.semantics.source import INERT_WITHOUT_LABELS
 TINY_VITS14 = dict(hidden_size=384, num_hidden_layers=1, num_attention_heads=6, patch_size=14, image_size=56,
                    layerscale_value=1.0, mlp_ratio=1)  # ViT-S/14's token size and patch, one layer
 FAST = ["--frames", "6", "--size", "80x60", "--quiet", "--set", "device=cpu", "--set", "mapping.init_iterations=60",
-        "--set", "tracking.iterations=10", "--set", "mapping.iterations=5", "--eval-every", "5"]
+        "--set", "mapping.iterations=5", "--eval-every", "5"]
 PLANT = SYNTHETIC_CLASSES.id_of("plant")
 
 

@@ -85,7 +85,7 @@ def test_perceptual_aliasing_is_rejected():
     # in the loop closure: the candidate is verified, turned down, and never registered
     pytest.importorskip("gtsam")
     from gausem_core.slam.loop_closure import LoopClosure
-    cfg = LoopConfig(check_every=1, exclude_recent=0, global_refinement=False)
+    cfg = LoopConfig(check_every=1, exclude_recent=0)
     closure = LoopClosure(cfg, Mapper(MappingConfig()), backend="torch", database_backend="torch")
     submaps = [make_submap(0, [60, 120, 180, 240], ids=[0, 5, 10, 15]), make_submap(1, [0], ids=[20])]
     submaps[0].keyframes[-1].obs, submaps[1].keyframes[0].obs = elsewhere, query

@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from gausem_core.config import LoopConfig, MappingConfig, RegistrationConfig
+from gausem_core.config import MappingConfig, RefinementConfig, RegistrationConfig
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.mapper import Mapper
 from gausem_core.slam.refinement import align_to_global, global_refinement, refine_submap
@@ -41,8 +41,8 @@ def test_global_refinement_runs_both_stages_and_holds_the_first_submap():
     second.anchor = perturbation(0.04, 2.0, 8).float() @ frame(9, 80, 60)[1]
     anchor = first.anchor.clone()
     before = pose_error(second.anchor, frame(9, 80, 60)[1])
-    cfg = LoopConfig(refine_iterations_per_keyframe=2, registration=RegistrationConfig(downsample=1))
-    report = global_refinement([first, second], Mapper(MappingConfig()), cfg, make_descriptor("fallback"), "torch")
+    report = global_refinement([first, second], Mapper(MappingConfig()), RefinementConfig(iterations_per_keyframe=2),
+                               RegistrationConfig(downsample=1), make_descriptor("fallback"), "torch")
     assert set(report.first_pass_loss) == set(report.last_pass_loss) == {0, 1}
     assert report.aligned == {1: True}
     assert torch.equal(first.anchor, anchor)
@@ -51,7 +51,7 @@ def test_global_refinement_runs_both_stages_and_holds_the_first_submap():
 
 
 def test_the_system_refines_after_the_last_frame_with_or_without_loop_closure():
-    """``loop.enabled`` and ``loop.global_refinement`` are separate ablations (paper Tab. VIII)."""
+    """``loop.enabled`` and ``refinement.enabled`` are separate ablations (paper Tab. VIII)."""
     from gausem_core.config import load_config
     from gausem_core.data import open_dataset
     from gausem_core.pipeline import Pipeline
@@ -59,9 +59,9 @@ def test_the_system_refines_after_the_last_frame_with_or_without_loop_closure():
 
     means = {}
     for refine in (True, False):
-        cfg = load_config(None, {"loop.enabled": False, "loop.global_refinement": refine, "device": "cpu",
+        cfg = load_config(None, {"loop.enabled": False, "refinement.enabled": refine, "device": "cpu",
                                  "backend": "torch", "mapping.every": 2, "mapping.init_iterations": 5,
-                                 "mapping.iterations": 3, "loop.refine_iterations_per_keyframe": 2})
+                                 "mapping.iterations": 3, "refinement.iterations_per_keyframe": 2})
         dataset = open_dataset("synthetic", size=(40, 30), max_frames=3)
         pipeline = Pipeline(dataset, cfg, progress=False)
         with GauSemSLAM(cfg, "cpu") as slam:

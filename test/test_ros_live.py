@@ -220,7 +220,7 @@ def test_a_restarted_tracker_loads_its_saved_map_relocalises_and_goes_on(tmp_pat
     """save_map writes the session; a new tracker started with map_path holds the same map, re-publishes its
     keyframes (pose_graph rebuilds), relocalises the next frames and tracks on; a bad map_path is a clear error."""
     slam = {**FAST_SLAM, "mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 60,
-            "mapping.init_samples_fraction": 1.0, "loop.global_refinement": False, "output_dir": str(tmp_path / "out")}
+            "mapping.init_samples_fraction": 1.0, "refinement.enabled": False, "output_dir": str(tmp_path / "out")}
     frames = list(open_source("synthetic", size=(80, 60), max_frames=10))
     with ros_session(135) as (ctx, executor):
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(slam))

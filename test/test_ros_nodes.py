@@ -333,6 +333,18 @@ def test_run_all_builds_the_node_set_the_parameters_ask_for():
     assert names_without == names_in_core == ["tracking_mapping"]
 
 
+def test_a_node_given_a_renamed_parameter_fails_naming_the_new_name():
+    with ros_session(162) as (ctx, _):
+        graph = PoseGraphNode(context=ctx, parameter_overrides=overrides({"refinement.iterations_per_keyframe": 3}))
+        iterations, undeclared = graph.cfg.refinement.iterations_per_keyframe, not graph.has_parameter(
+            "loop.refine_iterations_per_keyframe")
+        graph.destroy_node()
+        with pytest.raises(ValueError, match="'loop.refine_iterations_per_keyframe' is now "
+                                             "'refinement.iterations_per_keyframe'"):
+            PoseGraphNode(context=ctx, parameter_overrides=overrides({"loop.refine_iterations_per_keyframe": 3}))
+    assert iterations == 3 and undeclared
+
+
 def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
     """Frames 0-3 with every node up, 4-5 with loop_detection and pose_graph down, 6-9 after fresh instances start."""
     slam = {**FAST_SLAM, "mapping.every": 2}  # keyframes 0, 2, 4, 6, 8

@@ -26,10 +26,10 @@ pytestmark = [pytest.mark.cuda, pytest.mark.slow,
 # one submap, keyframes every 2nd frame, each queried against all earlier ones: keyframe 2 closes a loop to keyframe 0
 # (the fallback descriptor's threshold opened up), as in the tracking node's in-core loop test
 LOOP = {"mapping.every": 2, "submaps.min_keyframes": 100, "loop.keyframe_every": 2, "loop.check_every": 1,
-        "loop.exclude_recent": 0, "loop.max_fallback_descriptor_distance": 2.0, "loop.global_refinement": False}
+        "loop.exclude_recent": 0, "loop.max_fallback_descriptor_distance": 2.0, "refinement.enabled": False}
 # a new submap at every keyframe after the first, all but the active one spilled to disk
 SUBMAPS = {"mapping.every": 2, "submaps.policy": "motion", "submaps.motion_translation": 1e-6,
-           "submaps.memory_budget_mb": 0, "loop.enabled": False, "loop.global_refinement": False}
+           "submaps.memory_budget_mb": 0, "loop.enabled": False, "refinement.enabled": False}
 
 
 def config(**overrides):
@@ -81,8 +81,8 @@ def test_submaps_offloaded_to_disk_come_back_onto_the_gpu():
 
 
 def test_the_global_refinement_keeps_the_map_on_the_gpu():
-    slam, _ = run_system(config(**{**SUBMAPS, "loop.global_refinement": True,
-                                   "loop.refine_iterations_per_keyframe": 2}), (160, 120), 9)
+    slam, _ = run_system(config(**{**SUBMAPS, "refinement.enabled": True,
+                                   "refinement.iterations_per_keyframe": 2}), (160, 120), 9)
     anchors = [s.anchor.clone() for s in slam.submaps]
     slam.finish()
     assert_on_cuda(**system_results(slam))

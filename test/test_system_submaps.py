@@ -235,7 +235,7 @@ def test_boundary_settings_are_checked():
 def test_interrupt_cuts_the_frame_in_progress_short_and_leaves_a_consistent_map():
     """Ctrl-C in a live node: another thread interrupts a long optimisation, which stops at its next iteration; the
     frame is recorded and the next frame runs unhurried."""
-    cfg = from_flat({**CHEAP, "device": "cpu", "mapping.init_iterations": 100000, "loop.global_refinement": False})
+    cfg = from_flat({**CHEAP, "device": "cpu", "mapping.init_iterations": 100000, "refinement.enabled": False})
     slam = GauSemSLAM(cfg, "cpu", num_classes=len(SYNTHETIC_CLASSES))
     data = SyntheticDataset("default", resolution=(40, 30))
     obs = [Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette, f.timestamp)

@@ -84,10 +84,15 @@ def test_gauss_newton_tracking_on_local_contrast_is_not_pulled_by_vignetting_and
     cloud, _ = mapper.optimise(mapper.initialise(mapped, torch.eye(4)), [Keyframe(0, mapped, torch.eye(4), fixed=True)],
                                cfg.mapping.init_iterations)
     motion = float((truths[2][:3, 3] - truths[0][:3, 3]).norm())
-    width = cfg.tracking.color_normalisation_width
+    width = cfg.tracking.gauss_newton.color_normalisation_width
     assert width > 0  # on by default
-    errors = {w: pose_error(Tracker(dataclasses.replace(cfg.tracking, color_normalisation_width=w), "torch")
-                            .track(cloud, seen, truths[0]).cam_to_world, truths[2]) for w in (0.0, width)}
+
+    def normalised(w: float):
+        return dataclasses.replace(cfg.tracking, gauss_newton=dataclasses.replace(cfg.tracking.gauss_newton,
+                                                                                  color_normalisation_width=w))
+
+    errors = {w: pose_error(Tracker(normalised(w), "torch").track(cloud, seen, truths[0]).cam_to_world, truths[2])
+              for w in (0.0, width)}
     assert errors[width][0] < 0.1 * motion and errors[width][1] < 0.25, errors
     assert errors[width][0] < 0.75 * errors[0.0][0] and errors[width][1] < 0.6 * errors[0.0][1], errors
 

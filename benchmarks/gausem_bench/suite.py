@@ -37,7 +37,7 @@ import yaml
 
 from gausem_bench.baselines import BASELINES
 from gausem_bench.color_registration import ColorCalibration
-from gausem_core.config import SlamConfig, flatten, load_config
+from gausem_core.config import SlamConfig, flatten, load_config, reject_renamed
 from gausem_core.tools.run import default_params_file, parse_size
 
 METHODS = ("gausem", *BASELINES)
@@ -248,6 +248,10 @@ def gausem_parameters(sequence: SequenceSpec, configuration: Configuration,
     """(parameter file, overrides, flattened SlamConfig) of a GauSem run: file < configuration < ``extra``."""
     where = f"configuration '{configuration.name}'"
     overrides = {**configuration.overrides, **extra}
+    try:
+        reject_renamed(overrides)
+    except ValueError as exc:
+        raise SuiteError(f"{where}: {exc}") from None
     check_parameter_names(overrides, flatten(SlamConfig()), where)
     params_file = sequence.params or default_params_file(sequence.dataset)
     try:

@@ -10,6 +10,7 @@ from gausem_core.config import MappingConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_exp, transform_points
 from gausem_core.render import render
+from gausem_core.slam.adam import AdamSteps, ParameterGroup
 from gausem_core.slam.losses import mapping_loss
 from gausem_core.slam.observation import Observation
 
@@ -50,6 +51,16 @@ def gaussians_from_pixels(obs: Observation, cam_to_world: torch.Tensor, pixels: 
                                      obs.semantic.reshape(-1, 3)[pixels].clone(), radii, opacity)
 
 
+def gaussian_groups(params: GaussianCloud, cfg: MappingConfig,
+                    final_fractions: dict[str, float] | None = None) -> list[ParameterGroup]:
+    """One Adam group per parameter tensor of ``params`` at its ``mapping.lr_*`` learning rate, decaying to
+    ``final_fractions[name]`` of it where given."""
+    lrs = {"means": cfg.lr_means, "log_radii": cfg.lr_log_radii, "opacity_logits": cfg.lr_opacity,
+           "colors": cfg.lr_colors, "semantics": cfg.lr_semantics}
+    fractions = final_fractions or {}
+    return [ParameterGroup([t], lrs[name], fractions.get(name, 1.0)) for name, t in params.parameters().items()]
+
+
 class Mapper:
     def __init__(self, cfg: MappingConfig, backend: str = "auto", seed: int = 0):
         self.cfg = cfg
@@ -86,14 +97,12 @@ class Mapper:
         if optimise_poses is None:
             optimise_poses = cfg.optimise_poses
         params = cloud.clone().requires_grad_(True)
-        lrs = {"means": cfg.lr_means, "log_radii": cfg.lr_log_radii, "opacity_logits": cfg.lr_opacity,
-               "colors": cfg.lr_colors, "semantics": cfg.lr_semantics}
-        groups = [{"params": [t], "lr": lrs[name]} for name, t in params.parameters().items()]
+        groups = gaussian_groups(params, cfg)
         movable = [kf for kf in keyframes if optimise_poses and not kf.fixed]
         twists = {id(kf): torch.zeros(6, dtype=params.dtype, device=params.device, requires_grad=True) for kf in movable}
         if twists:
-            groups.append({"params": list(twists.values()), "lr": cfg.lr_pose})
-        optimiser = torch.optim.Adam(groups)
+            groups.append(ParameterGroup(list(twists.values()), cfg.lr_pose))
+        adam = AdamSteps(groups)
         losses = []
         for _ in range(iterations):
             if self.hurry.is_set():
@@ -104,9 +113,7 @@ class Mapper:
                 w2c = se3_exp(twists[id(kf)]) @ w2c
             out = render(params, w2c, kf.obs.camera, backend=self.backend)
             loss = mapping_loss(out, kf.obs, cfg.w_color, cfg.w_depth, cfg.w_semantic, cfg.ssim_lambda)
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            optimiser.step()
+            adam.step(loss)
             losses.append(loss.detach())
         with torch.no_grad():
             for kf in movable:

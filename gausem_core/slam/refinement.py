@@ -3,10 +3,10 @@
 Stage 1, per submap: Gaussians and (non-fixed) keyframe poses are optimised jointly with
 L_refine = L_map + lambda_feat * ||F(S_pix) - F(S)||^2, the mapping loss plus the squared distance between the dense
 semantic features of the input segmentation and of the rendered semantics, visiting every keyframe
-``refine_iterations_per_keyframe`` times (in a shuffled order per pass). L_map's depth weight is the refinement's own
-(``refine_w_depth``), and the learning rates of the Gaussian centres and of the keyframe poses can decay
-exponentially over the passes (to ``refine_final_lr_means_fraction`` and ``refine_final_lr_pose_fraction``, as 3DGS
-does for the centres), so map and poses settle instead of jittering between views that disagree (motion blur,
+``refinement.iterations_per_keyframe`` times (in a shuffled order per pass). L_map's depth weight is the refinement's
+own (``refinement.w_depth``), and the learning rates of the Gaussian centres and of the keyframe poses can decay
+exponentially over the passes (to ``refinement.final_lr_means_fraction`` and ``refinement.final_lr_pose_fraction``,
+as 3DGS does for the centres), so map and poses settle instead of jittering between views that disagree (motion blur,
 rolling shutter on real sequences).
 
 Stage 2, alignment to the global map: each submap's anchor is refined by registering the submap (its keyframe views,
@@ -22,13 +22,14 @@ from dataclasses import dataclass
 
 import torch
 
-from gausem_core.config import LoopConfig, RegistrationConfig
+from gausem_core.config import RefinementConfig, RegistrationConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_exp
 from gausem_core.render import render
 from gausem_core.semantics.descriptors import DescriptorExtractor
+from gausem_core.slam.adam import AdamSteps, ParameterGroup
 from gausem_core.slam.losses import mapping_loss
-from gausem_core.slam.mapper import Keyframe, Mapper
+from gausem_core.slam.mapper import Keyframe, Mapper, gaussian_groups
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.registration import fine_registration, is_acceptable
 
@@ -58,29 +59,19 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
     cfg = mapper.cfg
     w_depth = cfg.w_depth if w_depth is None else w_depth
     params = cloud.clone().requires_grad_(True)
-    lrs = {"means": cfg.lr_means, "log_radii": cfg.lr_log_radii, "opacity_logits": cfg.lr_opacity,
-           "colors": cfg.lr_colors, "semantics": cfg.lr_semantics}
-    # "final": the fraction of its initial learning rate a group decays to (exponentially) by the last step
-    groups = [{"params": [t], "lr": lrs[name], "initial": lrs[name],
-               "final": final_lr_means_fraction if name == "means" else 1.0}
-              for name, t in params.parameters().items()]
+    groups = gaussian_groups(params, cfg, {"means": final_lr_means_fraction})
     twists = [None if kf.fixed else torch.zeros(6, dtype=params.dtype, device=params.device, requires_grad=True)
               for kf in keyframes]
     movable = [t for t in twists if t is not None]
     if movable:
-        groups.append({"params": movable, "lr": cfg.lr_pose, "initial": cfg.lr_pose, "final": final_lr_pose_fraction})
-    optimiser = torch.optim.Adam(groups)
-    steps = max(passes * len(keyframes) - 1, 1)
+        groups.append(ParameterGroup(movable, cfg.lr_pose, final_lr_pose_fraction))
+    adam = AdamSteps(groups, horizon=max(passes * len(keyframes) - 1, 1))  # the last step at the final rates
     with torch.no_grad():
         targets = [features.dense_features(obs.semantic) if features is not None else None for obs in observations]
     pass_losses = []
-    step = 0
     for _ in range(passes):
         losses = []
         for i in torch.randperm(len(keyframes), generator=mapper.generator).tolist():
-            for group in optimiser.param_groups:
-                group["lr"] = group["initial"] * group["final"] ** (step / steps)
-            step += 1
             obs = observations[i]
             w2c = invert_pose(keyframes[i].cam_to_world.to(params.device, params.dtype))
             if twists[i] is not None:
@@ -89,9 +80,7 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
             loss = mapping_loss(out, obs, cfg.w_color, w_depth, cfg.w_semantic, cfg.ssim_lambda)
             if targets[i] is not None:
                 loss = loss + lambda_feat * (features.dense_features(out.semantic) - targets[i]).pow(2).sum(-1).mean()
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            optimiser.step()
+            adam.step(loss)
             losses.append(loss.detach())
         pass_losses.append(sum(torch.stack(losses).tolist()) / max(len(keyframes), 1) if losses else 0.0)
     with torch.no_grad():
@@ -125,22 +114,24 @@ def align_to_global(submap, others: Sequence, cfg: RegistrationConfig, features:
     return True
 
 
-def global_refinement(submaps: Sequence, mapper: Mapper, cfg: LoopConfig, features: DescriptorExtractor | None,
-                      backend: str = "auto", device: torch.device | str = "cpu") -> RefinementReport:
-    """Both stages over all submaps (edited in place; offloaded ones are loaded onto ``device`` and written back).
-    The first submap is the world's reference: stage 2 aligns the others and leaves its anchor alone."""
+def global_refinement(submaps: Sequence, mapper: Mapper, cfg: RefinementConfig, registration: RegistrationConfig,
+                      features: DescriptorExtractor | None, backend: str = "auto",
+                      device: torch.device | str = "cpu") -> RefinementReport:
+    """Both stages over all submaps (edited in place; offloaded ones are loaded onto ``device`` and written back);
+    ``registration``: loop closure's, whose ``lambda_feat`` weighs stage 1's feature term and which stage 2 registers
+    with. The first submap is the world's reference: stage 2 aligns the others and leaves its anchor alone."""
     first, last, aligned = {}, {}, {}
     for submap in submaps:
-        if not submap.keyframes or cfg.refine_iterations_per_keyframe <= 0:
+        if not submap.keyframes or cfg.iterations_per_keyframe <= 0:
             continue
         observations = [submap.observation(kf, device) for kf in submap.keyframes]
         submap.cloud, losses = refine_submap(submap.load_cloud(device), submap.keyframes, observations, mapper,
-                                             cfg.refine_iterations_per_keyframe, features,
-                                             cfg.registration.lambda_feat, backend, cfg.refine_w_depth,
-                                             cfg.refine_final_lr_means_fraction, cfg.refine_final_lr_pose_fraction)
+                                             cfg.iterations_per_keyframe, features, registration.lambda_feat,
+                                             backend, cfg.w_depth, cfg.final_lr_means_fraction,
+                                             cfg.final_lr_pose_fraction)
         first[submap.submap_id], last[submap.submap_id] = losses[0], losses[-1]
     for submap in submaps[1:]:
         if submap.keyframes:
             others = [s for s in submaps if s is not submap]
-            aligned[submap.submap_id] = align_to_global(submap, others, cfg.registration, features, backend, device)
+            aligned[submap.submap_id] = align_to_global(submap, others, registration, features, backend, device)
     return RefinementReport(first, last, aligned)

@@ -200,7 +200,7 @@ class GauSemSLAM:
         self.segment_start = 0  # first frame id of the current tracking segment (the motion model stays inside it)
         self.detect_loops = detect_loops
         self.descriptor = make_descriptor(cfg.semantics.descriptor, cfg.semantics.dinov2_weights,
-                                          device=self.device) if cfg.loop.enabled or cfg.loop.global_refinement else None
+                                          device=self.device) if cfg.loop.enabled or cfg.refinement.enabled else None
         self.loop_closure = LoopClosure(cfg.loop, self.mapper, self.descriptor, cfg.backend,
                                         self.device) if cfg.loop.enabled else None
 
@@ -414,10 +414,11 @@ class GauSemSLAM:
         return self.loop_closure.apply(self.submaps, update)
 
     def finish(self) -> None:
-        """Call after the last frame: the two-stage global refinement when ``loop.global_refinement`` (with or
+        """Call after the last frame: the two-stage global refinement when ``refinement.enabled`` (with or
         without loop closure: they are separate ablations, paper Tab. VIII)."""
-        if self.cfg.loop.global_refinement and self.submaps:
-            global_refinement(self.submaps, self.mapper, self.cfg.loop, self.descriptor, self.cfg.backend, self.device)
+        if self.cfg.refinement.enabled and self.submaps:
+            global_refinement(self.submaps, self.mapper, self.cfg.refinement, self.cfg.loop.registration,
+                              self.descriptor, self.cfg.backend, self.device)
 
     def trajectory(self) -> list[tuple[float, torch.Tensor]]:
         """(timestamp, cam_to_world) of every processed frame, with all corrections applied."""

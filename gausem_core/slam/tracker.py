@@ -10,6 +10,7 @@ from gausem_core.config import TrackingConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, project_to_se3, se3_exp
 from gausem_core.render import render
+from gausem_core.slam.adam import AdamSteps, ParameterGroup, has_stalled
 from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, align_level,
                                                 alignment_cost, model_samples, normal_equations)
 from gausem_core.slam.losses import tracking_loss
@@ -66,7 +67,7 @@ class Tracker:
     the observed images against model views rendered at the current estimate (see ``direct_alignment``).
     ``method="adam"``: the paper's optimiser, Adam on a twist xi applied on the left of world_to_cam
     (world_to_cam = exp(xi) @ world_to_cam_0) with gradients through the renderer; learning rates decay
-    exponentially to ``final_lr_fraction`` over the iterations and the best pose seen is returned.
+    exponentially to ``adam.final_lr_fraction`` over the iterations and the best pose seen is returned.
     """
 
     def __init__(self, cfg: TrackingConfig, backend: str = "auto"):
@@ -88,7 +89,7 @@ class Tracker:
         """Coarse-to-fine Gauss-Newton from the start whose coarsest-level alignment costs least; keeps that start if
         the result explains the full-resolution frame worse (coarse levels can leave the basin of convergence when
         the map covers little of the view)."""
-        cfg, weights = self.cfg, alignment_weights(self.cfg)
+        cfg, weights = self.cfg.gauss_newton, alignment_weights(self.cfg)
         pyramid = [ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera)]
         for _ in range(cfg.pyramid_levels - 1):
             pyramid.append(pyramid[-1].downsampled())
@@ -112,55 +113,47 @@ class Tracker:
     def _align(self, cloud: GaussianCloud, pose: torch.Tensor, level: ObservedImages, weights: AlignmentWeights,
                eye: torch.Tensor) -> torch.Tensor:
         """``renders_per_level`` rounds of render-at-the-estimate + Gauss-Newton on one pyramid level."""
-        for _ in range(self.cfg.renders_per_level):
+        for _ in range(self.cfg.gauss_newton.renders_per_level):
             motion, _ = align_level(self._model_view(cloud, pose, level.camera), level, eye, weights,
-                                    self.cfg.level_iterations)
+                                    self.cfg.gauss_newton.level_iterations)
             pose = pose @ invert_pose(motion)
         return pose
 
     def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
         view = model_view(cloud, cam_to_world, camera, self.cfg, self.backend)
-        view.color = local_contrast(view.color, self.cfg.color_normalisation_width, view.mask)
+        view.color = local_contrast(view.color, self.cfg.gauss_newton.color_normalisation_width, view.mask)
         return view
 
     def _compared_colour(self, level: ObservedImages) -> ObservedImages:
         """The level with the colour that is compared with the model views' (``slam.photometric``)."""
-        if self.cfg.color_normalisation_width <= 0:
+        width = self.cfg.gauss_newton.color_normalisation_width
+        if width <= 0:
             return level
         s = level.stack
-        return ObservedImages.build(local_contrast(s[:3].permute(1, 2, 0), self.cfg.color_normalisation_width),
+        return ObservedImages.build(local_contrast(s[:3].permute(1, 2, 0), width),
                                     s[3:6].permute(1, 2, 0), s[6], level.camera)
 
     def _track_adam(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor) -> TrackingResult:
-        cfg = self.cfg
+        cfg = self.cfg.adam
         frozen = cloud.detach()
         w2c0 = invert_pose(init_cam_to_world.detach()).to(frozen.dtype)
         rho = torch.zeros(3, dtype=w2c0.dtype, device=w2c0.device, requires_grad=True)
         omega = torch.zeros(3, dtype=w2c0.dtype, device=w2c0.device, requires_grad=True)
-        optimiser = torch.optim.Adam([{"params": [rho], "lr": cfg.lr_translation},
-                                      {"params": [omega], "lr": cfg.lr_rotation}])
-        decay = torch.optim.lr_scheduler.ExponentialLR(optimiser, cfg.final_lr_fraction ** (1 / max(cfg.iterations, 1)))
+        adam = AdamSteps([ParameterGroup([rho], cfg.lr_translation, cfg.final_lr_fraction),
+                          ParameterGroup([omega], cfg.lr_rotation, cfg.final_lr_fraction)],
+                         horizon=max(cfg.iterations, 1))
         best_loss, best_w2c, history = float("inf"), w2c0, []
         iterations = 0
         for iterations in range(1, cfg.iterations + 1):
             w2c = se3_exp(torch.cat([rho, omega])) @ w2c0
             out = render(frozen, w2c, obs.camera, backend=self.backend)
-            loss = tracking_loss(out, obs, cfg.w_color, cfg.w_depth, cfg.w_semantic, cfg.silhouette_threshold)
+            loss = tracking_loss(out, obs, self.cfg.w_color, self.cfg.w_depth, self.cfg.w_semantic,
+                                 self.cfg.silhouette_threshold)
             value = loss.item()
             if value < best_loss:
                 best_loss, best_w2c = value, w2c.detach()
             history.append(value)
-            if self._converged(history):
+            if has_stalled(history, cfg.patience, cfg.convergence_tolerance):
                 break
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            optimiser.step()
-            decay.step()
+            adam.step(loss)
         return TrackingResult(invert_pose(best_w2c), best_loss, iterations)
-
-    def _converged(self, history: list[float]) -> bool:
-        p = self.cfg.patience
-        if len(history) <= p:
-            return False
-        old, new = min(history[:-p]), min(history[-p:])
-        return old - new <= self.cfg.convergence_tolerance * max(abs(old), 1e-12)

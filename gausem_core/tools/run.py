@@ -25,7 +25,7 @@ def parse_size(text: str) -> tuple[int, int]:
 def parse_override(text: str) -> tuple[str, object]:
     name, sep, value = text.partition("=")
     if not sep:
-        raise argparse.ArgumentTypeError(f"--set takes NAME=VALUE (e.g. tracking.iterations=20), got '{text}'")
+        raise argparse.ArgumentTypeError(f"--set takes NAME=VALUE (e.g. mapping.iterations=20), got '{text}'")
     return name.strip(), yaml.safe_load(value)
 
 
@@ -34,7 +34,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dataset", default="synthetic", help=f"{DATASET_HELP} (default: %(default)s)")
     parser.add_argument("--params", type=Path, help="ROS-format parameter YAML (default: params/<dataset kind>.yaml)")
     parser.add_argument("--set", dest="overrides", type=parse_override, action="append", default=[],
-                        metavar="NAME=VALUE", help="override one parameter, e.g. --set tracking.iterations=20")
+                        metavar="NAME=VALUE", help="override one parameter, e.g. --set mapping.iterations=20")
     parser.add_argument("--frames", type=int, help="process at most this many frames")
     parser.add_argument("--stride", type=int, default=1, help="use every n-th frame (default: 1)")
     parser.add_argument("--start", type=int, default=0, help="first frame of the sequence (default: 0)")

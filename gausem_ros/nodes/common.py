@@ -16,7 +16,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 
-from gausem_core.config import SlamConfig, flatten, from_flat
+from gausem_core.config import RENAMED, SlamConfig, flatten, from_flat
 from gausem_core.data.classes import NYU40_CLASSES, SCANNET20_CLASSES, SYNTHETIC_CLASSES, ClassTable
 from msg_adapters import make_header
 
@@ -32,10 +32,23 @@ _DYNAMIC = ParameterDescriptor(dynamic_typing=True)
 def declare_slam_config(node) -> SlamConfig:
     """Declare every SLAM parameter (dotted names of ``flatten(SlamConfig())``) and build the configuration from
     their values, so ``--params-file params/<dataset>.yaml`` configures a node like ``gausem run --params``.
-    Types are checked by ``from_flat`` (an integer given for a float parameter is accepted)."""
+    Types are checked by ``from_flat`` (an integer given for a float parameter is accepted), and so are old names
+    (``config.RENAMED``): given one, the node fails naming the new name."""
     values = {name: node.declare_parameter(name, default, _DYNAMIC).value
               for name, default in flatten(SlamConfig()).items()}
-    return from_flat(values)
+    return from_flat({**values, **_given_old_names(node)})
+
+
+def _given_old_names(node) -> dict:
+    """The old names of renamed SLAM parameters that the node was given (a value set for them), with their values:
+    each is declared only to be read, then undeclared."""
+    given = {}
+    for name in RENAMED:
+        value = node.declare_parameter(name, None, _DYNAMIC).value
+        node.undeclare_parameter(name)
+        if value is not None:
+            given[name] = value
+    return given
 
 
 def declare_parameters(node, defaults: dict) -> SimpleNamespace:

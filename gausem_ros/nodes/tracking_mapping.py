@@ -117,7 +117,7 @@ def _pyramid_minimum(cfg: SlamConfig) -> int:
     """The smallest image side the image pyramids can take (each level halves it and must keep a pixel): tracking's,
     and loop registration's at the keyframe resolution divided by ``loop.registration.downsample``."""
     reg = cfg.loop.registration
-    return max(2 ** (cfg.tracking.pyramid_levels - 1), reg.downsample * 2 ** (reg.pyramid_levels - 1))
+    return max(2 ** (cfg.tracking.gauss_newton.pyramid_levels - 1), reg.downsample * 2 ** (reg.pyramid_levels - 1))
 
 
 def _check_size_limits(cfg: SlamConfig, min_image_size: int, max_image_pixels: int) -> None:
@@ -125,8 +125,8 @@ def _check_size_limits(cfg: SlamConfig, min_image_size: int, max_image_pixels: i
     least = _pyramid_minimum(cfg)
     if min_image_size < least:
         raise ValueError(f"tracking_mapping: min_image_size {min_image_size} is below {least} pixels, the smallest "
-                         "side the image pyramids (tracking.pyramid_levels, loop.registration.pyramid_levels and "
-                         "downsample) can take; raise min_image_size")
+                         "side the image pyramids (tracking.gauss_newton.pyramid_levels, "
+                         "loop.registration.pyramid_levels and downsample) can take; raise min_image_size")
     if max_image_pixels < min_image_size ** 2:
         raise ValueError(f"tracking_mapping: max_image_pixels {max_image_pixels} is below min_image_size^2 = "
                          f"{min_image_size ** 2}; raise max_image_pixels")
@@ -473,7 +473,7 @@ class TrackingMappingNode(Node):
         self.pose_graph_updates.append(update)  # applied
 
     def finish(self) -> None:
-        """End of the sequence: the global refinement (``loop.global_refinement``), counted in ``seconds``; the
+        """End of the sequence: the global refinement (``refinement.enabled``), counted in ``seconds``; the
         corrected path and map are re-published."""
         start = time.perf_counter()
         self.slam.finish()
