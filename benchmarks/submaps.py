@@ -62,6 +62,7 @@ class GroundTruthPoses:
 
     def __init__(self, tracker: Tracker, dataset):
         self.tracker, self.dataset = tracker, dataset
+        self.backend = tracker.backend  # relocalisation renders with it
         self.slam: GauSemSLAM | None = None
         self.first = torch.as_tensor(dataset[0].gt_pose)
 
