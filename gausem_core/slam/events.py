@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import torch
 
 if TYPE_CHECKING:  # loop_closure imports this module
+    from gausem_core.slam.loop import PlaceSignature
     from gausem_core.slam.loop_closure import LoopOutcome
 
 
@@ -50,9 +51,11 @@ class Correction:
 @dataclass(frozen=True)
 class FrameEvents:
     """The events of one processed frame: the keyframe it made (if any), the submaps closed and opened (in that
-    order) and the loop closure's outcome (detected, registered, accepted or not, the correction applied)."""
+    order) and the loop closure's outcome (detected, registered, accepted or not, the correction applied); when loops
+    are detected elsewhere, instead, a loop keyframe's place signature (what that detector takes)."""
 
     keyframe: KeyframeState | None = None
     submaps: tuple[SubmapChange, ...] = ()
     loop: LoopOutcome | None = None
+    place: PlaceSignature | None = None
 
