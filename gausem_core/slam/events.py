@@ -1,7 +1,9 @@
 """What happened in a frame, as :meth:`GauSemSLAM.process <gausem_core.slam.system.GauSemSLAM.process>` reports it:
 callers (the ROS node, the pipeline) learn of keyframes, submaps opened and closed, loops and map corrections from
-these events instead of inspecting the system's state. Poses are float64 4x4 tensors on the CPU, rigid (projected
-onto SE(3) when finite)."""
+these events instead of inspecting the system's state. Poses are the stored ones as float64 4x4 tensors on the CPU,
+not projected onto SE(3) again: a pose graph elsewhere (the ROS pose_graph node) starts from exactly the poses the
+core's own would (:meth:`LoopClosure.correct <gausem_core.slam.loop_closure.LoopClosure.correct>`), and tracking
+amplifies differences of 1e-8 into millimetres within a few frames."""
 from __future__ import annotations
 
 from dataclasses import dataclass

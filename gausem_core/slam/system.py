@@ -21,7 +21,7 @@ import torch
 
 from gausem_core.config import SlamConfig
 from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3, rigid_float64
+from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
 from gausem_core.render import select_backend
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
@@ -38,6 +38,11 @@ from gausem_core.slam.submap_store import SubmapStore
 from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity, inspect_pose
 
 _IMAGES = ("rgb", "depth", "semantic", "labels")
+
+
+def _float64(pose: torch.Tensor) -> torch.Tensor:
+    """A stored pose as it is, in float64 on the CPU (events; see :mod:`~gausem_core.slam.events`)."""
+    return pose.detach().cpu().double()
 
 
 def rigid_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -382,12 +387,12 @@ class GauSemSLAM:
 
     @staticmethod
     def _submap_change(submap: Submap, opened: bool) -> SubmapChange:
-        return SubmapChange(submap.submap_id, submap.keyframes[0].frame_id, rigid_float64(submap.anchor), opened)
+        return SubmapChange(submap.submap_id, submap.keyframes[0].frame_id, _float64(submap.anchor), opened)
 
     @staticmethod
     def _keyframe_state(submap: Submap, kf: Keyframe) -> KeyframeState:
-        return KeyframeState(kf.frame_id, submap.submap_id, kf.obs.timestamp, rigid_float64(kf.cam_to_world),
-                             rigid_float64(submap.anchor))
+        return KeyframeState(kf.frame_id, submap.submap_id, kf.obs.timestamp, _float64(kf.cam_to_world),
+                             _float64(submap.anchor))
 
     def keyframe_states(self, submap_id: int | None = None) -> list[KeyframeState]:
         """The keyframes (of one submap, or all) with their current poses, in order."""
