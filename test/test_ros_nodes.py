@@ -319,7 +319,8 @@ def test_pose_graph_node_closes_an_intra_submap_loop():
         executor.add_node(recorder.node)
         assert spin_until(executor, lambda: kf_pub.get_subscription_count() and loop_pub.get_subscription_count(),
                           5.0)
-        records = [ma.KeyframeRecord(5 * i, 0.1 * i, 0, _translation(0.1 * i), np.eye(4)) for i in range(4)]  # odometry says keyframe 15 is 0.3 m from keyframe 0 ...
+        records = [ma.KeyframeRecord(5 * i, 0.1 * i, 0, _translation(0.1 * i), np.eye(4))
+                   for i in range(4)]  # odometry says keyframe 15 is 0.3 m from keyframe 0 ...
         kf_pub.publish(ma.records_to_pointcloud2(records, ma.make_header(0.3, "map")))
         assert spin_until(executor, lambda: len(graph.keyframes) == 4, 5.0)
         header = ma.make_header(0.3, "map")
@@ -335,6 +336,30 @@ def test_pose_graph_node_closes_an_intra_submap_loop():
     np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-9)  # the submap's first keyframe is fixed
     x = [poses[k][0, 3] for k in (5, 10, 15)]
     assert 0.2 < x[2] < 0.3 and x[0] < x[1] < x[2]  # pulled towards the loop, odometry order kept
+
+
+def test_pose_graph_node_takes_anchors_from_the_latest_keyframe_record():
+    """The tracker re-publishes its keyframes with their current anchors before each loop constraint (as the core's
+    correction reads them): the latest record wins; a submap event only names a submap no record named yet."""
+    with ros_session(120) as (ctx, executor):
+        graph = PoseGraphNode(context=ctx)
+        node = Recorder(ctx, []).node
+        kf_pub = node.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
+        submap_pub = node.create_publisher(PointCloud2, "gausem/submaps", EVENT_QOS)
+        executor.add_node(graph)
+        executor.add_node(node)
+        assert spin_until(executor, lambda: kf_pub.get_subscription_count() and submap_pub.get_subscription_count(),
+                          5.0)
+        header = ma.make_header(1.0, "map")
+        for anchor_x in (0.5, 0.7):  # the anchor of submap 1 before and after a correction
+            kf_pub.publish(ma.records_to_pointcloud2([ma.KeyframeRecord(5, 1.0, 1, np.eye(4), _translation(anchor_x))],
+                                                     header))
+            assert spin_until(executor, lambda: 1 in graph.graphs.anchors
+                              and graph.graphs.anchors[1][0, 3] == anchor_x, 5.0)
+        events = [ma.SubmapEvent(s, 5, _translation(9.0), ma.SubmapEventKind.CLOSED) for s in (1, 2)]
+        submap_pub.publish(ma.records_to_pointcloud2(events, header))
+        assert spin_until(executor, lambda: 2 in graph.graphs.anchors, 5.0)
+    assert graph.graphs.anchors[1][0, 3] == 0.7 and graph.graphs.anchors[2][0, 3] == 9.0
 
 
 def test_run_all_builds_the_node_set_the_parameters_ask_for():

@@ -54,8 +54,9 @@ Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
   ``gausem/place_signatures``; loop_detection runs the core's detector on it and answers with the ranked candidates
   (``gausem/loop_candidates``); this node's core confirms one (the bag of words: geometric verification in order,
   which needs both keyframes' images, held here) and registers it (keyframe alignment or SGR: it holds the Gaussians,
-  ``GauSemSLAM.register_loop``), and publishes an accepted loop on ``gausem/loop_constraints`` (an intra-submap one
-  after re-publishing that submap's keyframes with their current poses); pose_graph optimises (the core's
+  ``GauSemSLAM.register_loop``), and publishes an accepted loop on ``gausem/loop_constraints`` (after re-publishing
+  every keyframe with its current pose and anchor, which bundle adjustment and corrections changed since, as the
+  core's :meth:`~gausem_core.slam.loop_closure.LoopClosure.correct` takes them); pose_graph optimises (the core's
   :class:`~gausem_core.slam.loop_graphs.LoopGraphs`) and answers on ``gausem/pose_graph``, applied here
   (``GauSemSLAM.apply_pose_graph``). The next frame waits for those answers (``loop_answer_timeout`` s at most, and
   only while loop_detection and pose_graph subscribe; 0: no wait, answers are applied when they arrive), as
@@ -483,8 +484,7 @@ class TrackingMappingNode(Node):
         if constraint is None:
             return
         header = ma.make_header(max(self._last_stamp, 0.0), self.params.map_frame)
-        if constraint.intra:  # the pose graph needs the keyframe poses bundle adjustment has refined since
-            self._publish_keyframes(self.slam.keyframe_states(constraint.submap_a), header)
+        self._publish_keyframes(self.slam.keyframe_states(), header)  # the poses and anchors as they are now
         self._loop_answers.expect_pose_graph()
         self._answer_timer.reset()
         self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(constraint)], header))
