@@ -259,8 +259,9 @@ class LoopClosure:
         "bow" the first that passes geometric verification, with its verified relative pose (the ones before it are
         counted in :attr:`rejected_candidates`); else the first. None when there is none. Raises ValueError when the
         candidates are of several query keyframes or name a keyframe not in ``submaps``."""
-        if len({c.query_keyframe for c in candidates}) > 1:
-            raise ValueError(f"loop candidates of several query keyframes: {sorted({c.query_keyframe for c in candidates})}")
+        queries = sorted({c.query_keyframe for c in candidates})
+        if len(queries) > 1:
+            raise ValueError(f"loop candidates of several query keyframes: {queries}")
         if self.place_recognition != "bow":
             return next(iter(candidates), None)
         by_id = {s.submap_id: s for s in submaps}
