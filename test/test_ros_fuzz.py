@@ -326,8 +326,8 @@ class _Fuzzer:
         rng, ids = self.rng, lambda: int(rng.integers(0, 4))
         if record_type is ma.KeyframeRecord:
             return ma.KeyframeRecord(int(rng.integers(0, 1000)), stamp, ids(), self.pose(), self.pose())
-        if record_type is ma.PlaceSignatureRecord:  # a global descriptor or ORB rows, either or both, any values
-            rows = descriptor_length * int(self.chance(0.5))
+        if record_type is ma.PlaceSignatureRecord:  # a global descriptor and ORB rows flagged either way, any values
+            rows = descriptor_length  # one length per message
             return ma.PlaceSignatureRecord(
                 int(rng.integers(0, 1000)), stamp, ids(), self.chance(0.5),
                 rng.normal(size=descriptor_length).astype(np.float32),
