@@ -54,11 +54,11 @@ class LoopDetector:
     :meth:`add_keyframe` returns the ranked candidates, at most ``max_candidates`` of them: the first is the loop, or
     (the bag of words) the caller verifies them in order and the first confirmed is the loop.
 
-    ``database`` holds the keyframes' place signatures: by default a
+    ``database`` holds the keyframes' appearances: by default a
     :class:`~gausem_core.slam.loop.DescriptorDatabase` of global descriptors; anything with its ``add``, ``search``
     (ids and distances, closest first), ``ids`` and ``len`` will do (the bag of words,
-    :class:`~gausem_core.slam.loop.words.BagOfWords`). The landmark re-ranking needs classes: with score vectors of
-    fewer than two classes the candidates keep their descriptor order.
+    :class:`~gausem_core.slam.loop.words.BagOfWords`, the only one that takes ORB features). The landmark re-ranking
+    needs classes: with score vectors of fewer than two classes the candidates keep their descriptor order.
 
     Landmark score vectors (:func:`~gausem_core.slam.loop.landmarks.landmark_scores`) are computed by the caller, who
     owns the Gaussians; a stored keyframe is compared with the vector it was added with. Vectors may grow as classes
