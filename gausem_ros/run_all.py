@@ -6,7 +6,7 @@ the player, the tracker's inputs and its processing never wait for each other, s
 by a slow frame and the tracker always sees the newest frame.
 
 Which nodes: tracking_mapping always; segmentation unless ``semantics.segmenter`` is ``labels`` (then the labels come
-with the data); loop_detection (needs labels) and pose_graph when ``loop.enabled`` and tracking_mapping's
+with the data); loop_detection and pose_graph when ``loop.enabled`` and tracking_mapping's
 ``loop_closure`` is ``nodes`` (by default, ``core``, the tracking node closes loops itself, as ``gausem run``). The ROS arguments
 (params file, ``-p``, remappings) apply to every node. With a SOURCE the process ends when the player is done (after
 ``--save`` and ``--report``); without, it runs until Ctrl-C. On Ctrl-C or SIGTERM the frame in progress is
@@ -49,9 +49,7 @@ def build_nodes(**node_kwargs) -> list:
     if tracking.cfg.semantics.segmenter != "labels":
         nodes.append(SegmentationNode(**node_kwargs))
     if tracking.loop_nodes:
-        if tracking.params.use_labels:
-            nodes.append(LoopDetectionNode(**node_kwargs))
-        nodes.append(PoseGraphNode(**node_kwargs))
+        nodes += [LoopDetectionNode(**node_kwargs), PoseGraphNode(**node_kwargs)]
     return nodes
 
 

@@ -1,16 +1,52 @@
-"""Loop records <-> the core's loop types: candidates (loop_detection -> tracking_mapping) and registered
-constraints (tracking_mapping -> pose_graph). A constraint's (rotation, translation) sigmas travel as the record's
-6x6 information matrix, diagonal in twist order (rho, omega): 1/sigma_t^2 three times, then 1/sigma_r^2."""
+"""Loop records <-> the core's loop types: place signatures (tracking_mapping -> loop_detection), candidates
+(loop_detection -> tracking_mapping) and registered constraints (tracking_mapping -> pose_graph). A constraint's
+(rotation, translation) sigmas travel as the record's 6x6 information matrix, diagonal in twist order (rho, omega):
+1/sigma_t^2 three times, then 1/sigma_r^2."""
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from gausem_core.slam.loop import LoopCandidate
+from gausem_core.slam.loop import LoopCandidate, PlaceSignature
 from gausem_core.slam import loop_graphs
+from gausem_core.slam.loop.words import DESCRIPTOR_BYTES, OrbFeatures
 from gausem_core.slam.loop_closure import LoopConstraint
 
-from .records import LoopCandidateRecord, LoopConstraintRecord, PoseGraphNode, PoseGraphNodeKind, PoseGraphUpdate
+from .records import (LoopCandidateRecord, LoopConstraintRecord, PlaceSignatureRecord, PoseGraphNode,
+                      PoseGraphNodeKind, PoseGraphUpdate)
+
+
+def place_signature_to_record(place: PlaceSignature, stamp: float) -> PlaceSignatureRecord:
+    """A keyframe's place signature (stamped like the keyframe) as a record."""
+    bow = isinstance(place.appearance, OrbFeatures)
+    features = place.appearance if bow else OrbFeatures(np.zeros((0, 2), np.float32),
+                                                        np.zeros((0, DESCRIPTOR_BYTES), np.uint8),
+                                                        np.zeros((0, 3), np.float32), 1)
+    descriptor = np.zeros(0, np.float32) if bow else place.appearance.detach().cpu().numpy()
+    return PlaceSignatureRecord(place.keyframe_id, stamp, place.submap_id, bow, descriptor, features.keypoints,
+                                features.descriptors, features.points, features.scale,
+                                place.landmark_scores.detach().cpu().double().numpy(), np.array(place.nearby))
+
+
+def record_to_place_signature(record: PlaceSignatureRecord) -> PlaceSignature:
+    """The core's place signature of a record; ValueError when it carries both or neither kind of appearance."""
+    rows = {len(record.orb_keypoints), len(record.orb_descriptors), len(record.orb_points)}
+    name = f"place signature of keyframe {record.keyframe_id}"
+    if len(rows) > 1:
+        raise ValueError(f"{name}: ORB keypoints, descriptors and points differ in count ({sorted(rows)})")
+    if record.bag_of_words:
+        if len(record.descriptor) or record.orb_scale < 1:
+            raise ValueError(f"{name}: ORB features need an empty descriptor and orb_scale >= 1, got "
+                             f"{len(record.descriptor)} values and {record.orb_scale}")
+        appearance = OrbFeatures(np.array(record.orb_keypoints), np.array(record.orb_descriptors),
+                                 np.array(record.orb_points), record.orb_scale)
+    else:
+        if not len(record.descriptor) or rows != {0}:
+            raise ValueError(f"{name}: a global descriptor needs values and no ORB rows, got "
+                             f"{len(record.descriptor)} values and {rows.pop()} rows")
+        appearance = torch.tensor(np.array(record.descriptor))
+    return PlaceSignature(record.keyframe_id, record.submap_id, appearance,
+                          torch.tensor(np.array(record.landmark_scores)), tuple(record.nearby.tolist()))
 
 
 def loop_candidate_to_record(candidate: LoopCandidate) -> LoopCandidateRecord:

@@ -8,8 +8,9 @@ self-describing, so a reader checks that the fields are exactly the record's and
 
 Each record field declares its wire type through ``dataclasses.field`` metadata (the helpers below); the codec reads
 that table, so adding a record is only declaring its dataclass. Integers are INT32, floats FLOAT64 (so stamps and
-distances round-trip exactly), flags and enums UINT8, matrices FLOAT64, descriptors FLOAT32 of any length D
-(one D per message).
+distances round-trip exactly), flags and enums UINT8, matrices FLOAT64; vectors of any length D and tables of any
+number N of fixed-width rows (N x K values, row-major in one field of count N K) take their element type from the
+field (one D, one N per message).
 """
 from __future__ import annotations
 
@@ -63,12 +64,17 @@ def matrix_field(rows: int, cols: int):
     return _field(_Wire(np.dtype("<f8"), (rows, cols), kind="array"))
 
 
-def vector_field():
-    return _field(_Wire(np.dtype("<f4"), (None,), kind="array"))
+def vector_field(dtype: str):
+    return _field(_Wire(np.dtype(dtype), (None,), kind="array"))
+
+
+def rows_field(dtype: str, columns: int):
+    return _field(_Wire(np.dtype(dtype), (None, columns), kind="array"))
 
 
 class _Record:
-    """Base of the records: validates and normalises fields from their wire table; array-aware equality."""
+    """Base of the records: validates and normalises fields from their wire table; array-aware equality (NaN equal
+    to NaN: a value read back equals the one sent)."""
 
     def __post_init__(self):
         for f, wire in _wires(type(self)):
@@ -77,7 +83,8 @@ class _Record:
     def __eq__(self, other):
         if type(other) is not type(self):
             return NotImplemented
-        return all(np.array_equal(getattr(self, f.name), getattr(other, f.name)) for f in dataclasses.fields(self))
+        return all(np.array_equal(getattr(self, f.name), getattr(other, f.name), equal_nan=True)
+                   for f in dataclasses.fields(self))
 
     __hash__ = None
 
@@ -108,15 +115,34 @@ def _normalise(value, wire: _Wire, where: str):
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class KeyframeRecord(_Record):
-    """A new keyframe: its pose ``cam_to_world`` in its submap's frame, the submap's anchor pose (submap frame in
-    the map) and the keyframe's global descriptor."""
+    """A keyframe: its pose ``cam_to_world`` in its submap's frame and the submap's anchor pose (submap frame in
+    the map)."""
 
     keyframe_id: int = int_field()
     stamp: float = float_field()
     submap_id: int = int_field()
     pose: np.ndarray = pose_field()
     anchor_pose: np.ndarray = pose_field()
-    descriptor: np.ndarray = vector_field()
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PlaceSignatureRecord(_Record):
+    """A loop keyframe's place signature (the core's ``PlaceSignature``): with ``bag_of_words`` its ORB features, N
+    rows of ``orb_keypoints`` (pixels), ``orb_descriptors`` (32 bytes) and ``orb_points`` (camera frame, NaN without
+    depth) found at ``orb_scale``, and an empty ``descriptor``; else its global ``descriptor`` and no ORB rows. Then
+    the Eq. 7 ``landmark_scores`` and the ids of the ``nearby`` keyframes. One record per message (lengths vary)."""
+
+    keyframe_id: int = int_field()
+    stamp: float = float_field()
+    submap_id: int = int_field()
+    bag_of_words: bool = flag_field()
+    descriptor: np.ndarray = vector_field("<f4")
+    orb_keypoints: np.ndarray = rows_field("<f4", 2)
+    orb_descriptors: np.ndarray = rows_field("u1", 32)
+    orb_points: np.ndarray = rows_field("<f4", 3)
+    orb_scale: int = int_field()
+    landmark_scores: np.ndarray = vector_field("<f8")
+    nearby: np.ndarray = vector_field("<i4")
 
 
 class SubmapEventKind(enum.IntEnum):
@@ -225,7 +251,10 @@ def pointcloud2_to_records(msg: PointCloud2, record_type: type[R]) -> list[R]:
     counts = {f.name: f.count for f in msg.fields}
     columns = {}
     for f, wire in wires:
-        shape = tuple(counts[f.name] if s is None else s for s in wire.shape)
+        width = int(np.prod([s for s in wire.shape if s is not None]))
+        if counts[f.name] % width:
+            raise ValueError(f"PointCloud2 field {f.name!r} holds {counts[f.name]} values, not rows of {width}")
+        shape = tuple(counts[f.name] // width if s is None else s for s in wire.shape)
         columns[f.name] = rows[f.name].reshape((len(rows), *shape))
     return [record_type(**{name: col[i] for name, col in columns.items()}) for i in range(len(rows))]
 

@@ -7,8 +7,8 @@ import torch
 
 from gausem_core.config import LoopConfig
 from gausem_core.geometry import PinholeCamera
-from gausem_core.slam.loop import (DescriptorDatabase, LoopDetector, gaussian_idf, landmark_distance,
-                                   landmark_scores, nearby_keyframes, observed_gaussians)
+from gausem_core.slam.loop import (DescriptorDatabase, LoopDetector, PlaceSignature, gaussian_idf,
+                                   landmark_distance, landmark_scores, nearby_keyframes, observed_gaussians)
 from gausem_core.slam.loop.database import _import_faiss
 
 BACKENDS = ["torch"] + (["faiss"] if _import_faiss() is not None else [])
@@ -118,6 +118,13 @@ def _unit(v):
     return v / v.norm()
 
 
+def _loop(detector, keyframe_id, submap_id, descriptor, scores, nearby=()):
+    """Add a keyframe; the loop (the first ranked candidate) or None."""
+    ranked = detector.add_keyframe(PlaceSignature(keyframe_id, submap_id, descriptor, scores, tuple(nearby)))
+    assert len(ranked) <= detector.max_candidates
+    return ranked[0] if ranked else None
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_detector_finds_revisit_and_reranks_by_landmarks(backend):
     """18 keyframes; the 18th (a check point) revisits the place of keyframe 3. Keyframe 5 looks even more alike
@@ -132,8 +139,8 @@ def test_detector_finds_revisit_and_reranks_by_landmarks(backend):
     detector = LoopDetector(keyframe_every=5, check_every=6, max_descriptor_distance=0.2, exclude_recent=6,
                             descriptor_dim=16, backend=backend)
     for kf in range(17):
-        assert detector.add_keyframe(kf, kf // 9, descriptors[kf], scores[kf]) is None
-    loop = detector.add_keyframe(17, 1, query, scores[3] + 0.01)
+        assert _loop(detector, kf, kf // 9, descriptors[kf], scores[kf]) is None
+    loop = _loop(detector, 17, 1, query, scores[3] + 0.01)
     assert loop is not None
     assert (loop.query_keyframe, loop.match_keyframe, loop.query_submap, loop.match_submap) == (17, 3, 1, 0)
     assert not loop.intra
@@ -150,7 +157,7 @@ def test_detector_checks_only_every_sixth_keyframe(backend):
     detector = LoopDetector(check_every=6, exclude_recent=2, descriptor_dim=8, backend=backend)
     found = []
     for kf in range(18):
-        loop = detector.add_keyframe(kf, 0, _unit(place + 0.01 * torch.randn(8, generator=g)), torch.ones(3))
+        loop = _loop(detector, kf, 0, _unit(place + 0.01 * torch.randn(8, generator=g)), torch.ones(3))
         if loop is not None:
             found.append(kf)
             assert loop.intra
@@ -169,16 +176,16 @@ def test_detector_takes_nearby_keyframes_at_every_keyframe(backend):
     detector = LoopDetector(check_every=6, exclude_recent=2, max_descriptor_distance=0.2, descriptor_dim=8,
                             backend=backend)
     for kf in range(4):
-        assert detector.add_keyframe(kf, 0, descriptors[kf], scores[kf]) is None
-    loop = detector.add_keyframe(4, 1, descriptors[4], scores[1] + 0.01, nearby=[1, 3, 99])  # 3 is too recent
+        assert _loop(detector, kf, 0, descriptors[kf], scores[kf]) is None
+    loop = _loop(detector, 4, 1, descriptors[4], scores[1] + 0.01, nearby=[1, 3, 99])  # 3 is too recent
     assert (loop.query_keyframe, loop.match_keyframe, loop.query_submap, loop.match_submap) == (4, 1, 1, 0)
     assert loop.descriptor_distance == pytest.approx(float((descriptors[4] - descriptors[1]).norm()), abs=1e-5)
-    assert detector.add_keyframe(5, 1, descriptors[0], scores[5], nearby=[]).match_keyframe == 0  # 6th: descriptors
+    assert _loop(detector, 5, 1, descriptors[0], scores[5], nearby=[]).match_keyframe == 0  # 6th: descriptors
     for kf in range(6, 11):  # calls 7-11: no check, nothing nearby
-        assert detector.add_keyframe(kf, 1, descriptors[kf], scores[kf]) is None
-    loop = detector.add_keyframe(11, 1, descriptors[0], scores[2], nearby=[2])  # the 12th call: a check, and nearby
+        assert _loop(detector, kf, 1, descriptors[kf], scores[kf]) is None
+    loop = _loop(detector, 11, 1, descriptors[0], scores[2], nearby=[2])  # the 12th call: a check, and nearby
     assert loop.match_keyframe == 2  # kf 0 is the descriptor candidate, kf 2 matches the landmark scores
-    assert detector.add_keyframe(12, 1, descriptors[2], scores[2], nearby=[]) is None  # kf 2: no check, not nearby
+    assert _loop(detector, 12, 1, descriptors[2], scores[2], nearby=[]) is None  # kf 2: no check, not nearby
 
 
 def test_nearby_keyframes_by_centre_distance_and_viewing_direction():
@@ -198,10 +205,10 @@ def test_nearby_keyframes_by_centre_distance_and_viewing_direction():
 def test_detector_min_submap_gap_and_errors():
     place = torch.ones(4)
     detector = LoopDetector(check_every=2, exclude_recent=0, min_submap_gap=1, descriptor_dim=4, backend="torch")
-    assert detector.add_keyframe(0, 7, place, torch.zeros(2)) is None
-    assert detector.add_keyframe(1, 7, place, torch.zeros(2)) is None  # same submap: gap 0 < 1
+    assert _loop(detector, 0, 7, place, torch.zeros(2)) is None
+    assert _loop(detector, 1, 7, place, torch.zeros(2)) is None  # same submap: gap 0 < 1
     with pytest.raises(ValueError, match="landmark scores"):
-        detector.add_keyframe(2, 8, place, torch.zeros(3, 1))
+        _loop(detector, 2, 8, place, torch.zeros(3, 1))
     with pytest.raises(ValueError, match="check_every"):
         LoopDetector(check_every=0)
     cfg = LoopConfig(keyframe_every=3, check_every=4, max_descriptor_distance=0.1,
@@ -218,9 +225,9 @@ def test_detector_compares_grown_landmark_vectors_zero_padded():
     """A class discovered later appends a score; older vectors are compared as if it scored 0 there."""
     place = torch.ones(4)
     detector = LoopDetector(check_every=3, exclude_recent=0, descriptor_dim=4, backend="torch")
-    detector.add_keyframe(0, 0, place, torch.tensor([1.0, 2.0]))
-    detector.add_keyframe(1, 0, place, torch.tensor([1.0, 2.5]))
-    loop = detector.add_keyframe(2, 0, place, torch.tensor([1.0, 2.0, 3.0]))
+    _loop(detector, 0, 0, place, torch.tensor([1.0, 2.0]))
+    _loop(detector, 1, 0, place, torch.tensor([1.0, 2.5]))
+    loop = _loop(detector, 2, 0, place, torch.tensor([1.0, 2.0, 3.0]))
     assert loop is not None and loop.match_keyframe == 0
     assert loop.landmark_distance == pytest.approx(3.0)
 
@@ -254,22 +261,33 @@ def test_database_leaves_the_thread_count_of_torch_alone():
         torch.set_num_threads(before)
 
 
-def test_detector_without_classes_keeps_descriptor_order_and_verifies_in_order():
-    """One class: landmark vectors say nothing, the closest descriptor comes first; a verifier is tried on the ranked
-    candidates (at most verify_candidates) and the first it confirms is the loop."""
+def test_detector_without_classes_keeps_descriptor_order_and_ranks_at_most_max_candidates():
+    """One class: landmark vectors say nothing, the closest descriptor comes first; the ranked candidates are cut at
+    max_candidates (the bag of words' caller verifies them in that order)."""
     g = torch.Generator().manual_seed(4)
     place = _unit(torch.randn(8, generator=g))
     detector = LoopDetector(check_every=1, max_descriptor_distance=0.5, exclude_recent=0, descriptor_dim=8,
-                            backend="torch", verify_candidates=2)
+                            backend="torch", max_candidates=2)
     for kf, noise in enumerate([0.3, 0.1, 0.2, 2.0]):  # keyframe 1 is the closest, 3 is no candidate
-        detector.add_keyframe(kf, 0, _unit(place + noise * _unit(torch.randn(8, generator=g))),
-                              torch.tensor([float(kf)]))  # one class: differing scores must not re-rank
-    tried = []
+        _loop(detector, kf, 0, _unit(place + noise * _unit(torch.randn(8, generator=g))),
+              torch.tensor([float(kf)]))  # one class: differing scores must not re-rank
+    ranked = detector.add_keyframe(PlaceSignature(4, 1, place, torch.tensor([0.0])))
+    assert [(c.query_keyframe, c.match_keyframe) for c in ranked] == [(4, 1), (4, 2)]  # keyframe 0 cut off
+    assert ranked[0].descriptor_distance < ranked[1].descriptor_distance
 
-    def second_only(candidate):
-        tried.append(candidate.match_keyframe)
-        return candidate if len(tried) == 2 else None
 
-    loop = detector.add_keyframe(4, 1, place, torch.tensor([0.0]), verify=second_only)
-    assert tried == [1, 2] and loop.match_keyframe == 2
-    assert detector.add_keyframe(5, 1, place, torch.tensor([0.0]), verify=lambda c: None) is None
+def test_detector_from_config_with_the_bag_of_words_and_a_mismatched_signature():
+    """"bow": a bag-of-words database whose bow.candidates best are ranked; a global descriptor is refused clearly
+    (and so are ORB features by a descriptor database), before anything is stored."""
+    from gausem_core.slam.loop.words import BagOfWords, OrbFeatures
+    cfg = LoopConfig()
+    bow = LoopDetector.from_config(cfg, "bow")
+    assert isinstance(bow.database, BagOfWords) and bow.max_candidates == cfg.bow.candidates
+    with pytest.raises(ValueError, match="described by Tensor, but the database is a BagOfWords"):
+        bow.add_keyframe(PlaceSignature(0, 0, torch.ones(384), torch.ones(2)))
+    features = OrbFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros((0, 3), np.float32), 1)
+    descriptors = LoopDetector.from_config(cfg, "fallback", backend="torch")
+    assert descriptors.max_candidates == 1
+    with pytest.raises(ValueError, match="described by OrbFeatures, but the database is a DescriptorDatabase"):
+        descriptors.add_keyframe(PlaceSignature(0, 0, features, torch.ones(2)))
+    assert len(bow.database) == len(descriptors.database) == 0

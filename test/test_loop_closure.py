@@ -1,11 +1,14 @@
 """The loop-closure orchestrator on hand-made submaps: inter-submap loops (SGR, anchor graph, rigid correction),
 intra-submap loops (keyframe-pair registration, keyframe graph, re-mapping), switches and the learned palette."""
+import dataclasses
+
 import pytest
 import torch
 
 from gausem_core.config import LoopConfig, MappingConfig, RegistrationConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose
+from gausem_core.slam.loop import LoopDetector
 from gausem_core.slam.mapper import Mapper
 from loop_scene import PALETTE, frame, make_submap, perturbation, pose_error
 
@@ -86,6 +89,33 @@ def test_intra_submap_loop_pulls_drifted_keyframes_back():
     assert after[11][0] < 0.3 * before[11][0] and after[11][1] < 0.3 * before[11][1]  # the loop keyframe
     assert sum(e[0] for e in after[7:]) < 0.5 * sum(e[0] for e in before[7:])
     assert 0 < len(submap.cloud) <= gaussians  # re-mapped (and pruned) with the corrected poses
+
+
+@pytest.mark.parametrize("place_recognition", ["descriptor", "auto"])
+def test_detection_in_another_process_closes_the_same_loops(place_recognition):
+    """The steps of on_keyframe run apart, as the ROS nodes run them: describe here, detect in a LoopDetector of its
+    own (the loop_detection node's, from the same configuration), confirm, register and correct here. The same loop
+    records as on_keyframe, accepted or not (with the bag of words: verified in order, with the same inliers)."""
+    def scene():
+        first = make_submap(0, list(range(0, 50, 5)))
+        return [first, make_submap(1, list(range(330, 360, 5)),
+                                   anchor=perturbation(0.08, 3.0, 1).float() @ frame(330)[1])]
+
+    together = _closure(place_recognition=place_recognition)
+    _feed(together, scene())
+    apart, submaps = _closure(place_recognition=place_recognition), scene()
+    detector = LoopDetector.from_config(apart.cfg, apart.place_recognition, backend="torch")
+    for submap in submaps:
+        for kf in submap.keyframes:
+            place = apart.describe(submaps, submap, kf)
+            candidate = apart.confirm(submaps, detector.add_keyframe(place)) if place is not None else None
+            outcome = apart.register(submaps, candidate) if candidate is not None else None
+            if outcome is not None and outcome.constraint is not None:
+                apart.correct(submaps, outcome.constraint)
+    assert together.loops and len(apart.detector.database) == 0  # apart's own database was never used
+    assert [dataclasses.replace(r, seconds=0.0) for r in apart.records] == \
+        [dataclasses.replace(r, seconds=0.0) for r in together.records]
+    assert apart.rejected_candidates == together.rejected_candidates
 
 
 def test_switches_and_rejected_loops():

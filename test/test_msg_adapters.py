@@ -1,4 +1,5 @@
 """msg_adapters: stamps, images, CameraInfo, poses, the Gaussian map PointCloud2 and the typed records."""
+import dataclasses
 import math
 
 import numpy as np
@@ -307,11 +308,11 @@ def test_pointcloud2_big_endian_and_padded_points_read():
 @pytest.mark.parametrize("offset, count", [(2**31 - 1, 16), (16, 2**29), (200, 16)])
 def test_pointcloud2_fields_beyond_the_point_are_rejected(offset, count):
     """Issue 24 (found by the fuzz test): numpy segfaulted on a field offset near 2**31."""
-    record = ma.KeyframeRecord(1, 1.0, 0, np.eye(4), np.eye(4), np.zeros(2, np.float32))
-    msg = ma.records_to_pointcloud2([record], HEADER)  # the pose: 16 float64 at offset 16 of a 280-byte point
+    record = ma.KeyframeRecord(1, 1.0, 0, np.eye(4), np.eye(4))
+    msg = ma.records_to_pointcloud2([record], HEADER)  # the pose: 16 float64 at offset 16 of a 272-byte point
     msg.fields[3].offset, msg.fields[3].count = offset, count
     with pytest.raises(ValueError, match=f"'pose' \\({count} x float64 at offset {offset}\\) ends at byte "
-                                         f"{offset + 8 * count}, beyond point_step 280"):
+                                         f"{offset + 8 * count}, beyond point_step 272"):
         ma.pointcloud2_to_records(msg, ma.KeyframeRecord)
     msg.point_step = 2**31
     with pytest.raises(ValueError, match="point_step 2147483648 exceeds"):
@@ -319,19 +320,29 @@ def test_pointcloud2_fields_beyond_the_point_are_rejected(offset, count):
 
 
 # --- typed records --------------------------------------------------------------------------------------------------
+def _place_record(rng, features: int = 5) -> ma.PlaceSignatureRecord:
+    """A bag-of-words place signature with ``features`` ORB rows."""
+    points = rng.normal(size=(features, 3)).astype(np.float32)
+    points[:1, :] = np.nan  # no depth at the first keypoint
+    return ma.PlaceSignatureRecord(40, 9.5, 5, True, np.zeros(0, np.float32),
+                                   rng.uniform(0, 80, (features, 2)).astype(np.float32),
+                                   rng.integers(0, 256, (features, 32), dtype=np.uint8), points, 3,
+                                   rng.random(4), np.array([0, 7, 12], np.int32))
+
+
 def _records(rng):
     info = np.diag(rng.random(6) + 1)
     return [
-        ma.KeyframeRecord(7, 1305031102.175304, 2, random_pose(rng), random_pose(rng),
-                          rng.random(384).astype(np.float32)),
+        ma.KeyframeRecord(7, 1305031102.175304, 2, random_pose(rng), random_pose(rng)),
         ma.SubmapEvent(2, 7, random_pose(rng), ma.SubmapEventKind.CLOSED),
         ma.LoopCandidateRecord(40, 7, 5, 2, float(rng.random()), 3.25, False),
         ma.LoopConstraintRecord(40, 7, 5, 2, random_pose(rng), 0.87, info, True),
         ma.PoseGraphNode(ma.PoseGraphNodeKind.ANCHOR, 5, random_pose(rng)),
+        _place_record(rng),
     ]
 
 
-@pytest.mark.parametrize("index", range(5))
+@pytest.mark.parametrize("index", range(6))
 def test_every_record_round_trips(index):
     record = _records(np.random.default_rng(index))[index]
     other = _records(np.random.default_rng(index + 10))[index]
@@ -348,13 +359,20 @@ def test_record_fields_name_the_pointfields():
     f64, f32, i32 = PointField.FLOAT64, PointField.FLOAT32, PointField.INT32
     assert [(f.name, f.offset, f.datatype, f.count) for f in msg.fields] == [
         ("keyframe_id", 0, i32, 1), ("stamp", 4, f64, 1), ("submap_id", 12, i32, 1), ("pose", 16, f64, 16),
-        ("anchor_pose", 144, f64, 16), ("descriptor", 272, f32, 384)]
-    assert msg.point_step == 272 + 4 * 384
+        ("anchor_pose", 144, f64, 16)]
+    assert msg.point_step == 272
     row = pointcloud2_to_structured(msg)[0]
     np.testing.assert_array_equal(row["pose"].reshape(4, 4), kf.pose)
     event = ma.records_to_pointcloud2([_records(np.random.default_rng(0))[1]], HEADER)
     assert [(f.name, f.datatype) for f in event.fields][-1] == ("kind", PointField.UINT8)
     assert pointcloud2_to_structured(event)["kind"][0] == 1
+    place = ma.records_to_pointcloud2([_place_record(np.random.default_rng(0), features=5)], HEADER)
+    assert [(f.name, f.datatype, f.count) for f in place.fields][3:9] == [
+        ("bag_of_words", PointField.UINT8, 1), ("descriptor", f32, 0), ("orb_keypoints", f32, 10),
+        ("orb_descriptors", PointField.UINT8, 160), ("orb_points", f32, 15), ("orb_scale", i32, 1)]
+    place.fields[6].count = 161  # not whole 32-byte rows
+    with pytest.raises(ValueError, match="'orb_descriptors' holds 161 values, not rows of 32"):
+        ma.pointcloud2_to_records(place, ma.PlaceSignatureRecord)
 
 
 def test_pose_graph_update_round_trip():
@@ -371,14 +389,15 @@ def test_record_validation_and_decoding_errors():
     with pytest.raises(ValueError, match="not a SubmapEvent"):
         ma.pointcloud2_to_records(ma.records_to_pointcloud2([kf], HEADER), ma.SubmapEvent)
     with pytest.raises(ValueError, match="KeyframeRecord.pose"):
-        ma.KeyframeRecord(1, 0.0, 0, np.eye(3), np.eye(4), np.zeros(4))
+        ma.KeyframeRecord(1, 0.0, 0, np.eye(3), np.eye(4))
     with pytest.raises(ValueError, match="int32"):
         ma.SubmapEvent(2**31, 0, np.eye(4), ma.SubmapEventKind.CREATED)
     with pytest.raises(ValueError):
         ma.SubmapEvent(1, 0, np.eye(4), 7)
-    short = ma.KeyframeRecord(8, 1.0, 2, np.eye(4), np.eye(4), np.zeros(3, np.float32))
-    with pytest.raises(ValueError, match="lengths \\[3, 384\\] differ"):
-        ma.records_to_pointcloud2([kf, short], HEADER)
+    with pytest.raises(ValueError, match="orb_keypoints: lengths \\[2, 5\\] differ"):
+        ma.records_to_pointcloud2([_place_record(rng), _place_record(rng, features=2)], HEADER)
+    with pytest.raises(ValueError, match="orb_descriptors: expected shape \\(None, 32\\)"):
+        dataclasses.replace(_place_record(rng), orb_descriptors=np.zeros((5, 31), np.uint8))
     with pytest.raises(ValueError, match="mixed record types"):
         ma.records_to_pointcloud2([kf, event], HEADER)
     with pytest.raises(ValueError, match="empty batch"):
@@ -410,3 +429,37 @@ def test_loop_candidates_and_constraints_to_and_from_the_core_types():
             ma.information_to_sigmas(bad)
     with pytest.raises(ValueError, match="intra_submap"):
         ma.record_to_loop_constraint(ma.LoopConstraintRecord(5, 40, 0, 2, relative.numpy(), 0.9, information, True))
+
+
+def test_place_signatures_to_and_from_the_core_type():
+    """Both kinds of appearance round-trip exactly (the loop detector stores what the tracker computed); a record
+    with both or neither, or ORB columns of different counts, is refused."""
+    from gausem_core.slam.loop import PlaceSignature
+    from gausem_core.slam.loop.words import OrbFeatures
+    rng = np.random.default_rng(8)
+    descriptor = PlaceSignature(40, 5, torch.from_numpy(rng.random(384).astype(np.float32)),
+                                torch.from_numpy(rng.random(6)), (0, 7))
+    features = OrbFeatures(rng.uniform(0, 80, (9, 2)).astype(np.float32),
+                           rng.integers(0, 256, (9, 32), dtype=np.uint8), rng.normal(size=(9, 3)).astype(np.float32), 2)
+    bow = PlaceSignature(45, 6, features, torch.zeros(0, dtype=torch.float64))
+    for place in (descriptor, bow):
+        record = ma.place_signature_to_record(place, 9.5)
+        msg = ma.records_to_pointcloud2([record], ma.make_header(9.5, "map"))
+        back = ma.record_to_place_signature(ma.pointcloud2_to_records(msg, ma.PlaceSignatureRecord)[0])
+        assert (back.keyframe_id, back.submap_id, back.nearby) == (place.keyframe_id, place.submap_id, place.nearby)
+        assert torch.equal(back.landmark_scores, place.landmark_scores)
+        assert record.bag_of_words == (place is bow)
+    assert torch.equal(ma.record_to_place_signature(ma.place_signature_to_record(descriptor, 1.0)).appearance,
+                       descriptor.appearance)
+    orb = ma.record_to_place_signature(ma.place_signature_to_record(bow, 1.0)).appearance
+    for name in ("keypoints", "descriptors", "points"):
+        np.testing.assert_array_equal(getattr(orb, name), getattr(features, name))
+    assert orb.scale == 2 and orb.descriptors.flags.writeable
+
+    record = ma.place_signature_to_record(bow, 1.0)
+    for bad, message in ((dataclasses.replace(record, descriptor=np.ones(3, np.float32)), "empty descriptor"),
+                         (dataclasses.replace(record, orb_scale=0), "orb_scale >= 1"),
+                         (dataclasses.replace(record, orb_points=np.zeros((2, 3), np.float32)), "differ in count"),
+                         (dataclasses.replace(record, bag_of_words=False), "needs values and no ORB rows")):
+        with pytest.raises(ValueError, match=message):
+            ma.record_to_place_signature(bad)

@@ -5,6 +5,7 @@ import time
 import cv2
 import numpy as np
 import pytest
+import torch
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -16,6 +17,7 @@ import msg_adapters as ma  # noqa: E402
 from gausem_core.data import SYNTHETIC_CLASSES  # noqa: E402
 from gausem_core.geometry import PinholeCamera  # noqa: E402
 from gausem_core.semantics import Segmenter  # noqa: E402
+from gausem_core.slam.loop import PlaceSignature  # noqa: E402
 from gausem_ros.nodes.loop_detection import LoopDetectionNode  # noqa: E402
 from gausem_ros.nodes.pose_graph import PoseGraphNode  # noqa: E402
 from gausem_ros.nodes.segmentation import SegmentationNode  # noqa: E402
@@ -181,26 +183,33 @@ def _fail_once(owner, name: str):
     setattr(owner, name, fail)
 
 
+def _signature(keyframe_id: int, stamp: float) -> PointCloud2:
+    """A place signature (a global descriptor) as the tracker publishes it."""
+    place = PlaceSignature(keyframe_id, 0, torch.ones(384), torch.ones(2))
+    return ma.records_to_pointcloud2([ma.place_signature_to_record(place, stamp)], ma.make_header(stamp, "map"))
+
+
+DESCRIPTOR_DETECTION = {"loop.place_recognition": "descriptor"}
+
+
 def test_loop_detection_pose_graph_and_segmentation_count_an_exception_and_go_on():
     with ros_session(147) as (ctx, executor):
-        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides({"label_stride": 1}))
+        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides(DESCRIPTOR_DETECTION))
         graph = PoseGraphNode(context=ctx, namespace="pg")  # only submap events reach it
         seg = SegmentationNode(_BrightnessSegmenter(), context=ctx)
         recorder = Recorder(ctx, [(Image, "semantic/color", IMAGE_QOS)])
         pubs = {topic: recorder.node.create_publisher(msg_type, topic, qos) for topic, msg_type, qos in (
-            ("gausem/keyframes", PointCloud2, EVENT_QOS), ("pg/gausem/submaps", PointCloud2, EVENT_QOS),
-            ("semantic/labels", Image, IMAGE_QOS), ("rgb/image", Image, IMAGE_QOS))}
+            ("gausem/place_signatures", PointCloud2, EVENT_QOS), ("pg/gausem/submaps", PointCloud2, EVENT_QOS),
+            ("rgb/image", Image, IMAGE_QOS))}
         for node in (loop, graph, seg, recorder.node):
             executor.add_node(node)
         assert spin_until(executor, lambda: all(p.get_subscription_count() for p in pubs.values()), 5.0)
-        _fail_once(loop.extractor, "describe")
+        _fail_once(loop.detector, "add_keyframe")
         _fail_once(graph, "_records")
         _fail_once(seg.segmenter, "segment")
         for i, stamp in enumerate((1.0, 2.0)):
             header = ma.make_header(stamp, "cam")
-            pubs["gausem/keyframes"].publish(ma.records_to_pointcloud2([ma.KeyframeRecord(
-                i, stamp, 0, np.eye(4), np.eye(4), np.zeros(0, np.float32))], header))
-            pubs["semantic/labels"].publish(ma.labels_to_image(np.zeros((30, 40), np.int64), header))
+            pubs["gausem/place_signatures"].publish(_signature(i, stamp))
             pubs["pg/gausem/submaps"].publish(ma.records_to_pointcloud2([ma.SubmapEvent(
                 i, i, np.eye(4), ma.SubmapEventKind.CREATED)], header))
             pubs["rgb/image"].publish(ma.rgb_to_image(np.zeros((30, 40, 3), np.uint8), header))
@@ -212,35 +221,32 @@ def test_loop_detection_pose_graph_and_segmentation_count_an_exception_and_go_on
 
 
 def test_loop_detection_drops_a_keyframe_older_than_the_newest_as_out_of_order():
-    """Found by the fuzz test: the detector raised on it, after the keyframe's labels were already counted."""
+    """Found by the fuzz test: the detector raised on it. Dropped, counted, and answered (with no candidates)."""
     with ros_session(148) as (ctx, executor):
-        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides({"label_stride": 1}))
-        node = rclpy.create_node("publisher", context=ctx)
-        kf_pub = node.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
-        labels_pub = node.create_publisher(Image, "semantic/labels", IMAGE_QOS)
+        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides(DESCRIPTOR_DETECTION))
+        recorder = Recorder(ctx, [(PointCloud2, "gausem/loop_candidates", EVENT_QOS)])
+        pub = recorder.node.create_publisher(PointCloud2, "gausem/place_signatures", EVENT_QOS)
         executor.add_node(loop)
-        executor.add_node(node)
-        assert spin_until(executor, lambda: kf_pub.get_subscription_count() and labels_pub.get_subscription_count(),
-                          5.0)
+        executor.add_node(recorder.node)
+        assert spin_until(executor, lambda: pub.get_subscription_count(), 5.0)
         for keyframe_id, stamp in ((5, 1.0), (3, 2.0)):
-            header = ma.make_header(stamp, "cam")
-            kf_pub.publish(ma.records_to_pointcloud2([ma.KeyframeRecord(
-                keyframe_id, stamp, 0, np.eye(4), np.eye(4), np.zeros(0, np.float32))], header))
-            labels_pub.publish(ma.labels_to_image(np.zeros((30, 40), np.int64), header))
-        assert spin_until(executor, lambda: loop.drops.counts["keyframe_out_of_order"] == 1, 5.0)
-        assert spin_until(executor, lambda: loop.keyframes_checked == 1, 5.0)
-    assert dict(loop.drops.counts) == {"keyframe_out_of_order": 1}
+            pub.publish(_signature(keyframe_id, stamp))
+        answers = recorder.messages["gausem/loop_candidates"]
+        assert spin_until(executor, lambda: len(answers) == 2, 5.0)
+    assert dict(loop.drops.counts) == {"keyframe_out_of_order": 1} and loop.keyframes_checked == 1
+    assert [ma.header_seconds(m.header) for m in answers] == [1.0, 2.0] and not any(m.width for m in answers)
 
 # --- fuzz -----------------------------------------------------------------------------------------------------------
 FUZZ_SECONDS = 3.0  # per node
 SIDES = (0, 1, 2, 3, 7, 15, 16, 17, 33)
 UNKNOWN_ENCODINGS = ("", "yuv422", "32FC3", "bgr16", "8UC3", "mono8 ")
-RECORD_TYPES = {"gausem/keyframes": ma.KeyframeRecord, "gausem/submaps": ma.SubmapEvent,
+RECORD_TYPES = {"gausem/keyframes": ma.KeyframeRecord, "gausem/place_signatures": ma.PlaceSignatureRecord,
+                "gausem/submaps": ma.SubmapEvent,
                 "gausem/loop_candidates": ma.LoopCandidateRecord, "gausem/loop_constraints": ma.LoopConstraintRecord,
                 "gausem/pose_graph": ma.PoseGraphNode}
 FUZZED_INPUTS = {  # node -> the topics fuzzed while it is the target
     "tracking_mapping": ("rgb/camera_info", *FRAME_TOPICS, "gausem/loop_candidates", "gausem/pose_graph"),
-    "loop_detection": ("gausem/keyframes", "semantic/labels"),
+    "loop_detection": ("gausem/place_signatures",),
     "pose_graph": ("gausem/keyframes", "gausem/submaps", "gausem/loop_constraints"),
     "segmentation": ("seg/rgb/image",),
 }
@@ -319,8 +325,15 @@ class _Fuzzer:
     def record(self, record_type, stamp: float, descriptor_length: int):
         rng, ids = self.rng, lambda: int(rng.integers(0, 4))
         if record_type is ma.KeyframeRecord:
-            return ma.KeyframeRecord(int(rng.integers(0, 1000)), stamp, ids(), self.pose(), self.pose(),
-                                     rng.normal(size=descriptor_length).astype(np.float32))
+            return ma.KeyframeRecord(int(rng.integers(0, 1000)), stamp, ids(), self.pose(), self.pose())
+        if record_type is ma.PlaceSignatureRecord:  # a global descriptor and ORB rows flagged either way, any values
+            rows = descriptor_length  # one length per message
+            return ma.PlaceSignatureRecord(
+                int(rng.integers(0, 1000)), stamp, ids(), self.chance(0.5),
+                rng.normal(size=descriptor_length).astype(np.float32),
+                rng.normal(scale=50, size=(rows, 2)).astype(np.float32),
+                rng.integers(0, 256, (rows, 32), dtype=np.uint8), rng.normal(size=(rows, 3)).astype(np.float32),
+                ids(), rng.normal(size=descriptor_length), rng.integers(-2, 1000, descriptor_length))
         if record_type is ma.SubmapEvent:
             return ma.SubmapEvent(ids(), ids(), self.pose(), ma.SubmapEventKind(ids() % 2))
         if record_type is ma.LoopCandidateRecord:
@@ -383,7 +396,7 @@ def test_fuzzed_inputs_never_kill_a_node_and_tracking_goes_on():
         session = _Session(ctx, executor, loop_closure="nodes")  # subscribes to loop candidates and pose graphs
         nodes = {"tracking_mapping": session.node,
                  "loop_detection": LoopDetectionNode(context=ctx, parameter_overrides=overrides(
-                     {"loop.exclude_recent": 1, "label_stride": 1})),
+                     {"loop.exclude_recent": 1})),
                  "pose_graph": PoseGraphNode(context=ctx),
                  "segmentation": SegmentationNode(_BrightnessSegmenter(), context=ctx, namespace="seg")}
         for node in list(nodes.values())[1:]:

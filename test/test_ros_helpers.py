@@ -1,5 +1,6 @@
 """gausem_ros helpers: approximate-time sync, TF broadcaster selection, QoS profiles and bag IO."""
 import sys
+import time
 import types
 
 import numpy as np
@@ -293,3 +294,38 @@ def test_bag_writing_errors(tmp_path):
         bags.write_bag(tmp_path / "b", [("/rgb", 1, img), ("/rgb", 2, ma.make_header(0.0, "c"))])
     with pytest.raises(bags.BagError, match="unknown ROS 2 bag storage"):
         bags.write_bag(tmp_path / "c", [], storage="zip")
+
+
+def test_loop_answers_hold_the_next_frame_until_answered_given_up_or_unheard():
+    """What tracking_mapping waits for in loop_closure: nodes: candidates for the last loop keyframe (an older
+    keyframe's do not count), then the pose graph's answer to an accepted loop; not while nobody listens; at most
+    the timeout; never with timeout 0."""
+    from gausem_ros.nodes.loop_answers import LoopAnswers
+    listening = {"detector": True, "graph": True}
+    given_up = []
+    answers = LoopAnswers(60.0, lambda: listening["detector"], lambda: listening["graph"], given_up.append)
+    assert answers.settled()
+    answers.expect_candidates(2.0)
+    answers.candidates_arrived(1.0)  # a late answer for an older keyframe
+    assert not answers.settled()
+    answers.candidates_arrived(2.0)
+    answers.expect_pose_graph()
+    assert not answers.settled()
+    answers.pose_graph_arrived()
+    assert answers.settled()
+    answers.expect_candidates(3.0)
+    listening["detector"] = False  # loop_detection went down while its answer was awaited
+    assert answers.settled() and given_up == []
+    answers.expect_candidates(4.0)  # and nobody listens when the next signature goes out
+    listening["detector"] = True
+    assert answers.settled()
+
+    impatient = LoopAnswers(1e-3, lambda: True, lambda: True, given_up.append)
+    impatient.expect_pose_graph()
+    time.sleep(2e-3)
+    assert impatient.settled() and given_up == ["pose_graph"]
+    never = LoopAnswers(0.0, lambda: True, lambda: True, given_up.append)
+    never.expect_candidates(1.0)
+    assert never.settled()
+    with pytest.raises(ValueError, match="loop_answer_timeout"):
+        LoopAnswers(-1.0, lambda: True, lambda: True, given_up.append)

@@ -11,22 +11,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
 from nav_msgs.msg import Odometry  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
+from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 import msg_adapters as ma  # noqa: E402
+from gausem_core.slam.loop import PlaceSignature  # noqa: E402
 from gausem_ros.launcher import Launcher  # noqa: E402
 from gausem_ros.nodes.loop_detection import LoopDetectionNode  # noqa: E402
 from gausem_ros.nodes.pose_graph import PoseGraphNode  # noqa: E402
 from gausem_ros.nodes.tracking_mapping import TrackingMappingNode  # noqa: E402
 from gausem_ros.player import Player, open_source  # noqa: E402
-from gausem_ros.qos import EVENT_QOS, IMAGE_QOS  # noqa: E402
+from gausem_ros.qos import EVENT_QOS  # noqa: E402
 from ros_harness import FAST_SLAM, Recorder, overrides, ros_param_args, ros_session, spin_until  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -117,31 +119,34 @@ def test_reset_then_replaying_the_same_frames_gives_the_same_trajectory():
     assert all(np.array_equal(a.numpy(), b.numpy()) for (_, a), (_, b) in zip(first, second))
 
 
-def _keyframe_msg(keyframe_id: int, stamp: float, submap_id: int = 0) -> PointCloud2:
+def _keyframe_msgs(keyframe_id: int, stamp: float, submap_id: int = 0) -> tuple[PointCloud2, PointCloud2]:
+    """A new keyframe's record and place signature (a global descriptor), as the tracker publishes them."""
     pose = np.eye(4)
     pose[0, 3] = 0.1 * keyframe_id
-    record = ma.KeyframeRecord(keyframe_id, stamp, submap_id, pose, np.eye(4), np.zeros(0, np.float32))
-    return ma.records_to_pointcloud2([record], ma.make_header(stamp, "map"))
+    header = ma.make_header(stamp, "map")
+    place = PlaceSignature(keyframe_id, submap_id, torch.ones(384), torch.ones(2))
+    return (ma.records_to_pointcloud2([ma.KeyframeRecord(keyframe_id, stamp, submap_id, pose, np.eye(4))], header),
+            ma.records_to_pointcloud2([ma.place_signature_to_record(place, stamp)], header))
 
 
 def test_loop_detection_and_pose_graph_start_over_when_the_tracker_restarts():
     """A tracker restart shows as keyframe ids that start again at 0 with new stamps: both nodes start over instead
     of dying (the database refused the repeated id)."""
-    labels = np.repeat(np.arange(8) % 3, 8).reshape(8, 8)
     with ros_session(133) as (ctx, executor):
-        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides({"label_stride": 1}))
+        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides({"loop.place_recognition": "descriptor"}))
         graph = PoseGraphNode(context=ctx)
         recorder = Recorder(ctx, [])
         kf_pub = recorder.node.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
-        labels_pub = recorder.node.create_publisher(Image, "semantic/labels", IMAGE_QOS)
+        place_pub = recorder.node.create_publisher(PointCloud2, "gausem/place_signatures", EVENT_QOS)
         for node in (loop, graph, recorder.node):
             executor.add_node(node)
-        assert spin_until(executor, lambda: kf_pub.get_subscription_count() == 2
-                          and labels_pub.get_subscription_count(), 5.0)
+        assert spin_until(executor, lambda: kf_pub.get_subscription_count() and place_pub.get_subscription_count(),
+                          5.0)
         stamps = [1.0, 2.0, 3.0, 10.0, 11.0]  # the tracker restarts after keyframe 10: ids 0, 5 again
         for keyframe_id, stamp in zip([0, 5, 10, 0, 5], stamps):
-            labels_pub.publish(ma.labels_to_image(labels, ma.make_header(stamp, "cam")))
-            kf_pub.publish(_keyframe_msg(keyframe_id, stamp))
+            keyframe, place = _keyframe_msgs(keyframe_id, stamp)
+            kf_pub.publish(keyframe)
+            place_pub.publish(place)
             checked = loop.keyframes_checked
             assert spin_until(executor, lambda: loop.keyframes_checked == checked + 1 or (
                 keyframe_id == 0 and loop.keyframes_checked == 1), 5.0)

@@ -56,8 +56,7 @@ def test_adapters_round_trip_through_rclpy_pub_sub():
     sent = {"rgb": ma.rgb_to_image(rgb, header, "bgr8"), "depth": ma.depth_to_image(depth_m, header, "16UC1"),
             "info": ma.camera_to_camera_info(camera, header),
             "odom": ma.matrix_to_odometry(pose, ma.make_header(12.25, "map"), "cam"),
-            "kf": ma.records_to_pointcloud2([ma.KeyframeRecord(3, 12.25, 1, pose, np.eye(4),
-                                                               np.arange(5, dtype=np.float32))], header)}
+            "kf": ma.records_to_pointcloud2([ma.KeyframeRecord(3, 12.25, 1, pose, np.eye(4))], header)}
     types = {"rgb": Image, "depth": Image, "info": CameraInfo, "odom": Odometry, "kf": PointCloud2}
     with ros_session(101) as (ctx, executor):
         recorder = Recorder(ctx, [(types[k], f"t/{k}", EVENT_QOS) for k in sent])
@@ -244,48 +243,70 @@ def test_segmentation_node_publishes_labels_and_colours_and_refuses_the_labels_k
     np.testing.assert_array_equal(ma.image_to_rgb(color_msg), SYNTHETIC_CLASSES.colorize(expected))
 
 
-def _loop_candidates(domain: int, parameters: dict, keyframes: list) -> list:
-    """Run a loop-detection node on keyframes (label layout, map-from-camera pose), ids 0, 5, 10, ...; the candidates
-    it publishes."""
+def _answers(domain: int, parameters: dict, places: list) -> tuple[list, LoopDetectionNode]:
+    """Run a loop-detection node on place signatures (core PlaceSignatures, stamped 1, 2, ...); its answers (one
+    list of candidate records per signature) and the node."""
     with ros_session(domain) as (ctx, executor):
-        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides(
-            {"loop.exclude_recent": 1, "label_stride": 1, **parameters}))
+        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides({"loop.exclude_recent": 1, **parameters}))
         recorder = Recorder(ctx, [(PointCloud2, "gausem/loop_candidates", EVENT_QOS)])
-        kf_pub = recorder.node.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
-        labels_pub = recorder.node.create_publisher(Image, "semantic/labels", IMAGE_QOS)
+        pub = recorder.node.create_publisher(PointCloud2, "gausem/place_signatures", EVENT_QOS)
         executor.add_node(loop)
         executor.add_node(recorder.node)
-        assert spin_until(executor, lambda: kf_pub.get_subscription_count() and labels_pub.get_subscription_count(),
-                          5.0)
-        for i, (layout, pose) in enumerate(keyframes):
+        assert spin_until(executor, lambda: pub.get_subscription_count(), 5.0)
+        answers = recorder.messages["gausem/loop_candidates"]
+        for i, place in enumerate(places):
             stamp = 1.0 + i
-            kf_pub.publish(ma.records_to_pointcloud2([ma.KeyframeRecord(5 * i, stamp, 0, pose, np.eye(4),
-                                                                        np.zeros(0, np.float32))],
-                                                     ma.make_header(stamp, "map")))
-            labels_pub.publish(ma.labels_to_image(layout, ma.make_header(stamp, "cam")))
-            assert spin_until(executor, lambda: loop.keyframes_checked == i + 1, 5.0)
-        assert spin_until(executor, lambda: recorder.messages["gausem/loop_candidates"], 5.0)
-    return [c for m in recorder.messages["gausem/loop_candidates"]
-            for c in ma.pointcloud2_to_records(m, ma.LoopCandidateRecord)]
+            pub.publish(ma.records_to_pointcloud2([ma.place_signature_to_record(place, stamp)],
+                                                  ma.make_header(stamp, "map")))
+            assert spin_until(executor, lambda: len(answers) == i + 1, 5.0)  # every signature is answered
+            assert ma.header_seconds(answers[i].header) == stamp
+    return [ma.pointcloud2_to_records(m, ma.LoopCandidateRecord) for m in answers], loop
 
 
-def test_loop_detection_finds_a_revisited_labelling():
-    stripes = np.repeat(np.arange(8) % 3, 8).reshape(8, 8)
-    candidates = _loop_candidates(105, {"loop.check_every": 1},
-                                  [(stripes, np.eye(4)), (np.full((8, 8), 5), np.eye(4)), (stripes, np.eye(4))])
-    assert [(c.query_keyframe_id, c.match_keyframe_id, c.intra_submap) for c in candidates] == [(10, 0, True)]
-    assert candidates[0].descriptor_distance == pytest.approx(0.0, abs=1e-6)
+def _orb_places() -> list:
+    """Bag-of-words signatures of synthetic views: three places, then the first one again (a revisit)."""
+    from gausem_core.config import BowConfig
+    from gausem_core.slam.loop import PlaceSignature
+    from gausem_core.slam.loop.words import extract_features
+    from loop_scene import frame
+    places = []
+    for n, index in enumerate((0, 90, 180, 3)):
+        obs = frame(index)[0]
+        features = extract_features(obs.rgb, obs.depth, obs.camera, BowConfig())
+        places.append(PlaceSignature(5 * n, n // 2, features, torch.tensor([1.0, float(n % 3), 0.5])))
+    return places
 
 
-def test_loop_detection_takes_keyframes_near_in_the_published_poses():
-    """Three different labellings, no descriptor check: the third keyframe is 10 cm from the first (the second 2 m
-    away), so with loop.proximity_radius it is a candidate."""
-    poses = [np.eye(4) for _ in range(3)]
-    poses[1][0, 3], poses[2][0, 3] = 2.0, 0.1
-    layouts = [np.full((8, 8), c) for c in (1, 5, 2)]
-    candidates = _loop_candidates(118, {"loop.check_every": 100, "loop.proximity_radius": 0.3},
-                                  list(zip(layouts, poses)))
-    assert [(c.query_keyframe_id, c.match_keyframe_id) for c in candidates] == [(10, 0)]
+@pytest.mark.parametrize("place_recognition", ["descriptor", "bow"])
+def test_loop_detection_answers_with_the_core_detectors_candidates(place_recognition):
+    """The node is the core's LoopDetector, configured as the tracker's loop closure configures it: the same
+    signatures give the same ranked candidates (with the bag of words: its database, up to bow.candidates)."""
+    from gausem_core.config import from_flat
+    from gausem_core.slam.loop import LoopDetector, PlaceSignature
+    parameters = {"loop.check_every": 1, "loop.place_recognition": place_recognition, "loop.bow.candidates": 2}
+    if place_recognition == "bow":
+        places = _orb_places()
+    else:
+        g = torch.Generator().manual_seed(2)
+        a, b = (torch.nn.functional.normalize(torch.randn(384, generator=g), dim=0) for _ in range(2))
+        places = [PlaceSignature(5 * n, 0, d, torch.tensor([1.0, 2.0])) for n, d in enumerate((a, b, b, a))]
+    answers, loop = _answers(105 if place_recognition == "bow" else 119, parameters, places)
+    cfg = from_flat({**parameters, "loop.exclude_recent": 1}).loop
+    detector = LoopDetector.from_config(cfg, cfg.place_recognition_for("fallback"))
+    expected = [[ma.loop_candidate_to_record(c) for c in detector.add_keyframe(p)] for p in places]
+    assert answers == expected and answers[-1]  # the revisit of keyframe 0 is found
+    assert answers[-1][0].match_keyframe_id == 0 and loop.keyframes_checked == 4
+
+
+def test_loop_detection_takes_the_keyframes_the_tracker_names_nearby():
+    """Three different places, no descriptor check: the third signature names the first as near in the tracker's
+    pose estimate (``loop.proximity_radius``), so it is a candidate."""
+    from gausem_core.slam.loop import PlaceSignature
+    g = torch.Generator().manual_seed(3)
+    places = [PlaceSignature(5 * n, 0, torch.randn(384, generator=g), torch.ones(2), nearby)
+              for n, nearby in enumerate([(), (), (0,)])]
+    answers, _ = _answers(118, {"loop.check_every": 100, "loop.place_recognition": "descriptor"}, places)
+    assert [[(c.query_keyframe_id, c.match_keyframe_id) for c in a] for a in answers] == [[], [], [(10, 0)]]
 
 
 def test_pose_graph_node_closes_an_intra_submap_loop():
@@ -298,7 +319,7 @@ def test_pose_graph_node_closes_an_intra_submap_loop():
         executor.add_node(recorder.node)
         assert spin_until(executor, lambda: kf_pub.get_subscription_count() and loop_pub.get_subscription_count(),
                           5.0)
-        records = [ma.KeyframeRecord(5 * i, 0.1 * i, 0, _translation(0.1 * i), np.eye(4), np.zeros(0, np.float32))
+        records = [ma.KeyframeRecord(5 * i, 0.1 * i, 0, _translation(0.1 * i), np.eye(4))
                    for i in range(4)]  # odometry says keyframe 15 is 0.3 m from keyframe 0 ...
         kf_pub.publish(ma.records_to_pointcloud2(records, ma.make_header(0.3, "map")))
         assert spin_until(executor, lambda: len(graph.keyframes) == 4, 5.0)
@@ -315,6 +336,30 @@ def test_pose_graph_node_closes_an_intra_submap_loop():
     np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-9)  # the submap's first keyframe is fixed
     x = [poses[k][0, 3] for k in (5, 10, 15)]
     assert 0.2 < x[2] < 0.3 and x[0] < x[1] < x[2]  # pulled towards the loop, odometry order kept
+
+
+def test_pose_graph_node_takes_anchors_from_the_latest_keyframe_record():
+    """The tracker re-publishes its keyframes with their current anchors before each loop constraint (as the core's
+    correction reads them): the latest record wins; a submap event only names a submap no record named yet."""
+    with ros_session(120) as (ctx, executor):
+        graph = PoseGraphNode(context=ctx)
+        node = Recorder(ctx, []).node
+        kf_pub = node.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
+        submap_pub = node.create_publisher(PointCloud2, "gausem/submaps", EVENT_QOS)
+        executor.add_node(graph)
+        executor.add_node(node)
+        assert spin_until(executor, lambda: kf_pub.get_subscription_count() and submap_pub.get_subscription_count(),
+                          5.0)
+        header = ma.make_header(1.0, "map")
+        for anchor_x in (0.5, 0.7):  # the anchor of submap 1 before and after a correction
+            kf_pub.publish(ma.records_to_pointcloud2([ma.KeyframeRecord(5, 1.0, 1, np.eye(4), _translation(anchor_x))],
+                                                     header))
+            assert spin_until(executor, lambda: 1 in graph.graphs.anchors
+                              and graph.graphs.anchors[1][0, 3] == anchor_x, 5.0)
+        events = [ma.SubmapEvent(s, 5, _translation(9.0), ma.SubmapEventKind.CLOSED) for s in (1, 2)]
+        submap_pub.publish(ma.records_to_pointcloud2(events, header))
+        assert spin_until(executor, lambda: 2 in graph.graphs.anchors, 5.0)
+    assert graph.graphs.anchors[1][0, 3] == 0.7 and graph.graphs.anchors[2][0, 3] == 9.0
 
 
 def test_run_all_builds_the_node_set_the_parameters_ask_for():
@@ -349,7 +394,8 @@ def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
     """Frames 0-3 with every node up, 4-5 with loop_detection and pose_graph down, 6-9 after fresh instances start."""
     slam = {**FAST_SLAM, "mapping.every": 2}  # keyframes 0, 2, 4, 6, 8
     # a loop per check
-    loops = {"loop.check_every": 1, "loop.exclude_recent": 0, "loop.max_fallback_descriptor_distance": 2.0,
+    loops = {"loop.keyframe_every": 2, "loop.check_every": 1, "loop.exclude_recent": 0,
+             "loop.place_recognition": "descriptor", "loop.max_fallback_descriptor_distance": 2.0,
              "loop.registration.min_fitness": 2.0, "loop_closure": "nodes"}  # none accepted: the constraint below stands in for registration
     frames = list(open_source("synthetic", size=(80, 60), max_frames=10))
     with ros_session(108) as (ctx, executor):

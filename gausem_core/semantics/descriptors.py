@@ -123,13 +123,19 @@ class ColourLayoutDescriptor(DescriptorExtractor):
         return patches if semantic_rgb.ndim == 4 else patches[0]
 
 
+def descriptor_kind(kind: str = "auto", dinov2_weights: str | None = None) -> str:
+    """The kind of extractor :func:`make_descriptor` builds for these settings, without building it: "dinov2" (asked
+    for, or ``auto`` with ``dinov2_weights``) or "fallback"."""
+    if kind not in ("auto", "dinov2", "fallback"):
+        raise ValueError(f"unknown descriptor kind {kind!r}; expected 'auto', 'dinov2' or 'fallback'")
+    return "dinov2" if kind == "dinov2" or (kind == "auto" and dinov2_weights) else "fallback"
+
+
 def make_descriptor(kind: str = "auto", dinov2_weights: str | None = None, short_side: int = 224,
                     device: torch.device | str = "cpu") -> DescriptorExtractor:
     """``auto``: DINOv2 when ``dinov2_weights`` is given (a given path that does not exist is an error, never a silent
     fallback), else the colour-layout fallback. ``device`` places the DINOv2 model; the fallback computes wherever
     its input lies."""
-    if kind not in ("auto", "dinov2", "fallback"):
-        raise ValueError(f"unknown descriptor kind {kind!r}; expected 'auto', 'dinov2' or 'fallback'")
-    if kind == "dinov2" or (kind == "auto" and dinov2_weights):
+    if descriptor_kind(kind, dinov2_weights) == "dinov2":
         return Dinov2Descriptor(dinov2_weights, short_side, device)
     return ColourLayoutDescriptor(short_side)

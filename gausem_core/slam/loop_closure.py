@@ -46,10 +46,10 @@ from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_log
 from gausem_core.semantics.descriptors import DescriptorExtractor, make_descriptor
 from gausem_core.slam.events import Correction
-from gausem_core.slam.loop import (DescriptorDatabase, LoopCandidate, LoopDetector, gaussian_idf, landmark_scores,
-                                   nearby_keyframes, observed_gaussians)
+from gausem_core.slam.loop import (DescriptorDatabase, LoopCandidate, LoopDetector, PlaceSignature, gaussian_idf,
+                                   landmark_scores, nearby_keyframes, observed_gaussians)
 from gausem_core.slam.loop.verification import verify
-from gausem_core.slam.loop.words import BagOfWords, extract_features
+from gausem_core.slam.loop.words import BagOfWords, OrbFeatures, extract_features
 from gausem_core.slam.loop_graphs import LoopGraphs, PoseGraphUpdate, odometry_sigmas
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.observation import Observation
@@ -169,10 +169,12 @@ class LoopClosure:
     """Loop detection and correction over the SLAM system's submaps (:class:`~gausem_core.slam.system.Submap`:
     anchor world-from-submap, Gaussians and keyframes in the submap frame, possibly offloaded), edited in place.
 
-    Three steps, also usable one by one when detection and pose graphs run elsewhere (the ROS nodes):
-    :meth:`on_keyframe` describes a keyframe and detects a loop, :meth:`register` measures a candidate as a
-    :class:`LoopConstraint`, :meth:`correct` optimises the pose graph of its level (:class:`LoopGraphs`) and moves the
-    map (:meth:`apply`).
+    :meth:`on_keyframe` runs the steps, which are also usable one by one when detection and pose graphs run elsewhere
+    (the ROS nodes): :meth:`describe` gives a keyframe's :class:`~gausem_core.slam.loop.PlaceSignature`,
+    :meth:`detect` queries the loop database (:attr:`detector`, built by ``LoopDetector.from_config``) with it for
+    ranked candidates, :meth:`confirm` picks the loop among them (geometric verification with the bag of words),
+    :meth:`register` measures it as a :class:`LoopConstraint`, :meth:`correct` optimises the pose graph of its level
+    (:class:`LoopGraphs`) and moves the map (:meth:`apply`).
 
     ``mapper`` re-maps submaps after intra-submap loops; ``descriptor`` gives the global descriptors and the dense
     features of the SGR feature term (default: the colour-layout fallback); ``device``: where submaps are loaded for
@@ -188,15 +190,15 @@ class LoopClosure:
         self.device = torch.device(device)
         self.descriptor = descriptor if descriptor is not None else make_descriptor("fallback")
         self.place_recognition = cfg.place_recognition_for(self.descriptor.kind)
-        database = BagOfWords(cfg.bow) if self.place_recognition == "bow" else None
         self.detector = LoopDetector.from_config(cfg, self.place_recognition, descriptor_dim=self.descriptor.dim,
-                                                 backend=database_backend, database=database)
+                                                 backend=database_backend)
         self.seconds = dict.fromkeys(PHASES, 0.0)
         self.rejected_candidates = 0  # candidates geometric verification turned down
         self.palette = SemanticPalette()
         self.records: list[LoopRecord] = []
         self.graphs = LoopGraphs(cfg)
         self._descriptors: dict[int, torch.Tensor] = {}  # keyframe frame id -> global descriptor
+        self._features: dict[int, OrbFeatures] = {}  # loop keyframe frame id -> ORB features ("bow")
 
     @property
     def constraints(self) -> list[LoopConstraint]:
@@ -208,27 +210,13 @@ class LoopClosure:
         """The accepted (closed) loops."""
         return [r for r in self.records if r.accepted]
 
-    def on_keyframe(self, submaps: Sequence, submap, keyframe: Keyframe, detect: bool = True) -> LoopOutcome | None:
-        """Algorithm 1 for a new keyframe of ``submap`` (one of ``submaps``): describe it and, with ``detect``,
-        query the loop database and close a detected loop (register, then correct when accepted)."""
-        if not self.cfg.enabled:
+    def on_keyframe(self, submaps: Sequence, submap, keyframe: Keyframe) -> LoopOutcome | None:
+        """Algorithm 1 for a new keyframe of ``submap`` (one of ``submaps``): :meth:`describe` it and, at a loop
+        keyframe, :meth:`detect` loops, :meth:`confirm` one and close it (register, then correct when accepted)."""
+        place = self.describe(submaps, submap, keyframe)
+        if place is None:
             return None
-        start = time.perf_counter()
-        self.palette.update(keyframe.obs.semantic)
-        descriptor = self._descriptor(submap, keyframe)
-        if not detect or not self.detector.is_keyframe(keyframe.frame_id):
-            self.seconds["describe"] += time.perf_counter() - start
-            return None
-        obs = submap.observation(keyframe)
-        signature = self._features(obs) if self.place_recognition == "bow" else descriptor
-        checking = time.perf_counter()
-        self.seconds["describe"] += checking - start
-        verifying = self.seconds["verify"]
-        check = self._verifier(submaps, obs, signature) if self.place_recognition == "bow" else None
-        candidate = self.detector.add_keyframe(keyframe.frame_id, submap.submap_id, signature,
-                                               self._landmark_scores(submap, keyframe),
-                                               self._nearby(submaps, submap.world_pose(keyframe)), check)
-        self.seconds["detect"] += time.perf_counter() - checking - (self.seconds["verify"] - verifying)
+        candidate = self.confirm(submaps, self.detect(place))
         if candidate is None:
             return None
         start = time.perf_counter()
@@ -237,6 +225,60 @@ class LoopClosure:
         record = dataclasses.replace(outcome.record, seconds=time.perf_counter() - start)
         self.records[-1] = record
         return LoopOutcome(record, outcome.constraint, correction)
+
+    def describe(self, submaps: Sequence, submap, keyframe: Keyframe) -> PlaceSignature | None:
+        """Describe a new keyframe of ``submap``: its semantic colours join the palette and its global descriptor is
+        kept (for SGR). A loop keyframe (every ``keyframe_every``-th frame) gets its place signature, what
+        :meth:`detect` takes (here or in another process): the database's appearance (the global descriptor, or with
+        place recognition "bow" the keyframe's ORB features), the Eq. 7 landmark scores over the submap's Gaussians
+        and the earlier keyframes near it in the current estimates. None for other keyframes or when disabled."""
+        if not self.cfg.enabled:
+            return None
+        start = time.perf_counter()
+        self.palette.update(keyframe.obs.semantic)
+        descriptor = self._descriptor(submap, keyframe)
+        place = None
+        if self.detector.is_keyframe(keyframe.frame_id):
+            appearance = self._keyframe_features(submap, keyframe) if self.place_recognition == "bow" else descriptor
+            place = PlaceSignature(keyframe.frame_id, submap.submap_id, appearance,
+                                   self._landmark_scores(submap, keyframe),
+                                   tuple(self._nearby(submaps, submap.world_pose(keyframe))))
+        self.seconds["describe"] += time.perf_counter() - start
+        return place
+
+    def detect(self, place: PlaceSignature) -> list[LoopCandidate]:
+        """Algorithm 1's query of the loop database for a described keyframe, which it then stores: the ranked
+        candidates (:meth:`LoopDetector.add_keyframe`)."""
+        start = time.perf_counter()
+        candidates = self.detector.add_keyframe(place)
+        self.seconds["detect"] += time.perf_counter() - start
+        return candidates
+
+    def confirm(self, submaps: Sequence, candidates: Sequence[LoopCandidate]) -> LoopCandidate | None:
+        """The loop among one query keyframe's ranked candidates (as :meth:`detect` gives them): with place recognition
+        "bow" the first that passes geometric verification, with its verified relative pose (the ones before it are
+        counted in :attr:`rejected_candidates`); else the first. None when there is none. Raises ValueError when the
+        candidates are of several query keyframes or name a keyframe not in ``submaps``."""
+        queries = sorted({c.query_keyframe for c in candidates})
+        if len(queries) > 1:
+            raise ValueError(f"loop candidates of several query keyframes: {queries}")
+        if self.place_recognition != "bow":
+            return next(iter(candidates), None)
+        by_id = {s.submap_id: s for s in submaps}
+        for candidate in candidates:
+            start = time.perf_counter()
+            query_submap, query = _find_keyframe(by_id, candidate, candidate.query_submap, candidate.query_keyframe)
+            match_submap, match = _find_keyframe(by_id, candidate, candidate.match_submap, candidate.match_keyframe)
+            obs = query_submap.observation(query)
+            result = verify(self._keyframe_features(query_submap, query),
+                            self._keyframe_features(match_submap, match), obs,
+                            match_submap.observation(match, obs.depth.device), self.cfg.bow,
+                            self.cfg.registration.max_depth_residual)
+            self.seconds["verify"] += time.perf_counter() - start
+            if result.passed:
+                return dataclasses.replace(candidate, relative=result.relative, inliers=result.inliers)
+            self.rejected_candidates += 1
+        return None
 
     def nearest_keyframes(self, obs: Observation, k: int) -> list[int]:
         """Frame ids of the ``k`` keyframes most like an observation, most alike first: with place recognition
@@ -247,7 +289,7 @@ class LoopClosure:
             return []
         recognised = []
         if self.place_recognition == "bow":
-            ids, distances = self.detector.database.search(self._features(obs), k=k)
+            ids, distances = self.detector.database.search(self._observation_features(obs), k=k)
             recognised = ids[distances <= self.detector.max_descriptor_distance].tolist()
         if not self._descriptors:
             return recognised
@@ -289,6 +331,7 @@ class LoopClosure:
         if saved_bow:
             self.detector.database = BagOfWords(self.cfg.bow)
             self.detector.database.load_state_dict(state["database"])
+            self._features = dict(self.detector.database.features)
         else:
             database = self.detector.database = DescriptorDatabase(self.detector.database.dim,
                                                                    self.detector.database.backend)
@@ -307,26 +350,14 @@ class LoopClosure:
             self._descriptors[keyframe.frame_id] = torch.from_numpy(np.asarray(self.descriptor.describe(semantic)))
         return self._descriptors[keyframe.frame_id]
 
-    def _features(self, obs: Observation):
+    def _keyframe_features(self, submap, keyframe: Keyframe) -> OrbFeatures:
+        """The keyframe's ORB features (computed once, like its global descriptor)."""
+        if keyframe.frame_id not in self._features:
+            self._features[keyframe.frame_id] = self._observation_features(submap.observation(keyframe))
+        return self._features[keyframe.frame_id]
+
+    def _observation_features(self, obs: Observation) -> OrbFeatures:
         return extract_features(obs.rgb, obs.depth, obs.camera, self.cfg.bow)
-
-    def _verifier(self, submaps: Sequence, obs: Observation, features):
-        """Geometric verification of candidates for a query keyframe (its observation and ORB features): the
-        candidate with the verified relative pose, or None (counted in :attr:`rejected_candidates`)."""
-        keyframes = {kf.frame_id: (s, kf) for s in submaps for kf in s.keyframes}
-
-        def check(candidate: LoopCandidate) -> LoopCandidate | None:
-            start = time.perf_counter()
-            submap, keyframe = keyframes[candidate.match_keyframe]
-            result = verify(features, self.detector.database.features[candidate.match_keyframe], obs,
-                            submap.observation(keyframe, obs.depth.device), self.cfg.bow,
-                            self.cfg.registration.max_depth_residual)
-            self.seconds["verify"] += time.perf_counter() - start
-            if not result.passed:
-                self.rejected_candidates += 1
-                return None
-            return dataclasses.replace(candidate, relative=result.relative, inliers=result.inliers)
-        return check
 
     def _landmark_scores(self, submap, keyframe: Keyframe) -> torch.Tensor:
         """Eq. 7 over the submap's Gaussians that the keyframe observes, computed where they are; (C,) on the CPU."""
@@ -360,11 +391,8 @@ class LoopClosure:
         when a keyframe or submap of the candidate is unknown."""
         start = time.perf_counter()
         by_id = {s.submap_id: s for s in submaps}
-        for submap_id, frame_id in ((candidate.query_submap, candidate.query_keyframe),
-                                    (candidate.match_submap, candidate.match_keyframe)):
-            if frame_id not in [kf.frame_id for kf in getattr(by_id.get(submap_id), "keyframes", [])]:
-                raise ValueError(f"loop candidate {candidate.query_keyframe}->{candidate.match_keyframe}: no keyframe "
-                                 f"{frame_id} in submap {submap_id}")
+        _find_keyframe(by_id, candidate, candidate.query_submap, candidate.query_keyframe)
+        _find_keyframe(by_id, candidate, candidate.match_submap, candidate.match_keyframe)
         measure = self._register_intra if candidate.intra else self._register_inter
         constraint, accepted = measure(candidate, by_id)
         seconds = time.perf_counter() - start
@@ -488,6 +516,16 @@ class LoopClosure:
             submap.anchor = torch.as_tensor(np.array(poses[submap.submap_id]), dtype=submap.anchor.dtype,
                                             device=submap.anchor.device)
         return len(moved)
+
+
+def _find_keyframe(by_id: dict, candidate: LoopCandidate, submap_id: int, frame_id: int) -> tuple:
+    """(submap, keyframe) of a loop candidate's keyframe; ValueError when the submap does not hold it."""
+    submap = by_id.get(submap_id)
+    keyframe = next((kf for kf in getattr(submap, "keyframes", []) if kf.frame_id == frame_id), None)
+    if keyframe is None:
+        raise ValueError(f"loop candidate {candidate.query_keyframe}->{candidate.match_keyframe}: no keyframe "
+                         f"{frame_id} in submap {submap_id}")
+    return submap, keyframe
 
 
 PHASES = ("describe", "detect", "verify", "register", "correct")  # LoopClosure.seconds

@@ -14,13 +14,14 @@ the compute device. A closed submap's tensors go to a :class:`SubmapStore` (CPU 
 from __future__ import annotations
 
 import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import torch
 
 from gausem_core.config import SlamConfig
 from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3, rigid_float64
+from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
 from gausem_core.render import select_backend
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
@@ -37,6 +38,11 @@ from gausem_core.slam.submap_store import SubmapStore
 from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity, inspect_pose
 
 _IMAGES = ("rgb", "depth", "semantic", "labels")
+
+
+def _float64(pose: torch.Tensor) -> torch.Tensor:
+    """A stored pose as it is, in float64 on the CPU (events; see :mod:`~gausem_core.slam.events`)."""
+    return pose.detach().cpu().double()
 
 
 def rigid_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -164,7 +170,7 @@ class GauSemSLAM:
 
     ``num_classes``: length of the class histograms (the class table's size); they grow to the largest class id seen,
     so 1 is fine when the table is unknown. ``detect_loops``: False when loops are detected elsewhere (the ROS
-    loop_detection node) and handed in through :meth:`register_loop`; keyframes are still described for registration.
+    loop_detection node) from the place signatures in the frames' events and handed in through :meth:`register_loop`.
     Call :meth:`close` (or use ``with``) to delete spilled submaps at once; otherwise that happens when the object is
     collected.
 
@@ -216,7 +222,7 @@ class GauSemSLAM:
         self.mapper.hurry.clear()
         if not self.submaps:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
-            return self._result(None, True, loss, None, events=self._keyframe_events([], self._close_loops()))
+            return self._result(None, True, loss, None, events=self._keyframe_events([]))
         tracked, relocalised = self._place(obs, frame_id)
         if tracked is None:  # lost and not relocalised: the frame is dropped
             return FrameResult(frame_id, relocalised.cam_to_world, False, relocalised.tracking_loss,
@@ -240,7 +246,7 @@ class GauSemSLAM:
             loss = self._open_submap(obs, frame_id, anchor)
         else:
             loss = self._map_keyframe(obs, frame_id, pose)
-        events = self._keyframe_events(closed, self._close_loops())
+        events = self._keyframe_events(closed)
         return self._result(tracked, True, loss, decision, relocalised, health, events)
 
     def _place(self, obs: Observation, frame_id: int) -> tuple[TrackingResult | None, RelocalisationResult | None]:
@@ -365,27 +371,28 @@ class GauSemSLAM:
         """A recent frame's pose in the active submap's frame."""
         return invert_pose(self.active.anchor) @ self.frames[index].cam_to_world
 
-    def _close_loops(self) -> LoopOutcome | None:
-        """Loop closure (Algorithm 1) for the newest keyframe, self.active.keyframes[-1]: the outcome of a loop
-        detected here, else None."""
-        if self.loop_closure is None:
-            return None
-        return self.loop_closure.on_keyframe(self.submaps, self.active, self.active.keyframes[-1], self.detect_loops)
-
-    def _keyframe_events(self, closed: list[SubmapChange], loop: LoopOutcome | None) -> FrameEvents:
-        """The events of a frame that made the newest keyframe (``closed``: the submap it closed, if any)."""
+    def _keyframe_events(self, closed: list[SubmapChange]) -> FrameEvents:
+        """The events of a frame that made the newest keyframe (``closed``: the submap it closed, if any), after loop
+        closure (Algorithm 1) for it: the outcome of a loop detected here (``detect_loops``), else the keyframe's
+        place signature for the detector elsewhere (a loop keyframe's)."""
         submap = self.active
+        keyframe = submap.keyframes[-1]
+        loop = place = None
+        if self.loop_closure is not None and self.detect_loops:
+            loop = self.loop_closure.on_keyframe(self.submaps, submap, keyframe)
+        elif self.loop_closure is not None:
+            place = self.loop_closure.describe(self.submaps, submap, keyframe)
         opened = [self._submap_change(submap, opened=True)] if len(submap.keyframes) == 1 else []
-        return FrameEvents(self._keyframe_state(submap, submap.keyframes[-1]), tuple(closed + opened), loop)
+        return FrameEvents(self._keyframe_state(submap, keyframe), tuple(closed + opened), loop, place)
 
     @staticmethod
     def _submap_change(submap: Submap, opened: bool) -> SubmapChange:
-        return SubmapChange(submap.submap_id, submap.keyframes[0].frame_id, rigid_float64(submap.anchor), opened)
+        return SubmapChange(submap.submap_id, submap.keyframes[0].frame_id, _float64(submap.anchor), opened)
 
     @staticmethod
     def _keyframe_state(submap: Submap, kf: Keyframe) -> KeyframeState:
-        return KeyframeState(kf.frame_id, submap.submap_id, kf.obs.timestamp, rigid_float64(kf.cam_to_world),
-                             rigid_float64(submap.anchor))
+        return KeyframeState(kf.frame_id, submap.submap_id, kf.obs.timestamp, _float64(kf.cam_to_world),
+                             _float64(submap.anchor))
 
     def keyframe_states(self, submap_id: int | None = None) -> list[KeyframeState]:
         """The keyframes (of one submap, or all) with their current poses, in order."""
@@ -396,13 +403,17 @@ class GauSemSLAM:
         """Every submap as opened (e.g. to announce a loaded map), with its current anchor."""
         return [self._submap_change(s, opened=True) for s in self.submaps]
 
-    def register_loop(self, candidate: LoopCandidate) -> LoopOutcome:
-        """Register a loop detected elsewhere (keyframe alignment or SGR); the outcome's constraint is set when
-        accepted. The map is not corrected: that is the pose graph's answer (:meth:`apply_pose_graph`). Raises
-        ValueError when loop closure is disabled or the candidate names unknown keyframes."""
+    def register_loop(self, candidates: Sequence[LoopCandidate]) -> LoopOutcome | None:
+        """Close a loop detected elsewhere: among one query keyframe's ranked candidates (from the detector's
+        :meth:`~gausem_core.slam.loop.LoopDetector.add_keyframe` for its place signature, ``FrameEvents.place``) the
+        one the loop closure confirms is registered (keyframe alignment or SGR); the outcome's constraint is set when
+        accepted; None when none is confirmed. The map is not corrected: that is the pose graph's answer
+        (:meth:`apply_pose_graph`). Raises ValueError when loop closure is disabled or the candidates name unknown
+        keyframes or several query keyframes."""
         if self.loop_closure is None:
             raise ValueError("loop closure is disabled (loop.enabled: false)")
-        return self.loop_closure.register(self.submaps, candidate)
+        candidate = self.loop_closure.confirm(self.submaps, candidates)
+        return None if candidate is None else self.loop_closure.register(self.submaps, candidate)
 
     def apply_pose_graph(self, update: PoseGraphUpdate) -> Correction:
         """Move the map to a pose graph's answer: anchors (world-from-submap), then keyframe poses (submap frame),

@@ -3,9 +3,9 @@
 - ``segmentation``: rgb/image -> semantic/labels (mono16) + semantic/color (rgb8), with a segmenter that works on the
   image alone (``semantics.segmenter: dinov2``). With ``labels`` the class ids come with the data: the player (or
   another robot stack) publishes semantic/labels and this node is not run.
-- ``tracking_mapping``: owns the SLAM system and the map; odometry, path, TF, map, keyframe and submap records,
-  services gausem/save_map, gausem/finish and gausem/reset.
-- ``loop_detection``: keyframe records + semantic labels -> loop candidates (paper Algorithm 1).
+- ``tracking_mapping``: owns the SLAM system and the map; odometry, path, TF, map, keyframe and submap records (and
+  with ``loop_closure: nodes`` place signatures), services gausem/save_map, gausem/finish and gausem/reset.
+- ``loop_detection``: place signatures -> ranked loop candidates (paper Algorithm 1, the core's LoopDetector).
 - ``pose_graph``: keyframe and submap records + loop constraints -> corrected keyframe and anchor poses (GTSAM).
 """
 NODE_MODULES = ("segmentation", "tracking_mapping", "loop_detection", "pose_graph")

@@ -152,10 +152,12 @@ class NewestFrameQueue:
     """One pending frame: a newer one replaces it (``on_superseded`` is called with the old one). ``put`` may be
     called from an input callback group while a frame is being processed in another: processing runs from a guard
     condition, so a node that falls behind skips to the newest synchronised frame instead of queueing.
-    ``process(item, arrived)`` gets the monotonic time the item was put."""
+    ``process(item, arrived)`` gets the monotonic time the item was put. While ``ready()`` is false the pending
+    frame waits; call :meth:`wake` when it may have become true."""
 
-    def __init__(self, node, process: Callable, on_superseded: Callable, callback_group=None):
-        self._process, self._on_superseded = process, on_superseded
+    def __init__(self, node, process: Callable, on_superseded: Callable, callback_group=None,
+                 ready: Callable[[], bool] = lambda: True):
+        self._process, self._on_superseded, self._ready = process, on_superseded, ready
         self._pending: tuple[object, float] | None = None
         self._running = 0
         self._lock = threading.Lock()
@@ -179,8 +181,17 @@ class NewestFrameQueue:
         with self._lock:
             self._pending = None
 
+    def wake(self) -> None:
+        """Process the pending frame now if it is waiting for ``ready()``."""
+        with self._lock:
+            waiting = self._pending is not None and not self._running
+        if waiting:
+            self._guard.trigger()
+
     def _run(self) -> None:
         with self._lock:
+            if not self._ready():
+                return
             entry, self._pending = self._pending, None
             self._running += entry is not None
         if entry is None:

@@ -2,10 +2,11 @@
 ``gausem/pose_graph`` (a PoseGraphUpdate: corrected poses, one record per node).
 
 A thin shell over the core's :class:`~gausem_core.slam.loop_graphs.LoopGraphs`, the pose graphs ``gausem run``
-corrects loops with: keyframe records give keyframe poses in their submap frame (the latest record of a keyframe wins:
-tracking_mapping re-publishes a submap's keyframes before an intra-submap constraint, as bundle adjustment moves
-them), submap events and keyframe records give anchors, and each loop constraint re-optimises its level; the
-corrected poses are published (KEYFRAME or ANCHOR nodes). A keyframe id seen before with another stamp means the
+corrects loops with: keyframe records give keyframe poses in their submap frame and their submaps' anchors (the latest
+record wins: tracking_mapping re-publishes every keyframe with its current pose and anchor before each loop
+constraint, so the graphs start from what the core's own would), submap events give the anchors of submaps no
+keyframe record named yet, and each loop constraint re-optimises its level; the corrected poses are published
+(KEYFRAME or ANCHOR nodes). A keyframe id seen before with another stamp means the
 tracker started a new map (restarted or reset): the graphs start over. Constraints naming unknown keyframes or
 submaps, or that the graph cannot take, are dropped and counted.
 """
@@ -62,8 +63,7 @@ class PoseGraphNode(Node):
                 self._start_map()
                 self._stamps[r.keyframe_id] = r.stamp
             self.graphs.set_keyframe(r.keyframe_id, r.submap_id, r.pose)
-            if r.submap_id not in self.graphs.anchors:
-                self.graphs.set_anchor(r.submap_id, r.anchor_pose)
+            self.graphs.set_anchor(r.submap_id, r.anchor_pose)
 
     @survives_errors
     def _on_submaps(self, msg: PointCloud2) -> None:

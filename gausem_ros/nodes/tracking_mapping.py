@@ -7,9 +7,10 @@ synchronised; with ``loop_closure: nodes``, ``gausem/loop_candidates`` and ``gau
 Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_frame``, stamped like the rgb image),
 ``gausem/path`` (latched, re-published after every frame and every correction), TF ``map_frame`` -> camera frame,
 ``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/keyframes``
-(KeyframeRecord, pose in its submap frame, empty descriptor: loop_detection describes the keyframe's semantic labels),
-``gausem/submaps`` (SubmapEvent), ``gausem/loop_constraints`` (LoopConstraintRecord, every accepted loop) and
-``gausem/diagnostics`` (dropped inputs by reason, frames processed, the stamp of
+(KeyframeRecord, pose in its submap frame), ``gausem/submaps`` (SubmapEvent), with ``loop_closure: nodes``
+``gausem/place_signatures`` (PlaceSignatureRecord of each loop keyframe), ``gausem/loop_constraints``
+(LoopConstraintRecord, every accepted loop) and ``gausem/diagnostics`` (dropped inputs by reason, frames processed,
+the stamp of
 the last frame handled). ``seconds``: the processing time so far, for fps.
 Tracking health (``gausem_core.slam.health``): the last frame's ``tracking.status`` (ok / degraded / lost) and signals
 (``tracking.inlier_fraction``, ...) are in the diagnostics values, and raise the level (WARN degraded, ERROR lost).
@@ -48,12 +49,18 @@ Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
   implementation, :class:`~gausem_core.slam.loop_closure.LoopClosure`), exactly as ``gausem run`` does, so a
   lock-step replay gives the offline run's loops and trajectory; the accepted loops are published on
   ``gausem/loop_constraints`` for observers, and loop_detection and pose_graph need not run.
-- ``nodes`` (distributed, DESIGN.md §3): loop_detection detects (``gausem/loop_candidates``); this node registers each
-  candidate (keyframe alignment or SGR: it holds the Gaussians) and publishes the accepted ones on
-  ``gausem/loop_constraints`` (an intra-submap one after re-publishing that submap's keyframes with their current
-  poses); pose_graph optimises (the core's :class:`~gausem_core.slam.loop_graphs.LoopGraphs`) and answers on
-  ``gausem/pose_graph``, applied here when it arrives (``GauSemSLAM.apply_pose_graph``). Corrections arrive
-  asynchronously, so which loops are accepted depends on timing.
+- ``nodes`` (distributed, DESIGN.md §3): the same core code in three nodes. This node's core describes each loop
+  keyframe (:meth:`~gausem_core.slam.loop_closure.LoopClosure.describe`) and publishes that place signature on
+  ``gausem/place_signatures``; loop_detection runs the core's detector on it and answers with the ranked candidates
+  (``gausem/loop_candidates``); this node's core confirms one (the bag of words: geometric verification in order,
+  which needs both keyframes' images, held here) and registers it (keyframe alignment or SGR: it holds the Gaussians,
+  ``GauSemSLAM.register_loop``), and publishes an accepted loop on ``gausem/loop_constraints`` (after re-publishing
+  every keyframe with its current pose and anchor, which bundle adjustment and corrections changed since, as the
+  core's :meth:`~gausem_core.slam.loop_closure.LoopClosure.correct` takes them); pose_graph optimises (the core's
+  :class:`~gausem_core.slam.loop_graphs.LoopGraphs`) and answers on ``gausem/pose_graph``, applied here
+  (``GauSemSLAM.apply_pose_graph``). The next frame waits for those answers (``loop_answer_timeout`` s at most, and
+  only while loop_detection and pose_graph subscribe; 0: no wait, answers are applied when they arrive), as
+  ``gausem run`` applies them within the keyframe's call: a lock-step replay gives the same loops.
 """
 from __future__ import annotations
 
@@ -88,6 +95,7 @@ from ..sync import make_synchronizer
 from ..tf import make_transform_broadcaster
 from .common import (LAST_FRAME_KEY, DropReport, FrameRejected, NewestFrameQueue, class_table,
                      declare_parameters, declare_slam_config, run_node, survives_errors)
+from .loop_answers import LoopAnswers
 
 NODE_DEFAULTS = {
     "classes": "synthetic",      # class table of the labels: synthetic, nyu40, scannet20 or a class-table file
@@ -103,6 +111,7 @@ NODE_DEFAULTS = {
     "max_image_pixels": 1280 * 720,  # larger frames are downscaled to at most this many pixels (aspect kept)
     "output_dir": "gausem_output",
     "loop_closure": "core",      # or "nodes": see the module docstring
+    "loop_answer_timeout": 5.0,  # seconds; nodes: the longest wait for loop_detection's and pose_graph's answers
     "save_on_exit": False,       # write map.ply, trajectory.txt and session/ to output_dir when the node shuts down
     "map_path": "",              # a saved session folder to start from (and for gausem/load_map)
 }
@@ -155,6 +164,11 @@ class TrackingMappingNode(Node):
         self.camera = None  # the latest valid rgb/camera_info (PinholeCamera)
         self.latencies: list[float] = []  # seconds from a frame's arrival to its pose's publication
         self._in_progress = False  # a frame is being processed
+        self._loop_answers = LoopAnswers(
+            p.loop_answer_timeout, lambda: self._signature_pub.get_subscription_count() > 0,
+            lambda: self._constraint_pub.get_subscription_count() > 0,
+            lambda what: self.get_logger().warning(f"no {what} answer within loop_answer_timeout = "
+                                                   f"{p.loop_answer_timeout} s; going on with the next frame"))
         self._reset_state()
 
         inputs = [("rgb", Image, "rgb/image"), ("depth", Image, "depth/image")] + (
@@ -164,12 +178,16 @@ class TrackingMappingNode(Node):
         self._inputs = make_synchronizer(self, inputs, self._on_frame, qos, queue_size=p.sync_queue_size,
                                          slop=p.sync_slop, on_drop=self._on_sync_drop, callback_group=input_group)
         self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
-            "superseded", "a newer synchronised frame arrived before this one was processed"))
+            "superseded", "a newer synchronised frame arrived before this one was processed"),
+            ready=self._loop_answers.settled)
         self.create_subscription(CameraInfo, "rgb/camera_info", self._on_camera_info, qos,
                                  callback_group=input_group)
         if self.loop_nodes:
+            self._signature_pub = self.create_publisher(PointCloud2, "gausem/place_signatures", EVENT_QOS)
             self.create_subscription(PointCloud2, "gausem/loop_candidates", self._on_loop_candidates, EVENT_QOS)
             self.create_subscription(PointCloud2, "gausem/pose_graph", self._on_pose_graph, EVENT_QOS)
+            self._answer_timer = self.create_timer(0.05, self._await_loop_answers)
+            self._answer_timer.cancel()  # runs while an answer is awaited
         self._constraint_pub = self.create_publisher(PointCloud2, "gausem/loop_constraints", EVENT_QOS)
         self._odometry_pub = self.create_publisher(Odometry, "gausem/odometry", EVENT_QOS)
         self._path_pub = self.create_publisher(PathMsg, "gausem/path", LATCHED_QOS)
@@ -203,6 +221,7 @@ class TrackingMappingNode(Node):
         self._last_stamp = -math.inf
         self._camera_frame = self.params.camera_frame or "camera"
         self._map_dirty = False
+        self._loop_answers.clear()
         self.health = TrackingHealth("ok")  # the last frame's
         self.health_log: list[tuple[int, float, TrackingHealth]] = []  # (frame, stamp, health) of every frame given
         # to the core, dropped ones included (the report's tracking_status.csv)
@@ -398,11 +417,18 @@ class TrackingMappingNode(Node):
         self._path_pub.publish(ma.poses_to_path(poses, self.params.map_frame))
 
     def _publish_events(self, events: FrameEvents, header) -> None:
-        """A frame's events: submaps closed and opened, its keyframe, the loop the core closed (``loop_closure:
+        """A frame's events: submaps closed and opened, its keyframe, a loop keyframe's place signature
+        (``loop_closure: nodes``: loop_detection's answer is then awaited), the loop the core closed (``loop_closure:
         core``; published for observers)."""
         self._publish_submaps(events.submaps, header)
         if events.keyframe is not None:
             self._publish_keyframes([events.keyframe], header)
+        if events.place is not None:
+            stamp = events.keyframe.timestamp
+            self._loop_answers.expect_candidates(stamp)
+            self._answer_timer.reset()
+            self._signature_pub.publish(ma.records_to_pointcloud2([ma.place_signature_to_record(events.place, stamp)],
+                                                                  header))
         if events.loop is not None and events.loop.constraint is not None:
             self._constraint_pub.publish(ma.records_to_pointcloud2(
                 [ma.loop_constraint_to_record(events.loop.constraint)], header))
@@ -416,8 +442,8 @@ class TrackingMappingNode(Node):
 
     def _publish_keyframes(self, keyframes: list[KeyframeState], header) -> None:
         """KeyframeRecords with the keyframes' current poses."""
-        records = [ma.KeyframeRecord(k.frame_id, k.timestamp, k.submap_id, k.pose.numpy(), k.anchor.numpy(),
-                                     np.zeros(0, np.float32)) for k in keyframes]
+        records = [ma.KeyframeRecord(k.frame_id, k.timestamp, k.submap_id, k.pose.numpy(), k.anchor.numpy())
+                   for k in keyframes]
         if records:
             self._keyframe_pub.publish(ma.records_to_pointcloud2(records, header))
 
@@ -432,33 +458,52 @@ class TrackingMappingNode(Node):
     # --- loop closure events ------------------------------------------------------------------------------------
     @survives_errors(frame=False)
     def _on_loop_candidates(self, msg: PointCloud2) -> None:
+        """One query keyframe's ranked candidates (possibly none): the loop closure confirms one (verification with
+        the bag of words) and registers it; an accepted loop goes out to pose_graph, whose answer is then awaited."""
+        try:
+            self._close_loop(msg)
+        finally:
+            self._loop_answers.candidates_arrived(ma.header_seconds(msg.header))
+            self._queue.wake()
+
+    def _close_loop(self, msg: PointCloud2) -> None:
         try:
             candidates = ma.pointcloud2_to_records(msg, ma.LoopCandidateRecord)
-        except ValueError as err:
+            outcome = self.slam.register_loop([ma.record_to_loop_candidate(c) for c in candidates])
+        except ValueError as err:  # unknown keyframes (e.g. from before a reset), inconsistent records
             self.drops.drop("bad_loop_candidates", str(err), frame=False)
             return
-        for c in candidates:
-            name = f"loop candidate {c.query_keyframe_id}->{c.match_keyframe_id}"
-            try:
-                outcome = self.slam.register_loop(ma.record_to_loop_candidate(c))
-            except ValueError as err:  # unknown keyframes (e.g. from before a reset), inconsistent record
-                self.drops.drop("bad_loop_candidate", f"{name}: {err}", frame=False)
-                continue
-            constraint, record = outcome.constraint, outcome.record
-            self.get_logger().info(f"{name} (submaps {c.query_submap_id}, {c.match_submap_id}, descriptor distance "
-                                   f"{c.descriptor_distance:.3f}): {'accepted' if constraint else 'rejected'}, "
-                                   f"fitness {record.fitness:.3f}, {record.seconds:.2f} s")
-            if constraint is None:
-                continue
-            header = ma.make_header(max(self._last_stamp, 0.0), self.params.map_frame)
-            if constraint.intra:  # the pose graph needs the keyframe poses bundle adjustment has refined since
-                self._publish_keyframes(self.slam.keyframe_states(constraint.submap_a), header)
-            self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(constraint)],
-                                                                   header))
         self.loop_candidates += candidates  # handled
+        if outcome is None:
+            return
+        constraint, record = outcome.constraint, outcome.record
+        self.get_logger().info(f"loop candidate {record.query_frame}->{record.match_frame} (submaps "
+                               f"{record.query_submap}, {record.match_submap}, {len(candidates)} ranked): "
+                               f"{'accepted' if constraint else 'rejected'}, fitness {record.fitness:.3f}, "
+                               f"{record.seconds:.2f} s")
+        if constraint is None:
+            return
+        header = ma.make_header(max(self._last_stamp, 0.0), self.params.map_frame)
+        self._publish_keyframes(self.slam.keyframe_states(), header)  # the poses and anchors as they are now
+        self._loop_answers.expect_pose_graph()
+        self._answer_timer.reset()
+        self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(constraint)], header))
+
+    def _await_loop_answers(self) -> None:
+        """While loop answers are awaited: wake the waiting frame once they are given up (timeout, helper gone)."""
+        if self._loop_answers.settled():
+            self._answer_timer.cancel()
+            self._queue.wake()
 
     @survives_errors(frame=False)
     def _on_pose_graph(self, msg: PointCloud2) -> None:
+        try:
+            self._apply_pose_graph(msg)
+        finally:
+            self._loop_answers.pose_graph_arrived()
+            self._queue.wake()
+
+    def _apply_pose_graph(self, msg: PointCloud2) -> None:
         try:
             update = ma.pointcloud2_to_pose_graph_update(msg)
         except ValueError as err:

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
@@ -10,6 +10,20 @@ import torch
 from gausem_core.config import LoopConfig
 from gausem_core.slam.loop.database import DescriptorDatabase
 from gausem_core.slam.loop.landmarks import landmark_distance
+from gausem_core.slam.loop.words import BagOfWords, OrbFeatures
+
+
+@dataclass(frozen=True)
+class PlaceSignature:
+    """What the loop detector learns of a keyframe: ``appearance``, what its place-recognition database compares (a
+    global descriptor (D,), or the bag of words' ORB features), the Eq. 7 landmark score vector over the keyframe's
+    submap's Gaussians (C,), and ``nearby``: the ids of earlier keyframes near it in the current pose estimate."""
+
+    keyframe_id: int
+    submap_id: int
+    appearance: torch.Tensor | OrbFeatures
+    landmark_scores: torch.Tensor
+    nearby: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -37,14 +51,14 @@ class LoopDetector:
     ``min_submap_gap`` > 0, from a submap at least that many ids older) are candidates, and the one whose landmark
     score vector is closest to the query's is the loop. Stored keyframes the caller names as ``nearby`` (close in the
     current pose estimate) are candidates too, at every keyframe: a revisit under small drift needs no descriptor.
+    :meth:`add_keyframe` returns the ranked candidates, at most ``max_candidates`` of them: the first is the loop, or
+    (the bag of words) the caller verifies them in order and the first confirmed is the loop.
 
-    ``database`` holds the keyframes' place signatures: by default a
+    ``database`` holds the keyframes' appearances: by default a
     :class:`~gausem_core.slam.loop.DescriptorDatabase` of global descriptors; anything with its ``add``, ``search``
     (ids and distances, closest first), ``ids`` and ``len`` will do (the bag of words,
-    :class:`~gausem_core.slam.loop.words.BagOfWords`). The landmark re-ranking needs classes: with score vectors of
-    fewer than two classes the candidates keep their descriptor order. A caller's ``verify`` (candidate -> the
-    candidate it confirms, or None) is tried on the ranked candidates, at most ``verify_candidates`` of them, and the
-    first it confirms is the loop.
+    :class:`~gausem_core.slam.loop.words.BagOfWords`, the only one that takes ORB features). The landmark re-ranking
+    needs classes: with score vectors of fewer than two classes the candidates keep their descriptor order.
 
     Landmark score vectors (:func:`~gausem_core.slam.loop.landmarks.landmark_scores`) are computed by the caller, who
     owns the Gaussians; a stored keyframe is compared with the vector it was added with. Vectors may grow as classes
@@ -54,10 +68,10 @@ class LoopDetector:
 
     def __init__(self, *, keyframe_every: int = 5, check_every: int = 6, max_descriptor_distance: float = 0.2,
                  exclude_recent: int = 6, min_submap_gap: int = 0, descriptor_dim: int = 384, backend: str = "auto",
-                 database=None, verify_candidates: int = 1):
+                 database=None, max_candidates: int = 1):
         for name, value, low in (("keyframe_every", keyframe_every, 1), ("check_every", check_every, 1),
                                  ("exclude_recent", exclude_recent, 0), ("min_submap_gap", min_submap_gap, 0),
-                                 ("verify_candidates", verify_candidates, 1)):
+                                 ("max_candidates", max_candidates, 1)):
             if value < low:
                 raise ValueError(f"LoopDetector: {name} must be >= {low}, got {value}")
         if max_descriptor_distance <= 0:
@@ -67,16 +81,17 @@ class LoopDetector:
         self.max_descriptor_distance = max_descriptor_distance
         self.exclude_recent = exclude_recent
         self.min_submap_gap = min_submap_gap
-        self.verify_candidates = verify_candidates
+        self.max_candidates = max_candidates
         self.database = database if database is not None else DescriptorDatabase(descriptor_dim, backend)
         self._keyframes: dict[int, tuple[int, torch.Tensor]] = {}  # keyframe id -> (submap id, landmark scores)
 
     @classmethod
     def from_config(cls, cfg: LoopConfig, descriptor_kind: str, **kwargs) -> "LoopDetector":
         """The detector of ``cfg`` for signatures of ``descriptor_kind`` (which picks the distance threshold; "bow":
-        pass the :class:`~gausem_core.slam.loop.words.BagOfWords` as ``database``)."""
+        a :class:`~gausem_core.slam.loop.words.BagOfWords` database, whose ``bow.candidates`` best are returned)."""
         if descriptor_kind == "bow":
-            kwargs.setdefault("verify_candidates", cfg.bow.candidates)
+            kwargs.setdefault("database", BagOfWords(cfg.bow))
+            kwargs.setdefault("max_candidates", cfg.bow.candidates)
         return cls(keyframe_every=cfg.keyframe_every, check_every=cfg.check_every,
                    max_descriptor_distance=cfg.descriptor_threshold(descriptor_kind),
                    exclude_recent=cfg.exclude_recent, **kwargs)
@@ -85,32 +100,29 @@ class LoopDetector:
         """Algorithm 1, line 1: a keyframe every ``keyframe_every`` frames (frame 0 is one)."""
         return frame_index % self.keyframe_every == 0
 
-    def add_keyframe(self, keyframe_id: int, submap_id: int, descriptor, landmark_scores: torch.Tensor,
-                     nearby: Iterable[int] = (),
-                     verify: Callable[[LoopCandidate], LoopCandidate | None] | None = None) -> LoopCandidate | None:
-        """Check the keyframe for a loop (descriptors on every ``check_every``-th call, ``nearby`` keyframe ids on
-        every call), then store it. ``descriptor``: the keyframe's signature for the database. Returns the loop or
-        None."""
-        if landmark_scores.dim() != 1:
-            raise ValueError(f"LoopDetector.add_keyframe: landmark scores of keyframe {keyframe_id} must be a vector, "
-                             f"got shape {tuple(landmark_scores.shape)}")
+    def add_keyframe(self, place: PlaceSignature) -> list[LoopCandidate]:
+        """Check a keyframe for loops (its appearance on every ``check_every``-th call, its ``nearby`` keyframes on
+        every call), then store it. Returns the ranked candidates (at most ``max_candidates``; none: no loop)."""
+        if place.landmark_scores.dim() != 1:
+            raise ValueError(f"LoopDetector.add_keyframe: landmark scores of keyframe {place.keyframe_id} must be a "
+                             f"vector, got shape {tuple(place.landmark_scores.shape)}")
+        if isinstance(place.appearance, OrbFeatures) != isinstance(self.database, BagOfWords):
+            raise ValueError(f"LoopDetector.add_keyframe: keyframe {place.keyframe_id} is described by "
+                             f"{type(place.appearance).__name__}, but the database is a {type(self.database).__name__}")
         is_check = (len(self.database) + 1) % self.check_every == 0
-        nearby = set(nearby)
-        ranked = (self._candidates(keyframe_id, submap_id, descriptor, landmark_scores, is_check, nearby)
-                  if is_check or nearby else [])
-        loop = next((c for c in map(verify, ranked[:self.verify_candidates]) if c is not None), None) \
-            if verify is not None else next(iter(ranked), None)
-        self.database.add(keyframe_id, descriptor)
-        self._keyframes[keyframe_id] = (submap_id, landmark_scores.detach().cpu())
-        return loop
+        nearby = set(place.nearby)
+        ranked = self._candidates(place, is_check, nearby) if is_check or nearby else []
+        self.database.add(place.keyframe_id, place.appearance)
+        self._keyframes[place.keyframe_id] = (place.submap_id, place.landmark_scores.detach().cpu())
+        return ranked[:self.max_candidates]
 
-    def _candidates(self, keyframe_id, submap_id, descriptor, landmark_scores, by_descriptor: bool,
-                    nearby: set[int]) -> list[LoopCandidate]:
+    def _candidates(self, place: PlaceSignature, by_descriptor: bool, nearby: set[int]) -> list[LoopCandidate]:
         """The candidates, closest landmark vector first when there are classes (ties: closest descriptor first)."""
         searchable = len(self.database) - self.exclude_recent
         if searchable <= 0:
             return []
-        ids, distances = self.database.search(descriptor, k=searchable, exclude_recent=self.exclude_recent)
+        ids, distances = self.database.search(place.appearance, k=searchable, exclude_recent=self.exclude_recent)
+        submap_id, landmark_scores = place.submap_id, place.landmark_scores
         candidates = []
         for match, desc_dist in zip(ids.tolist(), distances.tolist()):
             if not ((by_descriptor and desc_dist < self.max_descriptor_distance) or match in nearby):
@@ -119,7 +131,7 @@ class LoopDetector:
             if submap_id - match_submap < self.min_submap_gap:
                 continue
             land_dist = landmark_distance(*_zero_padded(landmark_scores.detach().cpu(), match_scores))
-            candidates.append(LoopCandidate(keyframe_id, match, submap_id, match_submap, desc_dist, land_dist))
+            candidates.append(LoopCandidate(place.keyframe_id, match, submap_id, match_submap, desc_dist, land_dist))
         if len(landmark_scores) > 1:
             candidates.sort(key=lambda c: c.landmark_distance)  # stable: descriptor order on ties
         return candidates
