@@ -103,6 +103,20 @@ def test_relative_errors_and_flag_scores():
     assert scores["false_flag_rate"] == pytest.approx(1 / 95)
 
 
+def test_monitor_state_round_trips_and_judging_learns_nothing():
+    monitor = HealthMonitor(HealthConfig())
+    x = steady(monitor)
+    state = monitor.state_dict()
+    judged = monitor.judge(0.5, GOOD, at(x + 0.02), at(x + 0.02))
+    assert judged.status == "degraded" and monitor.state_dict() == state
+    restored = HealthMonitor(HealthConfig())
+    restored.load_state_dict(state)
+    assert restored.state_dict() == state and restored.judge(0.5, GOOD, at(x + 0.02), at(x + 0.02)) == judged
+    short = HealthMonitor(HealthConfig(window=4))
+    short.load_state_dict(state)
+    assert short.state_dict() == {name: values[-4:] for name, values in state.items()}
+
+
 @pytest.fixture(scope="module")
 def planted_run():
     """GauSemSLAM over the first 18 synthetic frames at 160x120 with frame 30's images at frame 10's slot (a
