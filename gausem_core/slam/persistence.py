@@ -195,8 +195,9 @@ def _submap(tree: dict, reader: _TensorReader, device: torch.device, slam: GauSe
 def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torch.device | str = "cpu",
                  relocalise: bool = True) -> GauSemSLAM:
     """The system saved in ``folder``, on ``device``, with its saved configuration unless ``cfg`` is given. With
-    ``relocalise`` (default) it starts :attr:`~GauSemSLAM.lost`: its next frame is placed against the map by
-    relocalisation before tracking goes on; without, it goes on exactly as the saved system would have."""
+    ``relocalise`` (default) it starts :attr:`~GauSemSLAM.lost` with a new tracking segment: its next frame is placed
+    against the map by relocalisation, without the motion model, before tracking goes on; without, it goes on exactly
+    as the saved system would have."""
     folder = Path(folder)
     document = read_document(folder)
     slam = GauSemSLAM(cfg or from_flat(document["config"]), device, document["num_classes"], document["detect_loops"])
@@ -214,5 +215,6 @@ def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torc
     slam.mapper.generator.set_state(state["mapper_generator"])
     if slam.loop_closure is not None and state["loop_closure"] is not None:
         slam.loop_closure.load_state_dict(state["loop_closure"])
-    slam.lost = relocalise and bool(slam.submaps)
+    if relocalise and slam.submaps:
+        slam.lost, slam.segment_start = True, len(slam.frames)
     return slam
