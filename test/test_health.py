@@ -1,6 +1,8 @@
 """Tracking health: the monitor's rules on fabricated signals, the evaluation helpers, and a planted tracking
-failure end to end (flagged lost, the map untouched, tracking recovers from the constant-velocity prediction)."""
+failure end to end (flagged lost, the map untouched, tracking recovers from the constant-velocity prediction, a wrong
+placement is refused, a session saved while lost goes on lost)."""
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -118,16 +120,16 @@ def test_monitor_state_round_trips_and_judging_learns_nothing():
 
 
 @pytest.fixture(scope="module")
-def planted_run():
+def planted_run(tmp_path_factory):
     """GauSemSLAM over the first 18 synthetic frames at 160x120 with frame 30's images at frame 10's slot (a
-    keyframe); the active submap's Gaussians and keyframe count just before and just after frame 10, and the
-    results."""
+    keyframe); the active submap's Gaussians and keyframe count just before and just after frame 10, the results,
+    the observations, and a session saved just after frame 10."""
     cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False})
     dataset = PlantedFailure(open_dataset("synthetic", size=(160, 120), max_frames=31), SLOT, 30)
     pipeline = Pipeline(dataset, cfg, progress=False)
     slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
     observations = [pipeline.observation(dataset[i]) for i in range(18)]
-    results, before = [], None
+    results, before, session = [], None, tmp_path_factory.mktemp("lost_session")
     for i, obs in enumerate(observations):
         if i == SLOT:
             before = ({k: v.clone() for k, v in slam.active.cloud.tensors().items()}, len(slam.active.keyframes))
@@ -135,14 +137,15 @@ def planted_run():
         if i == SLOT:
             after = ({k: v.clone() for k, v in slam.active.cloud.tensors().items()}, len(slam.active.keyframes),
                      slam.lost)
+            slam.save(session)
     origin = np.linalg.inv(dataset[0].gt_pose)
     truths = [torch.tensor(origin @ dataset[i].gt_pose, dtype=torch.float32) for i in range(18)]
-    return slam, results, truths, before, after
+    return slam, results, truths, before, after, observations, session
 
 
 @pytest.mark.slow
 def test_a_swapped_in_frame_is_lost_leaves_the_map_alone_and_the_next_is_relocalised(planted_run):
-    slam, results, truths, (cloud, keyframes), (cloud_after, keyframes_after, lost_after) = planted_run
+    slam, results, truths, (cloud, keyframes), (cloud_after, keyframes_after, lost_after), _, _ = planted_run
     assert [r.health.status for r in results[:SLOT]].count("lost") == 0
     swapped = results[SLOT]
     assert swapped.health.status == "lost" and lost_after and not swapped.is_keyframe
@@ -159,7 +162,33 @@ def test_a_swapped_in_frame_is_lost_leaves_the_map_alone_and_the_next_is_relocal
 
 @pytest.mark.slow
 def test_after_a_planted_failure_tracking_resumes_with_small_error(planted_run):
-    _, results, truths, _, _ = planted_run
+    _, results, truths, _, _, _, _ = planted_run
     for result, truth in zip(results[SLOT + 1:], truths[SLOT + 1:]):  # from the relocalised frame on
         delta = invert_pose(result.cam_to_world) @ truth
         assert delta[:3, 3].norm() < 0.02 and math.degrees(float(so3_log(delta[:3, :3]).norm())) < 1.0
+
+
+@pytest.mark.slow
+def test_a_placement_far_off_after_a_loss_is_refused(planted_run):
+    """Without the constant-velocity start, the frame after the loss is best placed from the last good pose, ~23 cm
+    off: enough inliers for the recovery threshold, but its residual is far outside the frames' before the loss."""
+    _, _, truths, _, _, observations, session = planted_run
+    loaded = GauSemSLAM.load(session, relocalise=False)
+    loaded.cfg = replace(loaded.cfg, tracking=replace(loaded.cfg.tracking, constant_velocity=False))
+    placed = loaded.relocalise(observations[SLOT + 1])
+    error = invert_pose(placed.cam_to_world) @ truths[SLOT + 1]
+    assert float(error[:3, 3].norm()) > 0.1
+    assert placed.inlier_fraction >= loaded.cfg.health.recovery_inlier_fraction
+    assert not placed.accepted and placed.health.residual_z > loaded.cfg.health.recovery_residual_z
+
+
+@pytest.mark.slow
+def test_a_session_saved_while_lost_goes_on_as_the_original(planted_run):
+    slam, results, _, _, _, observations, session = planted_run
+    loaded = GauSemSLAM.load(session, relocalise=False)
+    assert loaded.lost and loaded.frames[SLOT].lost and not any(f.lost for f in loaded.frames[:SLOT])
+    assert loaded.health.state_dict()["residuals"] and loaded.health.state_dict()["motions"]
+    resumed = loaded.process(observations[SLOT + 1])
+    original = results[SLOT + 1]
+    assert torch.equal(resumed.cam_to_world, original.cam_to_world) and resumed.health == original.health
+    assert resumed.relocalisation.start == original.relocalisation.start and not loaded.lost
