@@ -222,7 +222,7 @@ class GauSemSLAM:
         if not self.submaps:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
             return self._result(None, True, loss, None, events=self._keyframe_events([], self._close_loops()))
-        tracked, relocalised = self._place(obs, frame_id)
+        tracked, relocalised = self._place(obs)
         if tracked is None:  # lost and not relocalised: the frame is dropped
             self.dropped += 1
             judged = relocalised.health or TrackingHealth("lost")
@@ -252,7 +252,7 @@ class GauSemSLAM:
         events = self._keyframe_events(closed, self._close_loops())
         return self._result(tracked, True, loss, decision, relocalised, health, events)
 
-    def _place(self, obs: Observation, frame_id: int) -> tuple[TrackingResult | None, RelocalisationResult | None]:
+    def _place(self, obs: Observation) -> tuple[TrackingResult | None, RelocalisationResult | None]:
         """The frame's pose in the active submap: tracked, or relocalised while :attr:`lost` (None when that
         fails)."""
         if not self.lost:
