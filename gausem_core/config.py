@@ -246,6 +246,7 @@ class HealthConfig:
     degraded_valid_depth: float = 0.3  # degraded below this fraction of pixels with valid depth ...
     lost_valid_depth: float = 0.05  # ... lost below this one
     recovery_inlier_fraction: float = 0.3  # after a loss, relocalisation accepts from this inlier fraction (its own)
+    recovery_residual_z: float = 20.0  # ... and only with a residual z-score (against the frames before) up to this
 
 
 @dataclass

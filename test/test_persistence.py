@@ -88,6 +88,8 @@ def test_a_loaded_session_goes_on_bit_identically(sequence, saved):
         a, b = original.process(obs), loaded.process(obs)
         assert (a.frame_id, a.submap_id, a.is_keyframe) == (b.frame_id, b.submap_id, b.is_keyframe)
         assert torch.equal(a.cam_to_world, b.cam_to_world) and a.tracking_loss == b.tracking_loss
+        assert (a.health.status, a.health.residual_z, a.health.jump) == (b.health.status, b.health.residual_z,
+                                                                         b.health.jump)
     assert loaded.frames[-1].frame_id == SAVED + NEXT - 1 and b.submap_id == 3  # ids go on after the saved ones
     assert_same_state(original, loaded)
     for x, y in zip(original.global_cloud().tensors().values(), loaded.global_cloud().tensors().values()):
@@ -107,6 +109,27 @@ def test_the_session_folder_is_self_contained(saved, tmp_path):
     assert all(torch.equal(x, y) for x, y in zip(cloud.tensors().values(), loaded.global_cloud().tensors().values()))
     assert all(t == u and torch.equal(p, q) for (t, p), (u, q) in zip(trajectory, loaded.trajectory()))
     assert torch.equal(loaded.submaps[0].observation(loaded.submaps[0].keyframes[-1]).rgb, images)
+
+
+def test_a_session_without_the_tracking_loss_fields_loads_as_never_lost(saved, tmp_path):
+    _, folder = saved
+    old = tmp_path / "old"
+    old.mkdir()
+    for path in folder.iterdir():
+        (old / path.name).write_bytes(path.read_bytes())
+    document = json.loads((old / SESSION_FILE).read_text())
+    state = document["state"]
+    assert state["health"]["residuals"] and not state["lost"]
+    for name in ("lost", "dropped", "health"):
+        del state[name]
+    for frame in state["frames"]:
+        del frame["lost"]
+    (old / SESSION_FILE).write_text(json.dumps(document))
+    loaded = GauSemSLAM.load(old, relocalise=False)
+    assert not loaded.lost and loaded.dropped == 0 and not any(f.lost for f in loaded.frames)
+    assert loaded.health.state_dict() == {"residuals": [], "motions": []}
+    current = GauSemSLAM.load(folder, relocalise=False)
+    assert all(torch.equal(p, q) for (_, p), (_, q) in zip(current.trajectory(), loaded.trajectory(), strict=True))
 
 
 def test_relocalisation_places_an_earlier_frame(sequence, saved):
@@ -136,7 +159,8 @@ def test_a_frame_that_does_not_fit_the_map_is_dropped(sequence, saved):
     result = loaded.process(wrong)
     assert result.relocalisation is not None and not result.relocalisation.accepted and loaded.lost
     tree, files = state(loaded)
-    assert tree == before[0] and all(torch.equal(t, before[1][n][k]) for n in files for k, t in files[n].items())
+    assert tree == {**before[0], "dropped": 1}  # counted (the motion model's steps), nothing else changed
+    assert all(torch.equal(t, before[1][n][k]) for n in files for k, t in files[n].items())
 
 
 def test_unreadable_sessions_are_named(saved, tmp_path):

@@ -12,7 +12,7 @@ from gausem_core.geometry import invert_pose, project_to_se3, se3_exp, so3_log
 from gausem_core.pipeline import Pipeline
 from gausem_core.render import render
 from gausem_core.slam.mapper import Keyframe, Mapper, semantic_sample
-from gausem_core.slam.tracker import Tracker, constant_velocity
+from gausem_core.slam.tracker import Tracker, constant_velocity, repeat_motion
 
 
 @pytest.fixture(scope="module")
@@ -104,6 +104,16 @@ def test_constant_velocity_repeats_the_last_motion_and_stays_rigid():
     assert torch.allclose(invert_pose(b) @ c, invert_pose(a) @ b, atol=1e-5)
     assert torch.allclose(c[:3, :3] @ c[:3, :3].T, torch.eye(3), atol=1e-6)
     assert torch.equal(constant_velocity(b, None), b)
+
+
+def test_repeat_motion_moves_on_step_by_step():
+    start = se3_exp(torch.tensor([0.1, 0.0, 0.02, 0.0, 0.05, 0.0]))
+    step = se3_exp(torch.tensor([0.03, 0.01, 0.0, 0.01, 0.0, 0.02]))
+    three = repeat_motion(start, step, 3)
+    assert torch.allclose(three, start @ se3_exp(3 * torch.tensor([0.03, 0.01, 0.0, 0.01, 0.0, 0.02])), atol=1e-5)
+    assert torch.allclose(repeat_motion(start, step), start @ step, atol=1e-6)
+    with pytest.raises(ValueError, match="steps"):
+        repeat_motion(start, step, 0)
 
 
 def test_project_to_se3_repairs_a_drifted_rotation():

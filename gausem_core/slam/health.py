@@ -15,7 +15,8 @@ Signals of a tracked frame (:class:`TrackingHealth`):
 
 Rules (:class:`HealthMonitor`, thresholds in ``HealthConfig``): lost when the inlier fraction, the valid depth or the
 jump passes its ``lost_`` threshold; else degraded when any signal passes its ``degraded_`` threshold; else ok.
-The residual and motion histories learn from frames that are not lost only.
+The residual and motion histories learn from frames that are not lost only; a session saves them
+(:meth:`HealthMonitor.state_dict`).
 """
 from __future__ import annotations
 
@@ -97,20 +98,37 @@ class HealthMonitor:
 
     def assess(self, loss: float, image: dict[str, float], pose: torch.Tensor, previous: torch.Tensor | None,
                predicted: torch.Tensor | None) -> TrackingHealth:
-        """The health of a frame tracked to ``pose`` with residual ``loss`` and :func:`image_signals` ``image``;
-        ``previous`` is the last frame's pose and ``predicted`` the motion model's (None at a segment start)."""
-        cfg = self.cfg
-        residual_z = self._residual_z(loss)
-        jump = self._jump(pose, predicted)
-        signals = dict(image, residual_z=residual_z, jump=jump)
+        """The health of a frame tracked to ``pose`` with residual ``loss`` and :func:`image_signals` ``image``
+        (:meth:`judge`), learnt from unless lost (:meth:`learn`); ``previous`` is the pose of the frame just before
+        (None when unknown) and ``predicted`` the motion model's (None at a segment start)."""
+        health = self.judge(loss, image, pose, predicted)
+        if health.status != "lost":
+            self.learn(loss, None if previous is None else motion(previous, pose))
+        return health
+
+    def judge(self, loss: float, image: dict[str, float], pose: torch.Tensor,
+              predicted: torch.Tensor | None) -> TrackingHealth:
+        """The health of a frame at ``pose`` against the recent frames, learning nothing (see :meth:`assess`)."""
+        signals = dict(image, residual_z=self._residual_z(loss), jump=self._jump(pose, predicted))
         lost = self._fired(signals, "lost")
         degraded = self._fired(signals, "degraded")
         status = "lost" if lost else "degraded" if degraded else "ok"
-        if status != "lost":
-            self.residuals.append(loss)
-            if previous is not None:
-                self.motions.append(motion(previous, pose))
         return TrackingHealth(status, reasons=tuple(lost or degraded), **signals)
+
+    def learn(self, loss: float, frame_motion: tuple[float, float] | None) -> None:
+        """Add a trusted frame's residual and, when known, its motion from the frame before (:func:`motion`)."""
+        self.residuals.append(loss)
+        if frame_motion is not None:
+            self.motions.append(frame_motion)
+
+    def state_dict(self) -> dict[str, list]:
+        """The residual and motion histories, as plain lists."""
+        return {"residuals": list(self.residuals), "motions": [list(m) for m in self.motions]}
+
+    def load_state_dict(self, state: dict[str, list]) -> None:
+        """Restore the histories of :meth:`state_dict` (the newest ``window`` of each)."""
+        self.residuals = deque(state["residuals"], maxlen=self.cfg.window)
+        self.motions = deque((tuple(m) for m in state["motions"]), maxlen=self.cfg.window)
 
     def _fired(self, signals: dict[str, float], level: str) -> list[str]:
         """Names of the signals past their ``<level>_`` threshold (below it for fractions, above for the rest)."""

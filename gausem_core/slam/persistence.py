@@ -4,10 +4,12 @@ The folder (format ``gausem-session``, version :data:`VERSION`) is self-containe
 
 - ``session.json``: format and version, the configuration (dotted ROS parameter names), ``num_classes``,
   ``detect_loops`` and the state tree: submaps (id, anchor, keyframes with poses, cameras and timestamps, allocation
-  extent), frames (id, timestamp, submap, reference keyframe, relative pose), the tracker's motion segment, the mapper's
-  random generator and the loop closure's :meth:`~gausem_core.slam.loop_closure.LoopClosure.state_dict`. Every tensor
-  in the tree is a reference ``{"$tensor": "FILE:KEY"}`` into one of the tensor files. Written last: a folder without
-  it holds no (complete) session.
+  extent), frames (id, timestamp, submap, reference keyframe, relative pose, whether tracking was lost), the tracker's
+  motion segment, whether the system is lost and how many frames it dropped since the last recorded one, the health
+  monitor's histories, the mapper's random generator and the loop closure's
+  :meth:`~gausem_core.slam.loop_closure.LoopClosure.state_dict`. Every tensor in the tree is a reference
+  ``{"$tensor": "FILE:KEY"}`` into one of the tensor files. Written last: a folder without it holds no (complete)
+  session. Sessions written before the tracking-loss fields existed load as never lost, with empty health histories.
 - ``state.pt``: the small tensors of the tree (poses, descriptors, ...).
 - ``submap_NNNN.pt``: one submap's Gaussians and keyframe images (an offloaded submap's read back from its store).
 
@@ -126,10 +128,11 @@ def _submap_tree(submap: Submap, writer: _TensorWriter) -> dict:
 
 def _state_tree(slam: GauSemSLAM, writer: _TensorWriter) -> dict:
     frames = [{"frame_id": f.frame_id, "timestamp": f.timestamp, "submap": f.submap.submap_id,
-               "reference": f.reference.frame_id, "relative": f.relative} for f in slam.frames]
+               "reference": f.reference.frame_id, "relative": f.relative, "lost": f.lost} for f in slam.frames]
     loop = slam.loop_closure.state_dict() if slam.loop_closure is not None else None
     return {"submaps": [_submap_tree(s, writer) for s in slam.submaps],
-            **writer.pack({"frames": frames, "segment_start": slam.segment_start,
+            **writer.pack({"frames": frames, "segment_start": slam.segment_start, "lost": slam.lost,
+                           "dropped": slam.dropped, "health": slam.health.state_dict(),
                            "mapper_generator": slam.mapper.generator.get_state(), "loop_closure": loop}, STATE_FILE)}
 
 
@@ -195,8 +198,9 @@ def _submap(tree: dict, reader: _TensorReader, device: torch.device, slam: GauSe
 def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torch.device | str = "cpu",
                  relocalise: bool = True) -> GauSemSLAM:
     """The system saved in ``folder``, on ``device``, with its saved configuration unless ``cfg`` is given. With
-    ``relocalise`` (default) it starts :attr:`~GauSemSLAM.lost`: its next frame is placed against the map by
-    relocalisation before tracking goes on; without, it goes on exactly as the saved system would have."""
+    ``relocalise`` (default) it starts :attr:`~GauSemSLAM.lost` with a new tracking segment: its next frame is placed
+    against the map by relocalisation, without the motion model, before tracking goes on; without, it goes on exactly
+    as the saved system would have (lost too if that was)."""
     folder = Path(folder)
     document = read_document(folder)
     slam = GauSemSLAM(cfg or from_flat(document["config"]), device, document["num_classes"], document["detect_loops"])
@@ -209,10 +213,15 @@ def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torc
         submap = by_id[f["submap"]]
         reference = next(kf for kf in submap.keyframes if kf.frame_id == f["reference"])
         slam.frames.append(FrameRecord(f["frame_id"], f["timestamp"], submap, reference,
-                                       f["relative"].to(slam.device)))
+                                       f["relative"].to(slam.device), f.get("lost", False)))
     slam.segment_start = state["segment_start"]
+    slam.dropped = state.get("dropped", 0)
+    if "health" in state:
+        slam.health.load_state_dict(state["health"])
     slam.mapper.generator.set_state(state["mapper_generator"])
     if slam.loop_closure is not None and state["loop_closure"] is not None:
         slam.loop_closure.load_state_dict(state["loop_closure"])
-    slam.lost = relocalise and bool(slam.submaps)
+    slam.lost = state.get("lost", False)
+    if relocalise and slam.submaps:
+        slam.lost, slam.segment_start = True, len(slam.frames)
     return slam

@@ -1,10 +1,12 @@
-"""Relocalisation: place a frame against the whole saved map when the motion model means nothing (after a restart).
+"""Relocalisation: place a frame against the whole saved map when the motion model means nothing (after a restart)
+or failed (after a tracking loss).
 
 Start poses are the last tracked pose and keyframe poses (the keyframes nearest to the frame by global descriptor,
-completed by the active submap's keyframes). The frame is tracked from each start with the map frozen, against the
-Gaussians of the start's submap, and the result explaining the most pixels wins: an inlier is a pixel with a valid
-depth where the map renders (alpha above ``inlier_alpha``) within ``inlier_depth`` of it. The winner
-is accepted when its inlier fraction reaches ``min_inlier_fraction``.
+completed by the active submap's keyframes); after a tracking loss the system puts the constant-velocity prediction
+first. The frame is tracked from each start with the map frozen, against the Gaussians of the start's submap, and the
+result explaining the most pixels wins: an inlier is a pixel with a valid depth where the map renders (alpha above
+``inlier_alpha``) within ``inlier_depth`` of it. The winner is accepted when its inlier fraction reaches
+``min_inlier_fraction``.
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ import torch
 from gausem_core.config import RelocalisationConfig
 from gausem_core.geometry import invert_pose
 from gausem_core.render import render
+from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.tracker import Tracker
 
@@ -38,9 +41,10 @@ class RelocalisationResult:
     inlier_fraction: float
     tracking_loss: float
     iterations: int
-    start: str  # which start won: "last pose" or "keyframe N"
+    start: str  # which start won: "constant velocity", "last pose" or "keyframe N"
     submap_id: int  # the submap it was tracked against
     starts: int  # how many starts were tried
+    health: TrackingHealth | None = None  # after a tracking loss: the health monitor's verdict on the placement
 
 
 def relocalisation_starts(submaps: Sequence, last: tuple[object, torch.Tensor] | None, ranked: Sequence[int],

@@ -33,9 +33,9 @@ from gausem_core.slam.loop_graphs import PoseGraphUpdate
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.refinement import global_refinement
 from gausem_core.slam.observation import Observation
-from gausem_core.slam.relocalisation import RelocalisationResult, relocalisation_starts, track_from_starts
+from gausem_core.slam.relocalisation import RelocalisationResult, Start, relocalisation_starts, track_from_starts
 from gausem_core.slam.submap_store import SubmapStore
-from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity, inspect_pose
+from gausem_core.slam.tracker import Tracker, TrackingResult, inspect_pose, repeat_motion
 
 _IMAGES = ("rgb", "depth", "semantic", "labels")
 
@@ -180,7 +180,10 @@ class GauSemSLAM:
     recorded, the map untouched, ``FrameResult.relocalisation.accepted`` False) and the next frame tries again.
 
     Every frame's tracking is judged (``FrameResult.health``, see ``slam.health``). A frame judged lost is recorded (its
-    pose, for the trajectory) but not mapped, even at a keyframe, and the system becomes :attr:`lost`.
+    pose, for the trajectory) but not mapped, even at a keyframe, and the system becomes :attr:`lost`: the next frames
+    are relocalised, the constant-velocity prediction from the last good frames first among the starts, until a
+    placement passes the health monitor (:meth:`relocalise`). That frame is degraded (reason ``relocalised``: it was
+    not tracked from the frame before) and tracking goes on from it, the motion model skipping the lost frames.
     """
 
     def __init__(self, cfg: SlamConfig, device: torch.device | str = "cpu", num_classes: int = 1,
@@ -203,7 +206,9 @@ class GauSemSLAM:
         self.submaps: list[Submap] = []
         self.frames: list[FrameRecord] = []
         self.lost = False  # the next frame is relocalised (set by load; a caller may set it after a tracking failure)
-        self.segment_start = 0  # first frame id of the current tracking segment (the motion model stays inside it)
+        self.segment_start = 0  # first frame id of the current tracking segment (the motion model stays inside it;
+        # load starts a new one when it relocalises)
+        self.dropped = 0  # frames dropped (not relocalised while lost) since the last recorded frame
         self.detect_loops = detect_loops
         self.descriptor = make_descriptor(cfg.semantics.descriptor, cfg.semantics.dinov2_weights,
                                           device=self.device) if cfg.loop.enabled or cfg.refinement.enabled else None
@@ -223,12 +228,16 @@ class GauSemSLAM:
         if not self.submaps:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
             return self._result(None, True, loss, None, events=self._keyframe_events([]))
-        tracked, relocalised = self._place(obs, frame_id)
+        tracked, relocalised = self._place(obs)
         if tracked is None:  # lost and not relocalised: the frame is dropped
+            self.dropped += 1
+            judged = relocalised.health or TrackingHealth("lost")
             return FrameResult(frame_id, relocalised.cam_to_world, False, relocalised.tracking_loss,
                                relocalised.iterations, None, self.active.num_gaussians, self.active.submap_id, None,
-                               relocalised, TrackingHealth("lost", reasons=("relocalisation_failed",)))
+                               relocalised, replace(judged, status="lost",
+                                                    reasons=(*judged.reasons, "relocalisation_failed")))
         health = self._assess(obs, tracked, relocalised)
+        self.dropped = 0
         pose = tracked.cam_to_world.detach()
         lost = health.status == "lost"
         if lost or frame_id % self.cfg.mapping.every:
@@ -249,47 +258,73 @@ class GauSemSLAM:
         events = self._keyframe_events(closed)
         return self._result(tracked, True, loss, decision, relocalised, health, events)
 
-    def _place(self, obs: Observation, frame_id: int) -> tuple[TrackingResult | None, RelocalisationResult | None]:
-        """The frame's pose in the active submap: tracked, or relocalised while :attr:`lost` (None when that fails;
-        on success a new tracking segment starts at the frame)."""
+    def _place(self, obs: Observation) -> tuple[TrackingResult | None, RelocalisationResult | None]:
+        """The frame's pose in the active submap: tracked, or relocalised while :attr:`lost` (None when that
+        fails)."""
         if not self.lost:
             return self._track(obs), None
         relocalised = self.relocalise(obs)
         if not relocalised.accepted:
             return None, relocalised
-        self.lost, self.segment_start = False, frame_id
+        self.lost = False
         local = invert_pose(self.active.anchor) @ relocalised.cam_to_world
         return TrackingResult(local, relocalised.tracking_loss, relocalised.iterations), relocalised
 
     def _track(self, obs: Observation) -> TrackingResult:
-        previous, predicted = self._motion_model()
+        previous, predicted, _ = self._motion_model()
         if predicted is None:
             return self.tracker.track(self.active.cloud, obs, previous)
         return self.tracker.track(self.active.cloud, obs, predicted, [previous])
 
-    def _motion_model(self) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The last frame's pose in the active submap and the constant-velocity prediction (None at a segment's
-        first frame or with ``tracking.constant_velocity`` off)."""
-        previous = self._local_pose(-1)
-        in_segment = len(self.frames) > 1 and self.frames[-2].frame_id >= self.segment_start
-        if in_segment and self.cfg.tracking.constant_velocity:
-            return previous, constant_velocity(previous, self._local_pose(-2))
-        return previous, None
+    def _motion_model(self) -> tuple[torch.Tensor, torch.Tensor | None, int]:
+        """The last good (not lost) frame's pose in the active submap, the constant-velocity prediction for the next
+        frame, and how many frames after the last good one that is (lost and dropped frames count). The prediction
+        repeats the motion between the latest two consecutive good frames of the tracking segment that many times;
+        None without such a pair or with ``tracking.constant_velocity`` off."""
+        good = self._last_good()
+        steps = len(self.frames) - good + self.dropped
+        previous = self._local_pose(good)
+        pair = self._latest_good_pair(good) if self.cfg.tracking.constant_velocity else None
+        if pair is None:
+            return previous, None, steps
+        relative = invert_pose(self._local_pose(pair - 1)) @ self._local_pose(pair)
+        return previous, repeat_motion(previous, relative, steps), steps
+
+    def _last_good(self) -> int:
+        """Index of the last recorded frame not judged lost (the first frame never is)."""
+        return next(i for i in range(len(self.frames) - 1, -1, -1) if not self.frames[i].lost)
+
+    def _latest_good_pair(self, last: int) -> int | None:
+        """The largest index i <= ``last`` with frames i-1 and i good and in the tracking segment (None if none)."""
+        for i in range(last, 0, -1):
+            if self.frames[i - 1].frame_id < self.segment_start:
+                return None
+            if not (self.frames[i].lost or self.frames[i - 1].lost):
+                return i
+        return None
 
     def _assess(self, obs: Observation, tracked: TrackingResult,
                 relocalised: RelocalisationResult | None) -> TrackingHealth:
         """The health of a frame tracked to ``tracked`` in the active submap (before it is recorded). A relocalised
-        frame was judged by relocalisation (against the submap that placed it): ok, and a new motion history starts."""
+        frame was judged by relocalisation (against the submap that placed it): after a restart ok, and a new motion
+        history starts; after a tracking loss as the health monitor judged it, degraded at least (``relocalised``)."""
         if relocalised is not None:
-            self.health.reset()
-            return TrackingHealth("ok", inlier_fraction=relocalised.inlier_fraction,
-                                  valid_depth=float(obs.valid_depth.float().mean()))
+            return self._relocalised_health(obs, relocalised)
         view, hessian = inspect_pose(self.active.cloud, obs, tracked.cam_to_world, self.cfg.tracking,
                                      self.cfg.backend)
         image = image_signals(view, obs, hessian, self.cfg.health)
-        previous, predicted = self._motion_model()
-        return self.health.assess(tracked.loss, image, tracked.cam_to_world, previous,
+        previous, predicted, steps = self._motion_model()
+        return self.health.assess(tracked.loss, image, tracked.cam_to_world, previous if steps == 1 else None,
                                   previous if predicted is None else predicted)
+
+    def _relocalised_health(self, obs: Observation, relocalised: RelocalisationResult) -> TrackingHealth:
+        """The health of an accepted relocalisation (see :meth:`_assess`); the monitor learns its residual."""
+        if relocalised.health is None:
+            self.health.reset()
+            return TrackingHealth("ok", inlier_fraction=relocalised.inlier_fraction,
+                                  valid_depth=float(obs.valid_depth.float().mean()))
+        self.health.learn(relocalised.tracking_loss, None)
+        return replace(relocalised.health, status="degraded", reasons=(*relocalised.health.reasons, "relocalised"))
 
     def interrupt(self) -> None:
         """Ask the frame in progress (in another thread) to finish early, e.g. on Ctrl-C: optimisations stop at their
@@ -297,22 +332,42 @@ class GauSemSLAM:
         self.mapper.hurry.set()
 
     def relocalise(self, obs: Observation) -> RelocalisationResult:
-        """Place a frame against the map without the motion model (``slam.relocalisation``): tracked from the last
-        good pose and from the ``relocalisation.candidates`` keyframes nearest by global descriptor (or the active
-        submap's keyframes), the best start kept; after a tracking loss it accepts from
-        ``health.recovery_inlier_fraction``. Changes nothing; :meth:`process` uses it while :attr:`lost`."""
+        """Place a frame against the map without trusting the motion model (``slam.relocalisation``): tracked from
+        the constant-velocity prediction when the tracking segment has one (after a tracking loss), the last good pose
+        and the ``relocalisation.candidates`` keyframes nearest by global descriptor (or the active submap's
+        keyframes), the best start kept. After a tracking loss it accepts from ``health.recovery_inlier_fraction``
+        (the map lacks what the lost frames would have added) and only a placement that passes the health monitor
+        (:meth:`_judge_recovery`). Changes nothing; :meth:`process` uses it while :attr:`lost`."""
         if not self.frames:
             raise ValueError("relocalise: the map is empty (no frame processed or loaded)")
         cfg = self.cfg.relocalisation
-        if self.frames[-1].lost:  # after a tracking loss: the map lacks what the lost frames would have added
+        recovering = self.frames[-1].lost
+        if recovering:
             cfg = replace(cfg, min_inlier_fraction=min(cfg.min_inlier_fraction,
                                                        self.cfg.health.recovery_inlier_fraction))
-        last = next(f for f in reversed(self.frames) if not f.lost)
+        last = self.frames[self._last_good()]
         ranked = (self.loop_closure.nearest_keyframes(obs, cfg.candidates)
                   if self.loop_closure is not None else [])
         local = invert_pose(last.submap.anchor) @ last.cam_to_world
         starts = relocalisation_starts(self.submaps, (last.submap, local), ranked, cfg.candidates)
-        return track_from_starts(obs, starts, self.tracker, cfg, self.device)
+        _, predicted, _ = self._motion_model()
+        if predicted is not None:
+            starts.insert(0, Start(self.active, predicted, "constant velocity"))
+        placed = track_from_starts(obs, starts, self.tracker, cfg, self.device)
+        return self._judge_recovery(obs, placed) if recovering and placed.accepted else placed
+
+    def _judge_recovery(self, obs: Observation, placed: RelocalisationResult) -> RelocalisationResult:
+        """A placement after a tracking loss, judged by the health monitor as a tracked frame would be (against the
+        submap that placed it; no pose jump: the prediction across the loss is only a guess), accepted unless that
+        finds it lost or its residual's z-score against the frames before the loss exceeds
+        ``health.recovery_residual_z``."""
+        submap = self.submaps[placed.submap_id]
+        local = invert_pose(submap.anchor) @ placed.cam_to_world
+        view, hessian = inspect_pose(submap.load_cloud(self.device), obs, local, self.cfg.tracking, self.cfg.backend)
+        health = self.health.judge(placed.tracking_loss, image_signals(view, obs, hessian, self.cfg.health), local,
+                                   None)
+        fits = health.status != "lost" and health.residual_z <= self.cfg.health.recovery_residual_z
+        return replace(placed, accepted=fits, health=health)
 
     def save(self, folder) -> None:
         """Write the whole state into ``folder`` (see :func:`gausem_core.slam.persistence.save_session`)."""

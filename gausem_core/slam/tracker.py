@@ -31,7 +31,17 @@ def constant_velocity(previous: torch.Tensor, before_previous: torch.Tensor | No
     """Predict the next cam_to_world by repeating the last relative motion (identity motion with one pose)."""
     if before_previous is None:
         return previous.clone()
-    return project_to_se3(previous @ (invert_pose(before_previous) @ previous))
+    return repeat_motion(previous, invert_pose(before_previous) @ previous)
+
+
+def repeat_motion(pose: torch.Tensor, relative: torch.Tensor, steps: int = 1) -> torch.Tensor:
+    """``pose`` moved on by the relative motion ``relative`` (pose-from-next) ``steps`` times, projected onto
+    SE(3)."""
+    if steps < 1:
+        raise ValueError(f"repeat_motion: steps must be >= 1, got {steps}")
+    for _ in range(steps):
+        pose = pose @ relative
+    return project_to_se3(pose)
 
 
 def alignment_weights(cfg: TrackingConfig) -> AlignmentWeights:
