@@ -22,6 +22,7 @@ import torch
 from gausem_core.config import SlamConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
+from gausem_core.memory import release_free_heap
 from gausem_core.render import select_backend
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
@@ -256,6 +257,7 @@ class GauSemSLAM:
         else:
             loss = self._map_keyframe(obs, frame_id, pose)
         events = self._keyframe_events(closed)
+        release_free_heap()  # mapping and loop closure freed many image-sized buffers
         return self._result(tracked, True, loss, decision, relocalised, health, events)
 
     def _place(self, obs: Observation) -> tuple[TrackingResult | None, RelocalisationResult | None]:
