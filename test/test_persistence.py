@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from gausem_core.config import from_flat
+from gausem_core.config import RENAMED, from_flat
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.geometry import invert_pose, so3_log
 from gausem_core.slam.allocation import Decision
@@ -130,6 +130,20 @@ def test_a_session_without_the_tracking_loss_fields_loads_as_never_lost(saved, t
     assert loaded.health.state_dict() == {"residuals": [], "motions": []}
     current = GauSemSLAM.load(folder, relocalise=False)
     assert all(torch.equal(p, q) for (_, p), (_, q) in zip(current.trajectory(), loaded.trajectory(), strict=True))
+
+
+def test_a_session_saved_under_the_old_parameter_names_loads_with_its_values(saved, tmp_path):
+    _, folder = saved
+    old = tmp_path / "old_names"
+    old.mkdir()
+    for path in folder.iterdir():
+        (old / path.name).write_bytes(path.read_bytes())
+    document = json.loads((old / SESSION_FILE).read_text())
+    new_names = {new: name for name, new in RENAMED.items()}
+    document["config"] = {new_names.get(name, name): value for name, value in document["config"].items()}
+    assert "tracking.iterations" in document["config"] and "loop.global_refinement" in document["config"]
+    (old / SESSION_FILE).write_text(json.dumps(document))
+    assert GauSemSLAM.load(old, relocalise=False).cfg == GauSemSLAM.load(folder, relocalise=False).cfg
 
 
 def test_relocalisation_places_an_earlier_frame(sequence, saved):

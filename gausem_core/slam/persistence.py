@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from gausem_core.config import SlamConfig, flatten, from_flat
+from gausem_core.config import RENAMED, SlamConfig, flatten, from_flat
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera
 from gausem_core.slam.allocation import Frustum, FrustumUnion, SubmapExtent
@@ -203,7 +203,8 @@ def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torc
     as the saved system would have (lost too if that was)."""
     folder = Path(folder)
     document = read_document(folder)
-    slam = GauSemSLAM(cfg or from_flat(document["config"]), device, document["num_classes"], document["detect_loops"])
+    saved = {RENAMED.get(name, name): value for name, value in document["config"].items()}  # older sessions' names
+    slam = GauSemSLAM(cfg or from_flat(saved), device, document["num_classes"], document["detect_loops"])
     reader = _TensorReader(folder)
     tree = document["state"]
     slam.submaps = [_submap(submap, reader, slam.device, slam) for submap in tree["submaps"]]
