@@ -1,4 +1,4 @@
-"""QoS profiles used across GauSem's topics (DESIGN.md §3; measurements in notes/ros2-from-pypi.md §4).
+"""QoS profiles used across GauSem's topics (docs/DESIGN.md §3; measurements in its §4).
 
 - ``IMAGE_QOS``: reliable, keep last 10 -- images between GauSem processes (best effort drops 20-60 % of VGA
   frames across processes with Fast DDS).

@@ -2,7 +2,7 @@
 
 Reading respects ``step`` (row padding) and ``is_bigendian`` and returns views of ``msg.data`` where the layout
 allows (no copy; writing to them writes the message). Building uses ``ndarray.tobytes()``: assigning an ndarray to
-``msg.data`` costs ~100 ms per VGA frame in rclpy (notes/ros2-from-pypi.md §4). Built images are little-endian and
+``msg.data`` costs ~100 ms per VGA frame in rclpy (docs/DESIGN.md §4). Built images are little-endian and
 unpadded. Conventions: colour is RGB uint8 (H, W, 3); depth is float32 metres (H, W) with 0 = invalid (16UC1 holds
 millimetres, 32FC1 metres); labels are class ids (H, W).
 """
