@@ -19,7 +19,10 @@ from pathlib import Path
 
 _HERE = Path(__file__).parent
 _SOURCES = [str(_HERE / name) for name in ("bindings.cpp", "raster.cpp", "alignment.cpp")]
-KERNEL_NAME = f"gausem_cpu_kernels_{hashlib.sha1(str(_HERE.resolve()).encode()).hexdigest()[:10]}"
+# keyed by the checkout and the environment (two virtualenvs on one checkout build against different torch headers
+# and would otherwise rebuild each other's kernel, each waiting on the other's lock)
+_KEY = f"{_HERE.resolve()}\0{Path(sys.prefix).resolve()}"
+KERNEL_NAME = f"gausem_cpu_kernels_{hashlib.sha1(_KEY.encode()).hexdigest()[:10]}"
 _lock = threading.Lock()
 _kernel = None
 _error: str | None = None
