@@ -328,3 +328,21 @@ def test_compiled_depth_order_is_the_stable_order_of_pairs_depth_order(dtype):
     assert torch.equal(native.require_kernel().depth_order(depth, boxes.nonempty()), expected)
     with pytest.raises(RuntimeError, match="positive"):
         native.require_kernel().depth_order(-depth, boxes.nonempty())
+
+
+def test_a_build_lock_left_by_an_interrupted_build_is_removed_and_a_live_one_kept(monkeypatch, tmp_path):
+    import os
+    import time
+    from pathlib import Path
+
+    from torch.utils.cpp_extension import _get_build_directory
+
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path))
+    lock = Path(_get_build_directory(native.KERNEL_NAME, verbose=False)) / "lock"
+    lock.touch()
+    native._remove_stale_lock()
+    assert lock.exists()  # a build in progress elsewhere: wait for it
+    old = time.time() - native.STALE_LOCK_SECONDS - 60
+    os.utime(lock, (old, old))
+    native._remove_stale_lock()
+    assert not lock.exists()

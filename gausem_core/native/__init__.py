@@ -15,6 +15,7 @@ import hashlib
 import os
 import sys
 import threading
+import time
 from pathlib import Path
 
 _HERE = Path(__file__).parent
@@ -26,6 +27,21 @@ KERNEL_NAME = f"gausem_cpu_kernels_{hashlib.sha1(_KEY.encode()).hexdigest()[:10]
 _lock = threading.Lock()
 _kernel = None
 _error: str | None = None
+STALE_LOCK_SECONDS = 600  # a build takes under two minutes; an older lock was left by a process killed mid-build
+
+
+def _remove_stale_lock() -> None:
+    """torch waits forever on a build lock whose owner died; drop one older than :data:`STALE_LOCK_SECONDS`."""
+    from torch.utils.cpp_extension import _get_build_directory
+
+    lock = Path(_get_build_directory(KERNEL_NAME, verbose=False)) / "lock"
+    try:
+        age = time.time() - lock.stat().st_mtime
+    except FileNotFoundError:
+        return
+    if age > STALE_LOCK_SECONDS:
+        print(f"gausem: removing {lock}, left {age:.0f} s ago by an interrupted build", file=sys.stderr)
+        lock.unlink(missing_ok=True)
 
 
 def _ninja_on_path() -> None:
@@ -46,6 +62,7 @@ def _load():
                 from torch.utils.cpp_extension import load
 
                 _ninja_on_path()
+                _remove_stale_lock()
                 _kernel = load(name=KERNEL_NAME, sources=_SOURCES, extra_cflags=["-O3", "-fopenmp"],
                                extra_ldflags=["-fopenmp"], verbose=False)  # kernels.h: beside the sources
             except Exception as exc:  # noqa: BLE001 -- a missing compiler shows up as many different errors
