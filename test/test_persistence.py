@@ -111,12 +111,17 @@ def test_the_session_folder_is_self_contained(saved, tmp_path):
     assert torch.equal(loaded.submaps[0].observation(loaded.submaps[0].keyframes[-1]).rgb, images)
 
 
+def _copy(folder, dest):
+    """A copy of a saved session folder, to edit."""
+    dest.mkdir()
+    for path in folder.iterdir():
+        (dest / path.name).write_bytes(path.read_bytes())
+    return dest
+
+
 def test_a_session_without_the_tracking_loss_fields_loads_as_never_lost(saved, tmp_path):
     _, folder = saved
-    old = tmp_path / "old"
-    old.mkdir()
-    for path in folder.iterdir():
-        (old / path.name).write_bytes(path.read_bytes())
+    old = _copy(folder, tmp_path / "old")
     document = json.loads((old / SESSION_FILE).read_text())
     state = document["state"]
     assert state["health"]["residuals"] and not state["lost"]
@@ -134,10 +139,7 @@ def test_a_session_without_the_tracking_loss_fields_loads_as_never_lost(saved, t
 
 def test_a_session_saved_under_the_old_parameter_names_loads_with_its_values(saved, tmp_path):
     _, folder = saved
-    old = tmp_path / "old_names"
-    old.mkdir()
-    for path in folder.iterdir():
-        (old / path.name).write_bytes(path.read_bytes())
+    old = _copy(folder, tmp_path / "old_names")
     document = json.loads((old / SESSION_FILE).read_text())
     new_names = {new: name for name, new in RENAMED.items()}
     document["config"] = {new_names.get(name, name): value for name, value in document["config"].items()}
