@@ -39,6 +39,7 @@ class RunResult:
     poses: np.ndarray  # (N, 4, 4) cam_to_world estimates
     gt_poses: list[np.ndarray | None]
     frame_ids: list[int]
+    dataset_positions: list[int]  # each frame's i in ``dataset[i]`` (dropped frames leave gaps)
     seconds: float
     stats: list[dict] = field(default_factory=list)
     health: list[tuple[int, float, TrackingHealth]] = field(default_factory=list)  # (frame, timestamp, health) of
@@ -74,7 +75,7 @@ class Pipeline:
         session is saved there after the last frame, before the global refinement (not timed)."""
         slam = slam or GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
         first = len(slam.frames)
-        gt, ids, stats, health = [], [], [], []
+        gt, ids, dataset_positions, stats, health = [], [], [], [], []
         start = time.perf_counter()
         bar = tqdm(range(len(self.dataset)), desc="gausem", unit="frame", disable=not self.progress)
         for i in bar:
@@ -88,6 +89,7 @@ class Pipeline:
                 continue
             gt.append(frame.gt_pose)
             ids.append(frame.index)
+            dataset_positions.append(i)
             stats.append({"frame": frame.index, "tracking_loss": result.tracking_loss,
                           "tracking_iterations": result.tracking_iterations, "mapping_loss": result.mapping_loss,
                           "gaussians": result.num_gaussians})
@@ -99,4 +101,5 @@ class Pipeline:
         seconds = time.perf_counter() - start
         trajectory = slam.trajectory()[first:]
         poses = np.stack([p.detach().cpu().double().numpy() for _, p in trajectory])
-        return RunResult(slam, [t for t, _ in trajectory], poses, gt, ids, seconds, stats, health)
+        return RunResult(slam, [t for t, _ in trajectory], poses, gt, ids, dataset_positions, seconds, stats,
+                         health)

@@ -119,9 +119,10 @@ def rendered_views(result: RunResult, pipeline: Pipeline, positions: list[int]):
     estimated pose (no gradients)."""
     cloud = result.slam.global_cloud().to(pipeline.device)
     for k in positions:
-        frame = pipeline.dataset[k]
+        i = result.dataset_positions[k]
+        frame = pipeline.dataset[i]
         if frame.index != result.frame_ids[k]:
-            raise ValueError(f"processed frame {k} has id {result.frame_ids[k]} but the dataset's frame {k} is "
+            raise ValueError(f"processed frame {k} has id {result.frame_ids[k]} but the dataset's frame {i} is "
                              f"{frame.index}: the run result does not belong to this dataset")
         obs = pipeline.observation(frame)
         world_to_cam = invert_pose(torch.as_tensor(result.poses[k], dtype=cloud.dtype, device=cloud.device))

@@ -64,8 +64,8 @@ def run_result(slam: GauSemSLAM, reference, seconds: float,
     frames = ProcessedFrames(match_frames(reference, stamps), getattr(reference, "name", None),
                              getattr(reference, "class_table", None))
     poses = np.array([p.detach().cpu().double().numpy() for _, p in trajectory]).reshape(-1, 4, 4)
-    return RunResult(slam, stamps, poses, [f.gt_pose for f in frames], [f.index for f in frames], seconds,
-                     health=list(health)), frames
+    return RunResult(slam, stamps, poses, [f.gt_pose for f in frames], [f.index for f in frames],
+                     list(range(len(frames))), seconds, health=list(health)), frames
 
 
 def write_report(slam: GauSemSLAM, cfg: SlamConfig, reference, out: str | Path, seconds: float, *,

@@ -1,12 +1,21 @@
-"""``gausem run`` end to end on a few small synthetic frames: the outputs exist and the figures are sane."""
+"""``gausem run`` end to end on a few small synthetic frames: the outputs exist and the figures are sane; a strided
+run that dropped a frame is evaluated against its own frames."""
 import json
 import math
 
+import numpy as np
 import pytest
+import torch
 
 from gausem_core.cli import main
+from gausem_core.config import from_flat
+from gausem_core.data import SyntheticDataset
 from gausem_core.io.ply import read_gaussian_ply
 from gausem_core.io.trajectory import read_tum_trajectory
+from gausem_core.pipeline import Pipeline
+from gausem_core.report import write_outputs
+from gausem_core.slam.relocalisation import RelocalisationResult
+from gausem_core.slam.system import GauSemSLAM
 
 FAST = ["--set", "mapping.init_iterations=60", "--set", "mapping.iterations=5"]
 
@@ -48,3 +57,34 @@ def test_gausem_run_saves_and_resumes_a_session(tmp_path):
     assert len(read_tum_trajectory(out / "keyframes.txt")) == 3  # the session's (frames 0, 5) and frame 10
     metrics = json.loads((out / "metrics.json").read_text())["metrics"]
     assert metrics["frames"] == 5 and metrics["ate"]["rmse"] < 0.2
+
+
+class DropsFrames(GauSemSLAM):
+    """Drops the frames with the given timestamps as a failed relocalisation does (not recorded, map untouched)."""
+
+    def __init__(self, *args, drop: set[float], **kwargs):
+        super().__init__(*args, **kwargs)
+        self.drop = drop
+
+    def _place(self, obs):
+        if obs.timestamp in self.drop:
+            return None, RelocalisationResult(False, torch.eye(4), 0.0, math.nan, 0, "none", 0, 0)
+        return super()._place(obs)
+
+
+def test_a_strided_run_with_a_dropped_frame_is_evaluated_on_its_own_frames(tmp_path):
+    dataset = SyntheticDataset("default", resolution=(80, 60), stride=3, max_frames=5)  # frame ids 0, 3, ..., 12
+    cfg = from_flat({"device": "cpu", "mapping.init_iterations": 60, "mapping.iterations": 5})
+    pipeline = Pipeline(dataset, cfg, progress=False)
+    slam = DropsFrames(cfg, pipeline.device, len(pipeline.palette), drop={dataset[1].timestamp})
+    result = pipeline.run(slam)
+    assert result.frame_ids == [0, 6, 9, 12] and result.dataset_positions == [0, 2, 3, 4]
+
+    metrics = write_outputs(result, dataset, cfg, tmp_path, eval_every=1)
+    assert metrics["rendering"]["frames"] == 4 and metrics["rendering"]["psnr"] > 10
+    estimate, truth = (read_tum_trajectory(tmp_path / name) for name in ("trajectory.txt", "trajectory_gt.txt"))
+    kept = [dataset[i] for i in result.dataset_positions]
+    np.testing.assert_allclose(truth.stamps, [f.timestamp for f in kept], atol=1e-6)
+    np.testing.assert_allclose(estimate.stamps, truth.stamps, atol=1e-6)  # ATE pairs each frame with its own pose
+    np.testing.assert_allclose(truth.poses, np.stack([f.gt_pose for f in kept]), atol=1e-6)
+    assert metrics["ate"]["pairs"] == 4 and metrics["ate"]["rmse"] < 0.2

@@ -59,7 +59,7 @@ def fake_result(dataset, poses=None):
                     Submap(1, ANCHOR, GaussianCloud.empty(), [Keyframe(2, obs[2], torch.linalg.inv(ANCHOR) @ gt[2])])]
     poses = np.stack([g.double().numpy() for g in gt]) if poses is None else poses
     return RunResult(slam, [f.timestamp for f in frames], poses, [f.gt_pose for f in frames],
-                     [f.index for f in frames], seconds=2.0), cloud
+                     [f.index for f in frames], list(range(len(frames))), seconds=2.0), cloud
 
 
 def test_outputs_of_an_exact_run(tmp_path):
@@ -172,7 +172,8 @@ def test_loop_metrics_score_the_detections_against_ground_truth_loops():
     phases = {"describe": 0.05, "detect": 0.1, "verify": 0.1, "register": 0.7, "correct": 0.05}
     slam = SimpleNamespace(loop_closure=SimpleNamespace(records=records, place_recognition="bow",
                                                         rejected_candidates=3, seconds=phases))
-    result = RunResult(slam, list(range(60)), np.stack(gt_poses), gt_poses, list(range(60)), seconds=4.0)
+    result = RunResult(slam, list(range(60)), np.stack(gt_poses), gt_poses, list(range(60)), list(range(60)),
+                       seconds=4.0)
     metrics = loop_metrics(result)
     assert metrics["detected"] == 2 and metrics["accepted"] == 1 and metrics["seconds"] == pytest.approx(0.75)
     assert metrics["place_recognition"] == "bow" and metrics["rejected_by_verification"] == 3

@@ -22,18 +22,11 @@ from gausem_core.io.metrics import git_commit, to_jsonable
 def rendering_lpips(result, pipeline, eval_every: int, weights: str) -> float:
     """Mean LPIPS of the final map rendered at every ``eval_every``-th frame's estimated pose (as PSNR/SSIM are)."""
     from gausem_core.eval.image import lpips
-    from gausem_core.geometry import invert_pose
-    from gausem_core.render import render
+    from gausem_core.report import evaluation_positions, rendered_views
 
-    cloud = result.slam.global_cloud().to(pipeline.device)
-    scores = []
-    for k in range(0, len(result.frame_ids), eval_every):
-        obs = pipeline.observation(pipeline.dataset[k])
-        world_to_cam = invert_pose(torch.as_tensor(result.poses[k], dtype=cloud.dtype, device=cloud.device))
-        with torch.no_grad():
-            out = render(cloud, world_to_cam, obs.camera, backend=pipeline.cfg.backend)
-        scores.append(lpips(out.color, obs.rgb, weights))
-    return float(np.mean(scores))
+    positions = evaluation_positions(len(result.frame_ids), eval_every)
+    return float(np.mean([lpips(out.color, obs.rgb, weights)
+                          for _, obs, out in rendered_views(result, pipeline, positions)]))
 
 
 def run_gausem(case: Case) -> tuple[dict, str]:
