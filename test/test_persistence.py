@@ -10,6 +10,7 @@ from gausem_core.config import RENAMED, from_flat
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.geometry import invert_pose, so3_log
 from gausem_core.slam.allocation import Decision
+from gausem_core.slam.loop import LoopDetector
 from gausem_core.slam.loop_closure import LoopConstraint, LoopRecord
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.persistence import SESSION_FILE, SessionError, _state_tree, _TensorWriter
@@ -216,6 +217,20 @@ def test_loop_records_and_constraints_survive(saved, tmp_path):
     assert torch.equal(a.relative, b.relative) and a.relative.dtype == b.relative.dtype
     assert (a.keyframe_a, a.submap_b, a.sigmas, a.fitness, a.intra) == (b.keyframe_a, b.submap_b, b.sigmas,
                                                                         b.fitness, b.intra)
+
+
+def test_the_stored_places_rebuild_the_loop_database_in_another_detector(saved):
+    """What tracking_mapping sends loop_detection after a load (ROS, loop_closure: nodes): stored unchecked in a new
+    detector, a loaded session's places give its database (the bag of words here: features, vocabulary, words)."""
+    _, folder = saved
+    loop = GauSemSLAM.load(folder, relocalise=False).loop_closure
+    other = LoopDetector.from_config(loop.cfg, loop.place_recognition)
+    for place in loop.stored_places():
+        assert other.add_keyframe(place, check=False) == []
+    assert len(loop.detector.database) > 1
+    torch.testing.assert_close(other.database.state_dict(), loop.detector.database.state_dict(), rtol=0, atol=0,
+                               equal_nan=True)
+    torch.testing.assert_close(other._keyframes, loop.detector._keyframes, rtol=0, atol=0)
 
 
 def test_a_session_loads_only_with_the_place_recognition_it_was_saved_with(saved):

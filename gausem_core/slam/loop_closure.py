@@ -254,6 +254,14 @@ class LoopClosure:
         self.seconds["detect"] += time.perf_counter() - start
         return candidates
 
+    def stored_places(self) -> list[PlaceSignature]:
+        """The place signatures of the keyframes in the loop database, in the order they were stored, as
+        :meth:`describe` gave them (less ``nearby``): what another detector stores to hold the same keyframes."""
+        bow = self.place_recognition == "bow"
+        return [PlaceSignature(frame_id, submap_id,
+                               self.detector.database.features[frame_id] if bow else self._descriptors[frame_id],
+                               scores) for frame_id, (submap_id, scores) in self.detector._keyframes.items()]
+
     def confirm(self, submaps: Sequence, candidates: Sequence[LoopCandidate]) -> LoopCandidate | None:
         """The loop among one query keyframe's ranked candidates (as :meth:`detect` gives them): with place recognition
         "bow" the first that passes geometric verification, with its verified relative pose (the ones before it are

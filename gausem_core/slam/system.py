@@ -171,7 +171,8 @@ class GauSemSLAM:
 
     ``num_classes``: length of the class histograms (the class table's size); they grow to the largest class id seen,
     so 1 is fine when the table is unknown. ``detect_loops``: False when loops are detected elsewhere (the ROS
-    loop_detection node) from the place signatures in the frames' events and handed in through :meth:`register_loop`.
+    loop_detection node) from the place signatures in the frames' events and handed in through :meth:`register_loop`
+    (the loop database still stores them, unchecked: a saved session holds them either way).
     Call :meth:`close` (or use ``with``) to delete spilled submaps at once; otherwise that happens when the object is
     collected.
 
@@ -439,6 +440,8 @@ class GauSemSLAM:
             loop = self.loop_closure.on_keyframe(self.submaps, submap, keyframe)
         elif self.loop_closure is not None:
             place = self.loop_closure.describe(self.submaps, submap, keyframe)
+            if place is not None:  # stored unchecked, so that the session holds it as a detecting one would
+                self.loop_closure.detector.add_keyframe(place, check=False)
         opened = [self._submap_change(submap, opened=True)] if len(submap.keyframes) == 1 else []
         return FrameEvents(self._keyframe_state(submap, keyframe), tuple(closed + opened), loop, place)
 

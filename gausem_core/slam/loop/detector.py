@@ -100,17 +100,18 @@ class LoopDetector:
         """Algorithm 1, line 1: a keyframe every ``keyframe_every`` frames (frame 0 is one)."""
         return frame_index % self.keyframe_every == 0
 
-    def add_keyframe(self, place: PlaceSignature) -> list[LoopCandidate]:
+    def add_keyframe(self, place: PlaceSignature, check: bool = True) -> list[LoopCandidate]:
         """Check a keyframe for loops (its appearance on every ``check_every``-th call, its ``nearby`` keyframes on
-        every call), then store it. Returns the ranked candidates (at most ``max_candidates``; none: no loop)."""
+        every call; with ``check`` false not at all: a keyframe of a loaded map, or one checked elsewhere), then store
+        it. Returns the ranked candidates (at most ``max_candidates``; none: no loop)."""
         if place.landmark_scores.dim() != 1:
             raise ValueError(f"LoopDetector.add_keyframe: landmark scores of keyframe {place.keyframe_id} must be a "
                              f"vector, got shape {tuple(place.landmark_scores.shape)}")
         if isinstance(place.appearance, OrbFeatures) != isinstance(self.database, BagOfWords):
             raise ValueError(f"LoopDetector.add_keyframe: keyframe {place.keyframe_id} is described by "
                              f"{type(place.appearance).__name__}, but the database is a {type(self.database).__name__}")
-        is_check = (len(self.database) + 1) % self.check_every == 0
-        nearby = set(place.nearby)
+        is_check = check and (len(self.database) + 1) % self.check_every == 0
+        nearby = set(place.nearby) if check else set()
         ranked = self._candidates(place, is_check, nearby) if is_check or nearby else []
         self.database.add(place.keyframe_id, place.appearance)
         self._keyframes[place.keyframe_id] = (place.submap_id, place.landmark_scores.detach().cpu())
