@@ -16,8 +16,9 @@ from .records import (LoopCandidateRecord, LoopConstraintRecord, PlaceSignatureR
                       PoseGraphNodeKind, PoseGraphUpdate)
 
 
-def place_signature_to_record(place: PlaceSignature, stamp: float) -> PlaceSignatureRecord:
-    """A keyframe's place signature (stamped like the keyframe) as a record."""
+def place_signature_to_record(place: PlaceSignature, stamp: float, *, loaded: bool = False,
+                              new_map: bool = False) -> PlaceSignatureRecord:
+    """A keyframe's place signature (stamped like the keyframe) as a record (flags: see the record)."""
     bow = isinstance(place.appearance, OrbFeatures)
     features = place.appearance if bow else OrbFeatures(np.zeros((0, 2), np.float32),
                                                         np.zeros((0, DESCRIPTOR_BYTES), np.uint8),
@@ -25,7 +26,8 @@ def place_signature_to_record(place: PlaceSignature, stamp: float) -> PlaceSigna
     descriptor = np.zeros(0, np.float32) if bow else place.appearance.detach().cpu().numpy()
     return PlaceSignatureRecord(place.keyframe_id, stamp, place.submap_id, bow, descriptor, features.keypoints,
                                 features.descriptors, features.points, features.scale,
-                                place.landmark_scores.detach().cpu().double().numpy(), np.array(place.nearby))
+                                place.landmark_scores.detach().cpu().double().numpy(), np.array(place.nearby),
+                                loaded, new_map)
 
 
 def record_to_place_signature(record: PlaceSignatureRecord) -> PlaceSignature:

@@ -36,8 +36,8 @@ class _Wire:
     enum_type: type | None = None
 
 
-def _field(wire: _Wire):
-    return dataclasses.field(metadata={"wire": wire})
+def _field(wire: _Wire, default=dataclasses.MISSING):
+    return dataclasses.field(default=default, metadata={"wire": wire})
 
 
 def int_field():
@@ -48,8 +48,8 @@ def float_field():
     return _field(_Wire(np.dtype("<f8")))
 
 
-def flag_field():
-    return _field(_Wire(np.dtype("u1"), kind="flag"))
+def flag_field(default=dataclasses.MISSING):
+    return _field(_Wire(np.dtype("u1"), kind="flag"), default)
 
 
 def enum_field(enum_type: type[enum.IntEnum]):
@@ -130,7 +130,9 @@ class PlaceSignatureRecord(_Record):
     """A loop keyframe's place signature (the core's ``PlaceSignature``): with ``bag_of_words`` its ORB features, N
     rows of ``orb_keypoints`` (pixels), ``orb_descriptors`` (32 bytes) and ``orb_points`` (camera frame, NaN without
     depth) found at ``orb_scale``, and an empty ``descriptor``; else its global ``descriptor`` and no ORB rows. Then
-    the Eq. 7 ``landmark_scores`` and the ids of the ``nearby`` keyframes. One record per message (lengths vary)."""
+    the Eq. 7 ``landmark_scores`` and the ids of the ``nearby`` keyframes. ``loaded``: a keyframe of a map the tracker
+    loaded, to store without a loop check; ``new_map``: the first signature since the tracker started a new map (the
+    detector forgets the keyframes before it). One record per message (lengths vary)."""
 
     keyframe_id: int = int_field()
     stamp: float = float_field()
@@ -143,6 +145,8 @@ class PlaceSignatureRecord(_Record):
     orb_scale: int = int_field()
     landmark_scores: np.ndarray = vector_field("<f8")
     nearby: np.ndarray = vector_field("<i4")
+    loaded: bool = flag_field(default=False)
+    new_map: bool = flag_field(default=False)
 
 
 class SubmapEventKind(enum.IntEnum):

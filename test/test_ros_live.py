@@ -1,6 +1,7 @@
 """The node suite live: real-time replay with and without sim time, a tracker slower than its input, every input
-accounted for, reset and replay, restarts of the tracker seen by loop_detection and pose_graph, the launcher's
-crash isolation and respawn."""
+accounted for, reset and replay, restarts of the tracker seen by loop_detection and pose_graph, a loaded map held by
+loop_detection, the launcher's crash isolation and respawn."""
+import dataclasses
 import os
 import signal
 import subprocess
@@ -22,12 +23,16 @@ from sensor_msgs.msg import PointCloud2  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 import msg_adapters as ma  # noqa: E402
+from gausem_core.config import from_flat  # noqa: E402
+from gausem_core.data import SYNTHETIC_CLASSES, open_dataset  # noqa: E402
 from gausem_core.slam.loop import PlaceSignature  # noqa: E402
+from gausem_core.slam.observation import Observation  # noqa: E402
+from gausem_core.slam.system import GauSemSLAM  # noqa: E402
 from gausem_ros.launcher import Launcher  # noqa: E402
 from gausem_ros.nodes.loop_detection import LoopDetectionNode  # noqa: E402
 from gausem_ros.nodes.pose_graph import PoseGraphNode  # noqa: E402
 from gausem_ros.nodes.tracking_mapping import TrackingMappingNode  # noqa: E402
-from gausem_ros.player import Player, open_source  # noqa: E402
+from gausem_ros.player import Player, dataset_frames, open_source  # noqa: E402
 from gausem_ros.qos import EVENT_QOS  # noqa: E402
 from ros_harness import FAST_SLAM, Recorder, overrides, ros_param_args, ros_session, spin_until  # noqa: E402
 
@@ -263,6 +268,50 @@ def test_a_restarted_tracker_loads_its_saved_map_relocalises_and_goes_on(tmp_pat
         with pytest.raises(ValueError, match="cannot load map_path"):
             TrackingMappingNode(context=ctx, parameter_overrides=overrides(
                 {**slam, "map_path": str(tmp_path / "nowhere")}))
+
+
+@pytest.mark.slow
+def test_loop_detection_holds_a_loaded_map_and_a_revisit_of_it_is_a_loop_candidate(tmp_path):
+    """With loop_closure: nodes, loading a map replaces loop_detection's database by the loaded keyframes' place
+    signatures (as the loaded core holds them; a keyframe of an earlier map is forgotten, not kept beside them), and a
+    revisit of a loaded place gets a candidate in the loaded map."""
+    slam = {**FAST_SLAM, "mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 60,
+            "mapping.init_samples_fraction": 1.0, "refinement.enabled": False, "loop.place_recognition": "descriptor",
+            "loop.keyframe_every": 2, "loop.check_every": 1, "loop.exclude_recent": 0}
+    frames = list(open_dataset("synthetic", size=(80, 60), max_frames=6))
+    core = GauSemSLAM(from_flat(slam), "cpu", len(SYNTHETIC_CLASSES), detect_loops=False)  # a nodes-mode tracker's
+    for f in frames:
+        core.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
+                                             f.timestamp))
+    core.save(tmp_path / "session")
+    stored = core.loop_closure.detector
+    assert stored.database.ids.tolist() == [0, 2, 4]  # its signatures, though another node checked them
+
+    with ros_session(138) as (ctx, executor):
+        loop = LoopDetectionNode(context=ctx, parameter_overrides=overrides(slam))
+        recorder = Recorder(ctx, [])
+        place_pub = recorder.node.create_publisher(PointCloud2, "gausem/place_signatures", EVENT_QOS)
+        for node in (loop, recorder.node):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: place_pub.get_subscription_count(), 5.0)
+        place_pub.publish(_keyframe_msgs(50, 99.0)[1])  # a keyframe of an earlier map
+        assert spin_until(executor, lambda: loop.detector.database.ids.tolist() == [50], 5.0)
+
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(
+            {**slam, "loop_closure": "nodes", "map_path": str(tmp_path / "session")}))
+        executor.add_node(tracking)
+        assert spin_until(executor, lambda: len(loop.detector.database) == 3, 10.0)
+        held = loop.detector
+        assert held.database.ids.tolist() == [0, 2, 4]
+        np.testing.assert_array_equal(held.database.vectors, stored.database.vectors)
+        torch.testing.assert_close(held._keyframes, stored._keyframes, rtol=0, atol=0)  # submaps, landmark scores
+
+        player = Player(dataset_frames([dataclasses.replace(frames[0], timestamp=10.0)]), rate=0.0, lockstep=True,
+                        timeout=30.0, context=ctx)  # back at the first place
+        executor.add_node(player)
+        assert spin_until(executor, lambda: player.done and tracking.loop_candidates, 60.0)
+    assert tracking.frames_processed == 1
+    assert [(c.query_keyframe_id, c.match_keyframe_id in (0, 2, 4)) for c in tracking.loop_candidates] == [(6, True)]
 
 
 def torch_equal(a, b) -> bool:

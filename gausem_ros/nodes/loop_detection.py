@@ -10,11 +10,16 @@ answers every message with one ``gausem/loop_candidates`` message with its heade
 candidates (at most ``loop.bow.candidates`` with the bag of words, which tracking_mapping verifies in order; at most
 one otherwise), none when there are none or the signature was dropped (the tracker waits for this answer).
 
+The first signature of a new map (the tracker started, was reset or loaded a map) is flagged ``new_map``: the node
+forgets every keyframe first. After a load, the tracker sends the loaded map's stored signatures flagged ``loaded``,
+one per message and each answered (with none) before the next, as it does for new keyframes: they are stored
+without a loop check, so the database holds what the loaded core's does.
+
 Signatures of ids seen before with the same stamp are re-publications and ignored; a new id below the newest one is
 dropped as ``keyframe_out_of_order`` (the database needs increasing ids); a signature the detector refuses (another
 place recognition, descriptor length or bad values) is dropped as ``bad_signature``. A keyframe id seen before with
-another stamp means the tracker started a new map (it was restarted or reset): the node then forgets every keyframe
-and starts over, logging it.
+another stamp also means the tracker started a new map (e.g. its ``new_map`` signature was lost): the node then
+forgets every keyframe and starts over, logging it.
 """
 from __future__ import annotations
 
@@ -69,7 +74,11 @@ class LoopDetectionNode(Node):
             return []
 
     def _detect(self, record: ma.PlaceSignatureRecord) -> list[ma.LoopCandidateRecord]:
-        """The detector's ranked candidates for a new keyframe's signature (none for one seen before or dropped)."""
+        """The detector's ranked candidates for a new keyframe's signature (none for a loaded one, one seen before or
+        one dropped)."""
+        if record.new_map and self._stamps:
+            self.get_logger().info(f"keyframe {record.keyframe_id} starts a new map; starting over")
+            self._start_map()
         known = self._stamps.get(record.keyframe_id)
         if known == record.stamp:
             return []
@@ -83,7 +92,7 @@ class LoopDetectionNode(Node):
                                                      f"{newest}; the detector needs increasing ids")
             return []
         try:
-            ranked = self.detector.add_keyframe(ma.record_to_place_signature(record))
+            ranked = self.detector.add_keyframe(ma.record_to_place_signature(record), check=not record.loaded)
         except ValueError as err:
             self.drops.drop("bad_signature", f"keyframe {record.keyframe_id} ({self.place_recognition} place "
                                              f"recognition here): {err}")

@@ -23,9 +23,12 @@ the session in ``map_path`` (default: ``output_dir/session``); ``gausem/finish``
 refinement (as the offline pipeline does after the last frame); ``gausem/reset`` starts a new map.
 
 Resuming: with ``map_path`` set, the node starts from that saved session (a restarted tracker goes on with the map it
-saved). A loaded map is re-published (submaps, keyframes, path, map), so pose_graph rebuilds its graph, and the
-next frames are relocalised against it (the robot is not where the last saved frame was): until one is placed, frames
-are dropped as ``relocalisation_failed`` and nothing is published for them.
+saved). A loaded map is re-published (submaps, keyframes, path, map), so pose_graph rebuilds its graph; with
+``loop_closure: nodes`` its loop database goes to loop_detection too (the stored place signatures, flagged loaded, the
+first flagged new_map, one at a time in step with loop_detection's answers, before the next frame), so loops close
+into the loaded map as with ``core``. The next frames are relocalised against it (the robot is not where the last
+saved frame was): until one is placed, frames are dropped as ``relocalisation_failed`` and nothing is published for
+them.
 
 Live input: the image subscriptions run in their own callback group, so with a multi-threaded executor (as every
 GauSem entry point uses) inputs keep arriving while a frame is processed; frames are processed one at a time, the
@@ -87,6 +90,7 @@ from gausem_core.pipeline import resolve_device
 from gausem_core.semantics.source import UNLABELLED_PALETTE
 from gausem_core.slam.events import FrameEvents, KeyframeState, SubmapChange
 from gausem_core.slam.health import TrackingHealth
+from gausem_core.slam.loop import PlaceSignature
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
 
@@ -179,7 +183,7 @@ class TrackingMappingNode(Node):
                                          slop=p.sync_slop, on_drop=self._on_sync_drop, callback_group=input_group)
         self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
             "superseded", "a newer synchronised frame arrived before this one was processed"),
-            ready=self._loop_answers.settled)
+            ready=self._loop_settled)
         self.create_subscription(CameraInfo, "rgb/camera_info", self._on_camera_info, qos,
                                  callback_group=input_group)
         if self.loop_nodes:
@@ -222,6 +226,8 @@ class TrackingMappingNode(Node):
         self._camera_frame = self.params.camera_frame or "camera"
         self._map_dirty = False
         self._loop_answers.clear()
+        self._new_map = True  # the next place signature is the map's first (loop_detection starts over)
+        self._loaded_places: list[tuple[PlaceSignature, float]] = []  # a loaded map's, still to go to loop_detection
         self.health = TrackingHealth("ok")  # the last frame's
         self.health_log: list[tuple[int, float, TrackingHealth]] = []  # (frame, stamp, health) of every frame given
         # to the core, dropped ones included (the report's tracking_status.csv)
@@ -424,14 +430,28 @@ class TrackingMappingNode(Node):
         if events.keyframe is not None:
             self._publish_keyframes([events.keyframe], header)
         if events.place is not None:
-            stamp = events.keyframe.timestamp
-            self._loop_answers.expect_candidates(stamp)
-            self._answer_timer.reset()
-            self._signature_pub.publish(ma.records_to_pointcloud2([ma.place_signature_to_record(events.place, stamp)],
-                                                                  header))
+            self._publish_place(events.place, events.keyframe.timestamp)
         if events.loop is not None and events.loop.constraint is not None:
             self._constraint_pub.publish(ma.records_to_pointcloud2(
                 [ma.loop_constraint_to_record(events.loop.constraint)], header))
+
+    def _publish_place(self, place: PlaceSignature, stamp: float, loaded: bool = False) -> None:
+        """Send a place signature (stamped like its keyframe) to loop_detection; its answer is awaited."""
+        self._loop_answers.expect_candidates(stamp)
+        self._answer_timer.reset()
+        record = ma.place_signature_to_record(place, stamp, loaded=loaded, new_map=self._new_map)
+        self._new_map = False
+        self._signature_pub.publish(ma.records_to_pointcloud2([record], ma.make_header(stamp, self.params.map_frame)))
+
+    def _send_loaded_places(self) -> None:
+        """Send a loaded map's signatures to loop_detection, each once the last one was answered (or given up)."""
+        while self._loaded_places and self._loop_answers.settled():
+            self._publish_place(*self._loaded_places.pop(0), loaded=True)
+
+    def _loop_settled(self) -> bool:
+        """Whether the next frame may be processed: loop_detection holds the loaded map and no loop answer is
+        awaited."""
+        return not self._loaded_places and self._loop_answers.settled()
 
     def _publish_submaps(self, changes: list[SubmapChange], header) -> None:
         events = [ma.SubmapEvent(c.submap_id, c.first_keyframe, c.anchor.numpy(),
@@ -464,6 +484,7 @@ class TrackingMappingNode(Node):
             self._close_loop(msg)
         finally:
             self._loop_answers.candidates_arrived(ma.header_seconds(msg.header))
+            self._send_loaded_places()
             self._queue.wake()
 
     def _close_loop(self, msg: PointCloud2) -> None:
@@ -490,8 +511,10 @@ class TrackingMappingNode(Node):
         self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(constraint)], header))
 
     def _await_loop_answers(self) -> None:
-        """While loop answers are awaited: wake the waiting frame once they are given up (timeout, helper gone)."""
-        if self._loop_answers.settled():
+        """While loop answers are awaited: once they are given up (timeout, helper gone), send the next loaded
+        signature, if any, or wake the waiting frame."""
+        self._send_loaded_places()
+        if self._loop_settled():
             self._answer_timer.cancel()
             self._queue.wake()
 
@@ -562,7 +585,12 @@ class TrackingMappingNode(Node):
         self._reset_state(slam)
         header = ma.make_header(max((t for t, _ in slam.trajectory()), default=0.0), self.params.map_frame)
         self._publish_submaps(slam.submap_states(), header)
-        self._publish_keyframes(slam.keyframe_states(), header)
+        keyframes = slam.keyframe_states()
+        self._publish_keyframes(keyframes, header)
+        if self.loop_nodes:
+            stamps = {k.frame_id: k.timestamp for k in keyframes}
+            self._loaded_places = [(p, stamps[p.keyframe_id]) for p in slam.loop_closure.stored_places()]
+            self._send_loaded_places()
         self._publish_path()
         self._map_dirty = True
         self.get_logger().info(f"loaded the map in {folder}: {len(slam.submaps)} submaps, {len(slam.trajectory())} "
