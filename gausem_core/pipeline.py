@@ -44,6 +44,8 @@ class RunResult:
     stats: list[dict] = field(default_factory=list)
     health: list[tuple[int, float, TrackingHealth]] = field(default_factory=list)  # (frame, timestamp, health) of
     # every frame given to the system, dropped ones included
+    first_frame: int = 0  # the system's frame id of the first frame here, the next ones' counting on by one (dropped
+    # frames get none); a resumed run's loaded session holds the ids before it
 
     @property
     def fps(self) -> float:
@@ -102,4 +104,4 @@ class Pipeline:
         trajectory = slam.trajectory()[first:]
         poses = np.stack([p.detach().cpu().double().numpy() for _, p in trajectory])
         return RunResult(slam, [t for t, _ in trajectory], poses, gt, ids, dataset_positions, seconds, stats,
-                         health)
+                         health, first)

@@ -176,7 +176,11 @@ def loop_metrics(result: RunResult) -> dict:
     """Which place recognition ran, detected and accepted loops, also split into intra-submap ones (keyframe
     alignment) and inter-submap ones (each an SGR registration), candidates turned down by geometric verification,
     the loop closure's time by phase and as a fraction of the run's and, with ground truth for every frame,
-    precision/recall/F1 of the detections under :data:`DEFAULT_PROTOCOL` (paper §IV-C-2)."""
+    precision/recall/F1 under :data:`DEFAULT_PROTOCOL` (paper §IV-C-2) of the loops among the run's frames.
+
+    Loops and rejections are counted over the session: a resumed run's include those restored with the loaded session
+    (``loaded_session``). These and the run's loops back into the loaded map (``into_loaded_map``) involve frames the
+    run has no ground truth for: they are not scored."""
     closure = result.slam.loop_closure
     records = closure.records
     out = {"place_recognition": closure.place_recognition, "detected": len(records),
@@ -186,9 +190,13 @@ def loop_metrics(result: RunResult) -> dict:
     for name, intra in (("intra_submap", True), ("inter_submap", False)):
         level = [r for r in records if r.intra == intra]
         out[name] = {"registrations": len(level), "accepted": sum(r.accepted for r in level)}
-    if records and all(p is not None for p in result.gt_poses):
+    first = result.first_frame  # the frames before it are a loaded session's
+    out["loaded_session"] = sum(r.query_frame < first for r in records)
+    out["into_loaded_map"] = sum(r.match_frame < first <= r.query_frame for r in records)
+    own = [(r.query_frame - first, r.match_frame - first) for r in records if r.match_frame >= first]
+    if own and all(p is not None for p in result.gt_poses):
         positions = np.stack([p[:3, 3] for p in result.gt_poses])
-        scores = loop_scores([(r.query_frame, r.match_frame) for r in records], positions, **DEFAULT_PROTOCOL)
+        scores = loop_scores(own, positions, **DEFAULT_PROTOCOL)
         out.update(scores.as_dict(), protocol=DEFAULT_PROTOCOL)
     return out
 

@@ -1,5 +1,5 @@
 """``gausem run`` end to end on a few small synthetic frames: the outputs exist and the figures are sane; a strided
-run that dropped a frame is evaluated against its own frames."""
+run that dropped a frame and a resumed run are evaluated against their own frames."""
 import json
 import math
 
@@ -88,3 +88,29 @@ def test_a_strided_run_with_a_dropped_frame_is_evaluated_on_its_own_frames(tmp_p
     np.testing.assert_allclose(estimate.stamps, truth.stamps, atol=1e-6)  # ATE pairs each frame with its own pose
     np.testing.assert_allclose(truth.poses, np.stack([f.gt_pose for f in kept]), atol=1e-6)
     assert metrics["ate"]["pairs"] == 4 and metrics["ate"]["rmse"] < 0.2
+
+
+def test_a_resumed_run_scores_only_the_loops_among_its_own_frames(tmp_path):
+    """Every loop keyframe detects a loop (none accepted). The session (frames 0-2) holds the loop (2, 0); resumed on
+    source frames 3-9 (system ids 3-9), the run's loops back into frames 0-2 are counted, not scored, and those among
+    ids 3-9 are scored as this run's frames 0-6."""
+    cfg = from_flat({"device": "cpu", "mapping.init_iterations": 60, "mapping.iterations": 5, "mapping.every": 2,
+                     "refinement.enabled": False, "submaps.min_keyframes": 100, "loop.keyframe_every": 2,
+                     "loop.check_every": 1, "loop.exclude_recent": 0, "loop.place_recognition": "descriptor",
+                     "loop.max_fallback_descriptor_distance": 2.0, "loop.registration.min_fitness": 2.0})
+    Pipeline(SyntheticDataset("default", resolution=(80, 60), max_frames=3), cfg, progress=False).run(
+        save_session=tmp_path / "session")
+    dataset = SyntheticDataset("default", resolution=(80, 60), start=3, max_frames=7)
+    pipeline = Pipeline(dataset, cfg, progress=False)
+    result = pipeline.run(GauSemSLAM.load(tmp_path / "session", pipeline.device, cfg))
+    loops = write_outputs(result, dataset, cfg, tmp_path / "out", eval_every=10)["loops"]
+    assert result.first_frame == 3 and len(result.frame_ids) == 7
+    records = result.slam.loop_closure.records
+    own = [r for r in records if r.match_frame >= 3]
+    assert loops["loaded_session"] == 1 and loops["into_loaded_map"] >= 1 and len(own) >= 1
+    assert loops["detected"] == len(records) == loops["loaded_session"] + loops["into_loaded_map"] + len(own)
+    assert loops["detections"] == len(own)
+    stamps = {kf.frame_id: kf.obs.timestamp for submap in result.slam.submaps for kf in submap.keyframes}
+    for r in own:  # system id - first_frame is the frame's place in this run
+        for frame_id in (r.query_frame, r.match_frame):
+            assert stamps[frame_id] == result.timestamps[frame_id - result.first_frame]
