@@ -2,7 +2,8 @@
 
 Each variant is what ``gausem run --dataset synthetic:SEQ[_noisy] --size 160x120`` does (params/synthetic.yaml,
 loop closure as there; ``--set`` overrides go to every variant): "clean", "noisy" (every sensor effect), "depth"
-(only the depth effects) and "colour" (only the colour effects). Per variant: ATE RMSE after SE(3) alignment, the
+(only the depth effects), "colour" (only the colour effects), "only_<effect>" and "without_<effect>" (one sensor
+effect alone, or all but one). Per variant: ATE RMSE after SE(3) alignment, the
 Sim(3) scale of the estimate and the ATE after it, PSNR and depth L1 of the final map against the (noisy) input, fps.
 Writes benchmarks/results/<name>.{json,md} and the runs' outputs under out/sensor_noise/<name>/. From the root:
 
@@ -25,9 +26,12 @@ from gausem_core.report import write_outputs
 from gausem_core.tools.run import default_params_file, parse_override, parse_size
 
 ROOT = Path(__file__).resolve().parents[1]
+EFFECTS = DEPTH_EFFECTS + COLOR_EFFECTS
 VARIANTS = {"clean": None, "noisy": SensorConfig(),
             "depth": SensorConfig(**{name: False for name in COLOR_EFFECTS}),
-            "colour": SensorConfig(**{name: False for name in DEPTH_EFFECTS})}
+            "colour": SensorConfig(**{name: False for name in DEPTH_EFFECTS}),
+            **{f"only_{effect}": SensorConfig(**{name: name == effect for name in EFFECTS}) for effect in EFFECTS},
+            **{f"without_{effect}": SensorConfig(**{effect: False}) for effect in EFFECTS}}
 
 
 def run_variant(sequence: str, sensor: SensorConfig | None, size, frames: int | None, overrides: dict,
@@ -60,7 +64,9 @@ def table(rows: dict) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sequence", default="default", choices=["default", "loop"])
-    parser.add_argument("--variants", nargs="+", default=["clean", "noisy"], choices=list(VARIANTS))
+    parser.add_argument("--variants", nargs="+", default=["clean", "noisy"], choices=list(VARIANTS), metavar="VARIANT",
+                        help="clean, noisy, depth, colour, only_<effect> or without_<effect>; effects: "
+                             + ", ".join(EFFECTS))
     parser.add_argument("--size", type=parse_size, default=(160, 120))
     parser.add_argument("--frames", type=int, help="only the first this many frames (default: the whole walk)")
     parser.add_argument("--set", dest="overrides", type=parse_override, action="append", default=[],

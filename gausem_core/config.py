@@ -250,6 +250,15 @@ class HealthConfig:
 
 
 @dataclass
+class DepthFilterConfig:
+    """Edge-preserving smoothing of each frame's depth before tracking and mapping (``slam.depth_filter``)."""
+
+    enabled: bool = True
+    spatial_sigma: float = 0.01  # fraction of the image width (1.6 pixels at 160x120, 6.4 at 640x480)
+    range_sigma: float = 0.005  # metres at 1 m range, growing with range squared like the sensor's noise
+
+
+@dataclass
 class SlamConfig:
     backend: str = "auto"  # renderer back-end: "auto", "torch", "cpu" or "gsplat"
     device: str = "auto"  # "auto" (CUDA when available), "cpu" or "cuda"
@@ -262,6 +271,7 @@ class SlamConfig:
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
     relocalisation: RelocalisationConfig = field(default_factory=RelocalisationConfig)
     health: HealthConfig = field(default_factory=HealthConfig)
+    depth_filter: DepthFilterConfig = field(default_factory=DepthFilterConfig)
 
 
 @dataclass

@@ -26,6 +26,7 @@ from gausem_core.memory import release_free_heap
 from gausem_core.render import select_backend
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
+from gausem_core.slam.depth_filter import filter_observation
 from gausem_core.slam.events import Correction, FrameEvents, KeyframeState, SubmapChange
 from gausem_core.slam.health import HealthMonitor, TrackingHealth, image_signals
 from gausem_core.slam.loop import LoopCandidate
@@ -225,6 +226,7 @@ class GauSemSLAM:
         """Track the frame against the active submap (while :attr:`lost`: relocalise it, or drop it when that
         fails); at a keyframe, start a new submap when the allocation policy says so, else map the keyframe into the
         active one."""
+        obs = filter_observation(obs, self.cfg.depth_filter)
         frame_id = len(self.frames)
         self.mapper.hurry.clear()
         if not self.submaps:

@@ -1,0 +1,49 @@
+"""Edge-preserving smoothing of the sensor's depth before tracking and mapping (issue #25).
+
+A structured-light or stereo depth camera's axial noise grows about with the square of the range (Khoshelham &
+Elberink 2012; disparity quantisation likewise). Gaussians initialised at noisy depths and fitted to them give a
+map whose surfaces are a rough layer: measured on the synthetic walk through the sensor model, tracking against a
+keyframe map built from raw noisy depth under-estimates the camera's motion by 1-3 % (the whole trajectory comes out
+that much too small), and against one built from filtered depth it does not (docs/BENCHMARKS.md). The filter is
+KinectFusion's bilateral filter (Newcombe et al. 2011) with a range kernel that widens with the noise:
+sigma_r(z) = ``range_sigma`` z^2 at the centre pixel's depth z, so near, precise surfaces keep their detail and a
+depth step of several sigma (an object in front of a wall) is not blurred across. Pixels without depth (0) neither
+contribute nor get a value.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import torch
+import torch.nn.functional as F
+
+from gausem_core.config import DepthFilterConfig
+from gausem_core.slam.observation import Observation
+
+
+def bilateral_depth(depth: torch.Tensor, spatial_sigma: float, range_sigma: float) -> torch.Tensor:
+    """(H, W) depth (metres, 0 = none) smoothed by a bilateral filter: Gaussian spatial kernel of ``spatial_sigma``
+    pixels (window radius ceil(2 sigma)), range kernel of sigma ``range_sigma`` z^2 metres at the centre's depth z."""
+    if spatial_sigma <= 0 or range_sigma <= 0:
+        raise ValueError(f"bilateral_depth: sigmas must be > 0, got {spatial_sigma} and {range_sigma}")
+    radius = max(1, math.ceil(2 * spatial_sigma))
+    size = 2 * radius + 1
+    height, width = depth.shape
+    neighbours = F.unfold(depth[None, None], size, padding=radius)[0].reshape(size * size, height, width)
+    offsets = torch.arange(-radius, radius + 1, dtype=depth.dtype, device=depth.device)
+    spatial = torch.exp(-(offsets[:, None] ** 2 + offsets[None] ** 2) / (2 * spatial_sigma**2)).reshape(-1, 1, 1)
+    sigma_r = range_sigma * depth.square()
+    closeness = ((neighbours - depth) / sigma_r.clamp_min(1e-12)).square()
+    weights = spatial * torch.exp(-0.5 * closeness) * (neighbours > 0)
+    smoothed = (weights * neighbours).sum(0) / weights.sum(0).clamp_min(1e-12)
+    return torch.where(depth > 0, smoothed, torch.zeros_like(depth))
+
+
+def filter_observation(obs: Observation, cfg: DepthFilterConfig) -> Observation:
+    """``obs`` with its depth filtered as ``cfg`` says (``obs`` itself when the filter is off). The spatial sigma is
+    a fraction of the image width, so the filter covers the same part of the view at any resolution."""
+    if not cfg.enabled:
+        return obs
+    sigma = cfg.spatial_sigma * obs.camera.width
+    return replace(obs, depth=bilateral_depth(obs.depth, sigma, cfg.range_sigma))

@@ -1,0 +1,54 @@
+"""The depth filter before tracking and mapping (slam.depth_filter): less noise, same surfaces, holes kept."""
+import pytest
+import torch
+
+from gausem_core.config import DepthFilterConfig
+from gausem_core.geometry import PinholeCamera
+from gausem_core.slam.depth_filter import bilateral_depth, filter_observation
+from gausem_core.slam.observation import Observation
+
+CAMERA = PinholeCamera(80.0, 80.0, 40.0, 30.0, 80, 60)
+
+
+def slanted_wall(noise: float = 0.0, seed: int = 0) -> torch.Tensor:
+    """(60, 80) depth of a plane from 2 m (left) to 3 m (right), with Gaussian noise growing with range squared."""
+    depth = torch.linspace(2.0, 3.0, 80, dtype=torch.float64).expand(60, 80).clone()
+    generator = torch.Generator().manual_seed(seed)
+    return depth + noise * depth.square() * torch.randn(depth.shape, generator=generator, dtype=torch.float64)
+
+
+def test_noise_falls_and_the_surface_stays():
+    clean, noisy = slanted_wall(), slanted_wall(noise=0.002)
+    filtered = bilateral_depth(noisy, 1.6, 0.005)
+    inner = (slice(4, -4), slice(4, -4))  # the window (radius 4) lies inside the image
+    before = (noisy - clean)[inner]
+    after = (filtered - clean)[inner]
+    assert after.std() < 0.5 * before.std(), (float(after.std()), float(before.std()))
+    assert abs(float(after.mean())) < 5e-4  # no bias: the plane stays where it was
+    # a noise-free plane is kept as it is (the weights are symmetric about each pixel on a linear ramp)
+    assert torch.allclose(bilateral_depth(clean, 1.6, 0.005)[inner], clean[inner], atol=1e-9)
+
+
+def test_a_depth_step_is_not_blurred_across_and_holes_stay_holes():
+    depth = torch.full((60, 80), 3.0, dtype=torch.float64)
+    depth[:, :40] = 1.5  # an object 1.5 m in front of a wall
+    depth[20:30, 50:60] = 0.0  # no readings
+    filtered = bilateral_depth(depth, 1.6, 0.005)
+    assert torch.allclose(filtered[:, :40], depth[:, :40], atol=1e-12)
+    assert torch.allclose(filtered[:, 40:], depth[:, 40:], atol=1e-12)
+    assert bool((filtered[20:30, 50:60] == 0).all())
+
+
+def test_the_observation_filter_scales_with_the_image_and_can_be_switched_off():
+    depth = slanted_wall(noise=0.002).float()
+    obs = Observation(torch.zeros(60, 80, 3), depth, torch.zeros(60, 80, 3), torch.zeros(60, 80, dtype=torch.long),
+                      CAMERA)
+    assert filter_observation(obs, DepthFilterConfig(enabled=False)) is obs
+    filtered = filter_observation(obs, DepthFilterConfig(spatial_sigma=0.02, range_sigma=0.005))
+    assert torch.allclose(filtered.depth, bilateral_depth(depth, 1.6, 0.005))
+    assert filtered.rgb is obs.rgb and torch.equal(obs.depth, depth)  # the caller's observation is unchanged
+
+
+def test_bad_sigmas_are_an_error():
+    with pytest.raises(ValueError, match="sigmas"):
+        bilateral_depth(slanted_wall(), 0.0, 0.005)
