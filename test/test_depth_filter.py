@@ -4,6 +4,7 @@ import torch
 
 from gausem_core.config import DepthFilterConfig
 from gausem_core.geometry import PinholeCamera
+from gausem_core.slam import depth_filter
 from gausem_core.slam.depth_filter import bilateral_depth, filter_observation
 from gausem_core.slam.observation import Observation
 
@@ -52,3 +53,16 @@ def test_the_observation_filter_scales_with_the_image_and_can_be_switched_off():
 def test_bad_sigmas_are_an_error():
     with pytest.raises(ValueError, match="sigmas"):
         bilateral_depth(slanted_wall(), 0.0, 0.005)
+
+
+def test_strips_give_the_same_image_and_wide_windows_still_filter(monkeypatch):
+    noisy = slanted_wall(noise=0.002)
+    whole = bilateral_depth(noisy, 1.6, 0.005)
+    monkeypatch.setattr(depth_filter, "_STRIP_ELEMENTS", 81 * 80 * 7)  # strips of 7 rows
+    assert torch.equal(bilateral_depth(noisy, 1.6, 0.005), whole)
+    # a 640-wide image's sigma (6.4 px, radius 13) is sampled with 7x7 taps 4 pixels apart: still less noise, no bias
+    wide = torch.nn.functional.interpolate(noisy[None, None], scale_factor=4, mode="nearest")[0, 0]
+    clean = torch.nn.functional.interpolate(slanted_wall()[None, None], scale_factor=4, mode="nearest")[0, 0]
+    inner = (slice(12, -12), slice(12, -12))
+    after, before = (bilateral_depth(wide, 6.4, 0.005) - clean)[inner], (wide - clean)[inner]
+    assert after.std() < 0.5 * before.std() and abs(float(after.mean())) < 5e-4
