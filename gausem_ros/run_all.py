@@ -59,13 +59,24 @@ def spin_until_done(executor, player, linger: float = 1.0, on_spin: Callable[[],
     (the tracker's pending frames processed; ``drain_timeout`` s at most); forever without a player. ``on_spin``
     after every spin."""
     while rclpy.ok(context=executor.context) and (player is None or not player.done):
-        executor.spin_once(timeout_sec=0.1)
-        on_spin()
+        _spin_once(executor, on_spin)
     start = time.monotonic()
     while rclpy.ok(context=executor.context) and (time.monotonic() < start + linger or not drained()) \
             and time.monotonic() < start + drain_timeout:
+        _spin_once(executor, on_spin)
+
+
+def _spin_once(executor, on_spin: Callable[[], None]) -> None:
+    """One spin, then ``on_spin``. A signal that shuts the context down between the loop's ``rclpy.ok`` check and
+    the spin makes rclpy raise RCLError (a RuntimeError: "the given context is not valid"); that is a Ctrl-C, not a
+    failure, and the loop's next check ends it."""
+    try:
         executor.spin_once(timeout_sec=0.1)
-        on_spin()
+    except RuntimeError:
+        if rclpy.ok(context=executor.context):
+            raise
+        return
+    on_spin()
 
 
 def progress_bar(tracking: TrackingMappingNode, disable: bool) -> tuple[tqdm, Callable[[], None]]:
