@@ -230,7 +230,7 @@ def test_the_stored_places_rebuild_the_loop_database_in_another_detector(saved):
     assert len(loop.detector.database) > 1
     torch.testing.assert_close(other.database.state_dict(), loop.detector.database.state_dict(), rtol=0, atol=0,
                                equal_nan=True)
-    torch.testing.assert_close(other._keyframes, loop.detector._keyframes, rtol=0, atol=0)
+    torch.testing.assert_close(other.keyframes, loop.detector.keyframes, rtol=0, atol=0)
 
 
 def test_a_session_loads_only_with_the_place_recognition_it_was_saved_with(saved):

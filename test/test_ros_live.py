@@ -304,7 +304,7 @@ def test_loop_detection_holds_a_loaded_map_and_a_revisit_of_it_is_a_loop_candida
         held = loop.detector
         assert held.database.ids.tolist() == [0, 2, 4]
         np.testing.assert_array_equal(held.database.vectors, stored.database.vectors)
-        torch.testing.assert_close(held._keyframes, stored._keyframes, rtol=0, atol=0)  # submaps, landmark scores
+        torch.testing.assert_close(held.keyframes, stored.keyframes, rtol=0, atol=0)  # submaps, landmark scores
 
         player = Player(dataset_frames([dataclasses.replace(frames[0], timestamp=10.0)]), rate=0.0, lockstep=True,
                         timeout=30.0, context=ctx)  # back at the first place

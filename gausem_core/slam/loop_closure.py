@@ -246,11 +246,12 @@ class LoopClosure:
         self.seconds["describe"] += time.perf_counter() - start
         return place
 
-    def detect(self, place: PlaceSignature) -> list[LoopCandidate]:
+    def detect(self, place: PlaceSignature, check: bool = True) -> list[LoopCandidate]:
         """Algorithm 1's query of the loop database for a described keyframe, which it then stores: the ranked
-        candidates (:meth:`LoopDetector.add_keyframe`)."""
+        candidates (:meth:`LoopDetector.add_keyframe`). ``check`` false: only store it (its loops are detected
+        elsewhere, e.g. by the ROS loop_detection node)."""
         start = time.perf_counter()
-        candidates = self.detector.add_keyframe(place)
+        candidates = self.detector.add_keyframe(place, check)
         self.seconds["detect"] += time.perf_counter() - start
         return candidates
 
@@ -260,7 +261,7 @@ class LoopClosure:
         bow = self.place_recognition == "bow"
         return [PlaceSignature(frame_id, submap_id,
                                self.detector.database.features[frame_id] if bow else self._descriptors[frame_id],
-                               scores) for frame_id, (submap_id, scores) in self.detector._keyframes.items()]
+                               scores) for frame_id, (submap_id, scores) in self.detector.keyframes.items()]
 
     def confirm(self, submaps: Sequence, candidates: Sequence[LoopCandidate]) -> LoopCandidate | None:
         """The loop among one query keyframe's ranked candidates (as :meth:`detect` gives them): with place recognition
@@ -322,7 +323,7 @@ class LoopClosure:
                           "vectors": torch.from_numpy(database.vectors.copy())}),
             "rejected_candidates": self.rejected_candidates,
             "landmarks": [[frame_id, submap_id, scores] for frame_id, (submap_id, scores)
-                          in self.detector._keyframes.items()],
+                          in self.detector.keyframes.items()],
             "records": [dataclasses.asdict(r) for r in self.records],
             "constraints": [{**dataclasses.asdict(c), "sigmas": list(c.sigmas)} for c in self.constraints],
         }
@@ -346,7 +347,7 @@ class LoopClosure:
             for frame_id, vector in zip(state["database"]["ids"].tolist(), state["database"]["vectors"].numpy()):
                 database._append(frame_id, vector)  # stored unit vectors, not normalised again (bit-identical)
         self.rejected_candidates = int(state.get("rejected_candidates", 0))  # sessions saved before verification
-        self.detector._keyframes = {int(f): (int(s), scores) for f, s, scores in state["landmarks"]}
+        self.detector.keyframes = {int(f): (int(s), scores) for f, s, scores in state["landmarks"]}
         self.records = [LoopRecord(**r) for r in state["records"]]
         self.graphs.constraints = [LoopConstraint(**{**c, "sigmas": tuple(c["sigmas"])}) for c in state["constraints"]]
 

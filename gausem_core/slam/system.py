@@ -443,7 +443,7 @@ class GauSemSLAM:
         elif self.loop_closure is not None:
             place = self.loop_closure.describe(self.submaps, submap, keyframe)
             if place is not None:  # stored unchecked, so that the session holds it as a detecting one would
-                self.loop_closure.detector.add_keyframe(place, check=False)
+                self.loop_closure.detect(place, check=False)
         opened = [self._submap_change(submap, opened=True)] if len(submap.keyframes) == 1 else []
         return FrameEvents(self._keyframe_state(submap, keyframe), tuple(closed + opened), loop, place)
 

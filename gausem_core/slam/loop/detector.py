@@ -83,7 +83,8 @@ class LoopDetector:
         self.min_submap_gap = min_submap_gap
         self.max_candidates = max_candidates
         self.database = database if database is not None else DescriptorDatabase(descriptor_dim, backend)
-        self._keyframes: dict[int, tuple[int, torch.Tensor]] = {}  # keyframe id -> (submap id, landmark scores)
+        # the stored keyframes in the order stored: id -> (submap id, landmark scores)
+        self.keyframes: dict[int, tuple[int, torch.Tensor]] = {}
 
     @classmethod
     def from_config(cls, cfg: LoopConfig, descriptor_kind: str, **kwargs) -> "LoopDetector":
@@ -114,7 +115,7 @@ class LoopDetector:
         nearby = set(place.nearby) if check else set()
         ranked = self._candidates(place, is_check, nearby) if is_check or nearby else []
         self.database.add(place.keyframe_id, place.appearance)
-        self._keyframes[place.keyframe_id] = (place.submap_id, place.landmark_scores.detach().cpu())
+        self.keyframes[place.keyframe_id] = (place.submap_id, place.landmark_scores.detach().cpu())
         return ranked[:self.max_candidates]
 
     def _candidates(self, place: PlaceSignature, by_descriptor: bool, nearby: set[int]) -> list[LoopCandidate]:
@@ -128,7 +129,7 @@ class LoopDetector:
         for match, desc_dist in zip(ids.tolist(), distances.tolist()):
             if not ((by_descriptor and desc_dist < self.max_descriptor_distance) or match in nearby):
                 continue
-            match_submap, match_scores = self._keyframes[match]
+            match_submap, match_scores = self.keyframes[match]
             if submap_id - match_submap < self.min_submap_gap:
                 continue
             land_dist = landmark_distance(*_zero_padded(landmark_scores.detach().cpu(), match_scores))
