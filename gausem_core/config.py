@@ -21,7 +21,8 @@ import yaml
 class GaussNewtonTrackingConfig:
     """What only the Gauss-Newton tracker reads (``tracking.method: gauss_newton``; ``slam.direct_alignment``)."""
 
-    pyramid_levels: int = 3
+    pyramid_levels: int = 3  # at least this many image pyramid levels, ...
+    coarsest_width: int = 80  # ... and more while the coarsest is wider than this (pixels): 640 wide, 4 levels
     renders_per_level: int = 2  # model re-renders per pyramid level
     level_iterations: int = 8  # Gauss-Newton iterations per render
     # compare colour divided by its local mean (a Gaussian of sigma this fraction of the image width), blind to
@@ -127,7 +128,8 @@ class RegistrationConfig:
     feature_channels: int = 8  # fine step: Eq. 6's dense features on this many principal directions (0: none)
     w_depth: float = 0.5  # depth residual weight in the Gauss-Newton fine step (Eq. 6 has none; 0 drops it)
     downsample: int = 2  # the fine step renders at the keyframe resolution divided by this
-    pyramid_levels: int = 3
+    pyramid_levels: int = 3  # at least this many pyramid levels, and more while the coarsest is wider than ...
+    coarsest_width: int = 40  # ... this at the keyframe resolution (this over downsample in the fine step), pixels
     renders_per_level: int = 1  # target re-renders (re-linearisations) per pyramid level
     iterations: int = 10  # Gauss-Newton iterations per view and pyramid level
     silhouette_threshold: float = 0.95  # pixels rendered with a lower alpha are not compared

@@ -3,7 +3,7 @@ import dataclasses
 
 import torch
 
-from gausem_core.slam.system import GauSemSLAM
+from gausem_core.slam.system import FrameResult, GauSemSLAM
 
 CUDA = torch.device("cuda")
 
@@ -28,6 +28,19 @@ def assert_on_cuda(**named) -> None:
     assert found, "no tensor to check"
     elsewhere = [f"{path} on {t.device}" for path, t in found if t.device.type != "cuda"]
     assert not elsewhere, elsewhere
+
+
+def frame_results(results: list[FrameResult]) -> list[dict]:
+    """What a frame result holds besides its events (whose poses are float64 CPU copies by contract,
+    ``slam.events``), for :func:`assert_on_cuda`."""
+    return [{f.name: getattr(r, f.name) for f in dataclasses.fields(r) if f.name != "events"} for r in results]
+
+
+def assert_events_on_cpu(results: list[FrameResult]) -> None:
+    """The events' poses and anchors are float64 on the CPU, as ``slam.events`` promises its readers."""
+    found = [(path, t) for i, r in enumerate(results) for path, t in tensors(r.events, f"results[{i}].events")]
+    assert found, "no event tensor to check"
+    assert all(t.device.type == "cpu" and t.dtype == torch.float64 for _, t in found), found
 
 
 def system_results(slam: GauSemSLAM) -> dict:

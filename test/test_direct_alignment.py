@@ -105,6 +105,23 @@ def test_feature_channels_survive_the_pyramid_and_must_match_the_model():
         align_level(model, observed, torch.eye(4, dtype=torch.float64), AlignmentWeights(1.0, 0.0, 1.0), 1)
 
 
+@pytest.mark.parametrize("size, levels, coarsest_width, widths", [
+    ((160, 120), 2, 80, [160, 80]),  # the shipped parameters at the tuned size: the minimum count
+    ((640, 480), 2, 80, [640, 320, 160, 80]),  # larger frames: halved down to the same coarsest width
+    ((320, 240), 3, 80, [320, 160, 80]),
+    ((80, 60), 2, 80, [80, 40]),  # smaller ones keep the minimum count
+    ((6, 4), 5, 1, [6, 3, 1]),  # never below a pixel
+])
+def test_the_pyramid_keeps_the_coarsest_level_about_the_same_width_at_any_size(size, levels, coarsest_width, widths):
+    camera = CAMERA.scaled(*size)
+    images = ObservedImages.build(torch.rand(size[1], size[0], 3), torch.rand(size[1], size[0], 3),
+                                  torch.ones(size[1], size[0]), camera)
+    pyramid = images.pyramid(levels, coarsest_width)
+    assert [level.camera.width for level in pyramid] == widths
+    assert [tuple(level.stack.shape[1:]) for level in pyramid] == [(level.camera.height, level.camera.width)
+                                                                   for level in pyramid]
+
+
 @pytest.mark.skipif(not kernel_available(), reason="compiled CPU kernels unavailable")
 # float32: the torch path's residuals are rounded to float32 (the kernel sums in double), and the L1 weights
 # 1 / max(|r|, delta) of near-zero residuals amplify that in g

@@ -69,6 +69,16 @@ class ObservedImages:
         return ObservedImages.build(pooled[:3].permute(1, 2, 0), pooled[3:6].permute(1, 2, 0), depth[0], camera,
                                     features)
 
+    def pyramid(self, levels: int, coarsest_width: int) -> list["ObservedImages"]:
+        """These images and their halvings, finest first: at least ``levels`` of them, and more while the coarsest is
+        wider than ``coarsest_width`` pixels, so that a large input's coarsest level sees the motion in as few pixels
+        as a small one's does (the basin of convergence of a level is a pixel or two)."""
+        pyramid = [self]
+        while ((len(pyramid) < levels or pyramid[-1].camera.width > coarsest_width)
+               and min(pyramid[-1].camera.width, pyramid[-1].camera.height) >= 2):
+            pyramid.append(pyramid[-1].downsampled())
+        return pyramid
+
     def with_features(self, features: torch.Tensor | None) -> "ObservedImages":
         """The same images with these (H, W, F) feature channels instead of the present ones."""
         s = self.stack

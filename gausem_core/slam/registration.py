@@ -214,14 +214,6 @@ class Registration:
     seconds_fine: float
 
 
-def _pyramid(images: ObservedImages, levels: int) -> list[ObservedImages]:
-    """``levels`` images, finest first, each half the size of the one before."""
-    pyramid = [images]
-    for _ in range(levels - 1):
-        pyramid.append(pyramid[-1].downsampled())
-    return pyramid
-
-
 class FeatureProjection:
     """Dense features (h, w, D) -> pixel-resolution feature channels (H, W, F): L2-normalised, centred and projected
     onto the top F principal directions of the reference features it was built from, then upsampled bilinearly."""
@@ -249,7 +241,8 @@ def _source_views(cloud: GaussianCloud, poses: torch.Tensor, camera: PinholeCame
     for pose in poses:
         out = render(cloud, _world_to_cam(pose, cloud), camera, backend=backend)
         depth = torch.where(out.alpha > cfg.silhouette_threshold, out.expected_depth, torch.zeros_like(out.depth))
-        pyramids.append(_pyramid(ObservedImages.build(out.color, out.semantic, depth, camera), cfg.pyramid_levels))
+        pyramids.append(ObservedImages.build(out.color, out.semantic, depth, camera).pyramid(
+            cfg.pyramid_levels, cfg.coarsest_width // cfg.downsample))
     if features is None or cfg.lambda_feat <= 0 or cfg.feature_channels <= 0:
         return pyramids, None
     dense, grid_rows = {}, None  # (view, level) -> patch features, coarsest level first, while the grid is as fine
@@ -310,7 +303,7 @@ def fine_registration(source: GaussianCloud, target: GaussianCloud, source_poses
                             key=lambda t: _agreement(target, t, src, pyramids, cfg, backend))
         used = torch.zeros(0, dtype=torch.long)
         corrected = src[:0]
-        for level in [l for l in reversed(range(cfg.pyramid_levels)) for _ in range(cfg.renders_per_level)]:
+        for level in [l for l in reversed(range(len(pyramids[0]))) for _ in range(cfg.renders_per_level)]:
             poses, ok = [], []
             for i, pyramid in enumerate(pyramids):
                 observed = pyramid[level]
@@ -441,10 +434,10 @@ def align_keyframes(reference: Observation, current: Observation, init: torch.Te
     :func:`warp_agreement` (overlap, fitness) under it, with ``max_depth_residual``.
     """
     weights = AlignmentWeights(1.0, cfg.lambda_sem, cfg.w_depth, max_depth_residual=cfg.max_depth_residual)
-    reference_pyramid = _pyramid(ObservedImages.build(reference.rgb, reference.semantic, reference.depth,
-                                                      reference.camera), cfg.pyramid_levels)
-    current_pyramid = _pyramid(ObservedImages.build(current.rgb, current.semantic, current.depth, current.camera),
-                               cfg.pyramid_levels)
+    reference_pyramid = ObservedImages.build(reference.rgb, reference.semantic, reference.depth,
+                                             reference.camera).pyramid(cfg.pyramid_levels, cfg.coarsest_width)
+    current_pyramid = ObservedImages.build(current.rgb, current.semantic, current.depth,
+                                           current.camera).pyramid(cfg.pyramid_levels, cfg.coarsest_width)
     motion = init.to(reference.depth.device, reference.depth.dtype)
     with torch.no_grad():
         for ref, cur in zip(reversed(reference_pyramid), reversed(current_pyramid)):

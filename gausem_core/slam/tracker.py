@@ -100,9 +100,8 @@ class Tracker:
         the result explains the full-resolution frame worse (coarse levels can leave the basin of convergence when
         the map covers little of the view)."""
         cfg, weights = self.cfg.gauss_newton, alignment_weights(self.cfg)
-        pyramid = [ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera)]
-        for _ in range(cfg.pyramid_levels - 1):
-            pyramid.append(pyramid[-1].downsampled())
+        pyramid = ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera).pyramid(cfg.pyramid_levels,
+                                                                                             cfg.coarsest_width)
         pyramid = [self._compared_colour(level) for level in pyramid]
         eye = torch.eye(4, dtype=cloud.dtype, device=cloud.means.device)
         with torch.no_grad():
@@ -112,7 +111,7 @@ class Tracker:
             initial, pose = starts[best].to(cloud.dtype), coarse[best]
             for level in reversed(pyramid[:-1]):
                 pose = self._align(cloud, pose, level, weights, eye)
-            iterations = cfg.renders_per_level * (cfg.pyramid_levels - 1 + len(starts))
+            iterations = cfg.renders_per_level * (len(pyramid) - 1 + len(starts))
             full = pyramid[0]
             cost = alignment_cost(self._model_view(cloud, pose, full.camera), full, eye, weights)
             initial_cost = alignment_cost(self._model_view(cloud, initial, full.camera), full, eye, weights)
