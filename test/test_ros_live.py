@@ -324,11 +324,12 @@ def test_ctrl_c_ends_gausem_ros_quickly_and_save_still_writes_the_map(tmp_path):
     cmd = [sys.executable, "-m", "gausem_ros.run_all", "synthetic", "--size", "40x30", "--max-frames", "900",
            "--rate", "1", "--quiet", "--save", str(tmp_path / "out"), "--ros-args",
            *ros_param_args({**FAST_SLAM, "loop.enabled": False})]
-    with (tmp_path / "log").open("w") as log:
+    with ros_session(136) as (ctx, executor), (tmp_path / "log").open("w") as log:
+        recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS)])
+        executor.add_node(recorder.node)
         process = subprocess.Popen(cmd, env=env, cwd=tmp_path, stderr=log, stdout=log)
-        assert _until(lambda: "relocalised" in (tmp_path / "log").read_text() or "TF is unavailable" in (
-            tmp_path / "log").read_text() or process.poll() is not None, 120.0)  # the first frame was published
-        time.sleep(2.0)
+        assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) >= 2
+                          or process.poll() is not None, 120.0)  # two frames went out: the run is under way
         process.send_signal(signal.SIGINT)
         start = time.monotonic()
         returncode = process.wait(30)
