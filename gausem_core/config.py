@@ -153,6 +153,7 @@ class BowConfig:
     min_image_side: int = 240  # images with a shorter side are upscaled by an integer factor for ORB
     word_radius: int = 40  # bits: a descriptor this close (Hamming) to a word is that word, else a new word
     min_score: float = 0.05  # candidates: tf-idf L1 similarity at least this (in [0, 1]) ...
+    min_relative_score: float = 0.75  # ... and at least this fraction of the best keyframe's score (DBoW2-style) ...
     candidates: int = 3  # ... the best this many (after the landmark re-ranking) are verified, in order
     match_ratio: float = 0.8  # feature matches: nearest / second-nearest Hamming distance below this
     max_reprojection_error: float = 3.0  # RANSAC PnP inlier bound, in pixels of the (upscaled) ORB image

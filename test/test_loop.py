@@ -276,6 +276,43 @@ def test_detector_without_classes_keeps_descriptor_order_and_ranks_at_most_max_c
     assert ranked[0].descriptor_distance < ranked[1].descriptor_distance
 
 
+class _GivenSimilarities:
+    """A place database whose stored keyframes have given similarities to any query (distance = 1 - similarity)."""
+
+    def __init__(self, similarity: dict[int, float]):
+        self.similarity, self._ids = similarity, []
+
+    @property
+    def ids(self) -> np.ndarray:
+        return np.array(self._ids, np.int64)
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def add(self, keyframe_id: int, appearance) -> None:
+        self._ids.append(keyframe_id)
+
+    def search(self, appearance, k=None, exclude_recent: int = 0):
+        ids = sorted(self._ids[:len(self._ids) - exclude_recent], key=lambda i: -self.similarity.get(i, 0.0))[:k]
+        return np.array(ids, np.int64), np.array([1.0 - self.similarity.get(i, 0.0) for i in ids], np.float32)
+
+
+@pytest.mark.parametrize("min_relative, expected", [(0.75, [1, 0]), (0.0, [2, 3, 1])])
+def test_only_keyframes_near_the_best_similarity_enter_the_landmark_ranking(min_relative, expected):
+    """Bag-of-words scores pass min_score for much of a room: keyframes 0 and 1 share the query's words (0.40, 0.32),
+    2 and 3 hardly (0.20, 0.10) but have the closest landmark vectors. Within 0.75 of the best score only 0 and 1 are
+    candidates, ranked by their landmarks; without the relative cut the landmarks put 2 and 3 first."""
+    detector = LoopDetector(check_every=1, max_descriptor_distance=0.95, exclude_recent=0, max_candidates=3,
+                            database=_GivenSimilarities({0: 0.40, 1: 0.32, 2: 0.20, 3: 0.10, 4: 0.0}),
+                            min_relative_similarity=min_relative)
+    for kf, landmark in enumerate([4.0, 3.0, 1.0, 2.0]):  # distance to the query's vector: 4, 3, 1, 2
+        detector.add_keyframe(PlaceSignature(kf, 0, torch.zeros(1), torch.tensor([landmark, 0.0])), check=False)
+    ranked = detector.add_keyframe(PlaceSignature(4, 1, torch.zeros(1), torch.tensor([0.0, 0.0])))
+    assert [c.match_keyframe for c in ranked] == expected
+    with pytest.raises(ValueError, match="min_relative_similarity must lie in"):
+        LoopDetector(min_relative_similarity=1.5)
+
+
 def test_detector_from_config_with_the_bag_of_words_and_a_mismatched_signature():
     """"bow": a bag-of-words database whose bow.candidates best are ranked; a global descriptor is refused clearly
     (and so are ORB features by a descriptor database), before anything is stored."""

@@ -49,7 +49,10 @@ class LoopDetector:
     """Algorithm 1. Every ``check_every``-th keyframe is compared with all stored keyframes except the newest
     ``exclude_recent``; those with a descriptor distance below ``max_descriptor_distance`` (and, when
     ``min_submap_gap`` > 0, from a submap at least that many ids older) are candidates, and the one whose landmark
-    score vector is closest to the query's is the loop. Stored keyframes the caller names as ``nearby`` (close in the
+    score vector is closest to the query's is the loop. With ``min_relative_similarity`` > 0 (the bag of words), only
+    keyframes whose similarity (1 - distance) reaches that fraction of the best one's are descriptor candidates: a
+    bag-of-words score passes ``min_score`` for much of a room, and the landmark order among all of those would bury
+    the revisit the words found. Stored keyframes the caller names as ``nearby`` (close in the
     current pose estimate) are candidates too, at every keyframe: a revisit under small drift needs no descriptor.
     :meth:`add_keyframe` returns the ranked candidates, at most ``max_candidates`` of them: the first is the loop, or
     (the bag of words) the caller verifies them in order and the first confirmed is the loop.
@@ -68,7 +71,7 @@ class LoopDetector:
 
     def __init__(self, *, keyframe_every: int = 5, check_every: int = 6, max_descriptor_distance: float = 0.2,
                  exclude_recent: int = 6, min_submap_gap: int = 0, descriptor_dim: int = 384, backend: str = "auto",
-                 database=None, max_candidates: int = 1):
+                 database=None, max_candidates: int = 1, min_relative_similarity: float = 0.0):
         for name, value, low in (("keyframe_every", keyframe_every, 1), ("check_every", check_every, 1),
                                  ("exclude_recent", exclude_recent, 0), ("min_submap_gap", min_submap_gap, 0),
                                  ("max_candidates", max_candidates, 1)):
@@ -76,12 +79,15 @@ class LoopDetector:
                 raise ValueError(f"LoopDetector: {name} must be >= {low}, got {value}")
         if max_descriptor_distance <= 0:
             raise ValueError(f"LoopDetector: max_descriptor_distance must be positive, got {max_descriptor_distance}")
+        if not 0.0 <= min_relative_similarity <= 1.0:
+            raise ValueError(f"LoopDetector: min_relative_similarity must lie in [0, 1], got {min_relative_similarity}")
         self.keyframe_every = keyframe_every
         self.check_every = check_every
         self.max_descriptor_distance = max_descriptor_distance
         self.exclude_recent = exclude_recent
         self.min_submap_gap = min_submap_gap
         self.max_candidates = max_candidates
+        self.min_relative_similarity = min_relative_similarity
         self.database = database if database is not None else DescriptorDatabase(descriptor_dim, backend)
         # the stored keyframes in the order stored: id -> (submap id, landmark scores)
         self.keyframes: dict[int, tuple[int, torch.Tensor]] = {}
@@ -93,6 +99,7 @@ class LoopDetector:
         if descriptor_kind == "bow":
             kwargs.setdefault("database", BagOfWords(cfg.bow))
             kwargs.setdefault("max_candidates", cfg.bow.candidates)
+            kwargs.setdefault("min_relative_similarity", cfg.bow.min_relative_score)
         return cls(keyframe_every=cfg.keyframe_every, check_every=cfg.check_every,
                    max_descriptor_distance=cfg.descriptor_threshold(descriptor_kind),
                    exclude_recent=cfg.exclude_recent, **kwargs)
@@ -125,9 +132,12 @@ class LoopDetector:
             return []
         ids, distances = self.database.search(place.appearance, k=searchable, exclude_recent=self.exclude_recent)
         submap_id, landmark_scores = place.submap_id, place.landmark_scores
+        # similarity 1 - distance at least min_relative_similarity of the best one's (DBoW2-style relative score)
+        best = 1.0 - float(distances.min()) if len(distances) else 0.0
+        max_distance = min(self.max_descriptor_distance, 1.0 - self.min_relative_similarity * best + 1e-12)
         candidates = []
         for match, desc_dist in zip(ids.tolist(), distances.tolist()):
-            if not ((by_descriptor and desc_dist < self.max_descriptor_distance) or match in nearby):
+            if not ((by_descriptor and desc_dist < max_distance) or match in nearby):
                 continue
             match_submap, match_scores = self.keyframes[match]
             if submap_id - match_submap < self.min_submap_gap:
