@@ -217,6 +217,9 @@ def run_node(factory: Callable, args=None) -> int:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:  # RCLError "context is not valid": a Ctrl-C shut the context down mid-spin, a normal end
+        if rclpy.ok(context=executor.context):
+            raise
     except ValueError as err:  # a configuration the node cannot run with; the message says which
         rclpy.logging.get_logger("gausem").error(str(err))
         return 1
