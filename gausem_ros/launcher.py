@@ -149,12 +149,16 @@ class Launcher:
                 try:
                     child.process.wait(max(deadline - time.monotonic(), 0.1))
                 except subprocess.TimeoutExpired:
+                    self._log(f"{child.name} still running {self.grace:.0f} s after SIGINT; killing it")
                     child.process.kill()
                     child.process.wait()
         finally:
             for s, handler in previous.items():
                 signal.signal(s, handler)
         final = [exit_code(c.process.returncode) for c in self.children if not c.ended and c.restart_at is None]
+        for child in self.children:
+            if not child.ended and child.restart_at is None and child.process.returncode:
+                self._log(f"{child.name} ended with {describe(child.process.returncode)} on shutdown")
         return max(self.exit_codes + final, default=0)
 
 

@@ -4,6 +4,7 @@ queue and the ``main`` runner."""
 from __future__ import annotations
 
 import functools
+import signal
 import threading
 import time
 import traceback
@@ -15,6 +16,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
+from rclpy.signals import SignalHandlerOptions
 
 from gausem_core.config import RENAMED, SlamConfig, flatten, from_flat
 from gausem_core.data.classes import NYU40_CLASSES, SCANNET20_CLASSES, SYNTHETIC_CLASSES, ClassTable
@@ -206,24 +208,34 @@ class NewestFrameQueue:
                 self._guard.trigger()
 
 
+def _interrupt(signum, frame) -> None:
+    """SIGTERM ends a node like Ctrl-C does."""
+    raise KeyboardInterrupt
+
+
 def run_node(factory: Callable, args=None) -> int:
     """``rclpy.init(args)``, build the node, spin it on a multi-threaded executor (its callback groups decide what
-    runs in parallel) until Ctrl-C or shutdown (a normal end: 0); 1 when the node cannot be built."""
-    rclpy.init(args=args)
+    runs in parallel) until SIGINT or SIGTERM (a normal end: 0); 1 when the node cannot be built. The signals end the
+    spin here, not through rclpy's own handlers: those shut the context down at once, under the node's live entities
+    and the callback in progress, and a node so ended under the launcher now and then died of SIGSEGV in a DDS thread
+    (loop_detection, pose_graph) or raised RCLError "context is not valid" from the spin (tracking_mapping). Here the
+    frame in progress finishes early, the executor waits for it, the node is destroyed, and only then does the
+    context shut down."""
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    previous = signal.signal(signal.SIGTERM, _interrupt)
     node, executor = None, NodeExecutor(num_threads=2)
     try:
         node = factory()
         executor.add_node(node)
-        executor.spin()
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)  # a signal is seen within 0.1 s
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except RuntimeError:  # RCLError "context is not valid": a Ctrl-C shut the context down mid-spin, a normal end
-        if rclpy.ok(context=executor.context):
-            raise
     except ValueError as err:  # a configuration the node cannot run with; the message says which
         rclpy.logging.get_logger("gausem").error(str(err))
         return 1
     finally:
+        signal.signal(signal.SIGTERM, previous)
         if hasattr(node, "interrupt"):  # a frame in progress finishes early
             node.interrupt()
         executor.shutdown()  # waits for the callback in progress
