@@ -73,9 +73,9 @@ def test_player_replays_a_ros1_bag_with_tum_topic_names_and_never_ground_truth(t
 
 
 def test_player_paces_frames_at_the_recorded_rate(tmp_path):
-    _tum_bag(tmp_path / "tum.bag", 4)  # 3 intervals of 1/30 s -> 0.1 s at rate 1, 0.2 s at rate 0.5
+    _tum_bag(tmp_path / "tum.bag", 4)  # 3 intervals of 1/30 s -> 0.1 s at rate 1, 1 s at rate 0.1
     with ros_session(112) as (ctx, executor):
-        player = Player(open_source(str(tmp_path / "tum.bag")), rate=0.5, context=ctx)
+        player = Player(open_source(str(tmp_path / "tum.bag")), rate=0.1, context=ctx)
         recorder = Recorder(ctx, [(Image, "rgb/image", IMAGE_QOS), (Image, "depth/image", IMAGE_QOS),
                                   (CameraInfo, "rgb/camera_info", IMAGE_QOS)])
         arrivals = []
@@ -84,7 +84,7 @@ def test_player_paces_frames_at_the_recorded_rate(tmp_path):
         executor.add_node(player)
         executor.add_node(recorder.node)
         assert spin_until(executor, lambda: len(arrivals) == 4, 10.0)
-    assert 0.18 <= arrivals[-1] - arrivals[0] <= 0.5
+    assert 0.95 <= arrivals[-1] - arrivals[0] <= 1.6  # the upper bound leaves room for a loaded machine
 
 
 def test_gausem_bag_writes_a_ros2_bag_the_player_replays(tmp_path):
