@@ -3,10 +3,12 @@ whole views' depth agreement under that pose.
 
 The query's ORB descriptors are matched to the match keyframe's (nearest neighbour whose Hamming distance is below
 ``match_ratio`` times the second nearest's, and mutual); the matches whose match-keyframe point has depth give 3D-2D
-correspondences for RANSAC PnP (EPnP inside, then Levenberg-Marquardt on the inliers). A candidate passes when at least ``min_inliers`` correspondences agree on a pose and,
-under it, the match keyframe's depth image lands in the query's view (``min_overlap``) and agrees with its depth there
-(``min_fitness``). The last test rejects perceptual aliasing: a texture repeated elsewhere (the same poster on
-another wall) gives a consistent PnP pose on its own pixels, but the rest of the view is somewhere else.
+correspondences for RANSAC PnP (minimal samples of 4 for AP3P, then Levenberg-Marquardt on the inliers: under sensor
+noise two matches in three can be wrong, where samples of EPnP's 5 seldom come out clean within the iterations). A
+candidate passes when at least ``min_inliers`` correspondences agree on a pose and, under it, the match keyframe's
+depth image lands in the query's view (``min_overlap``) and agrees with its depth there (``min_fitness``). The last
+test rejects perceptual aliasing: a texture repeated elsewhere (the same poster on another wall) gives a consistent
+PnP pose on its own pixels, but the rest of the view is somewhere else.
 """
 from __future__ import annotations
 
@@ -21,6 +23,8 @@ from gausem_core.geometry import invert_pose
 from gausem_core.slam.loop.words import OrbFeatures
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.registration import warp_agreement
+
+_RANSAC_ITERATIONS = 1000  # at most; with 30 % inliers, samples of 4 find a clean one 999 times in 1000
 
 
 @dataclass(frozen=True)
@@ -59,17 +63,22 @@ def verify(query: OrbFeatures, match: OrbFeatures, query_obs: Observation, match
         return Verification(False, len(pairs), 0, 0.0, 0.0, None)
     camera = query_obs.camera
     intrinsics = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]], np.float64)
+    points = match.points[pairs[:, 1]].astype(np.float64)
+    pixels = query.keypoints[pairs[:, 0]].astype(np.float64)
+    bound = cfg.max_reprojection_error / query.scale
     found, rotation, translation, inliers = cv2.solvePnPRansac(
-        match.points[pairs[:, 1]].astype(np.float64), query.keypoints[pairs[:, 0]].astype(np.float64), intrinsics,
-        None, iterationsCount=200, reprojectionError=cfg.max_reprojection_error / query.scale, confidence=0.999,
-        flags=cv2.SOLVEPNP_EPNP)
+        points, pixels, intrinsics, None, iterationsCount=_RANSAC_ITERATIONS, reprojectionError=bound,
+        confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
     count = 0 if inliers is None else len(inliers)
     if not found or count < cfg.min_inliers:
         return Verification(False, len(pairs), count, 0.0, 0.0, None)
-    kept = pairs[inliers.reshape(-1)]
-    rotation, translation = cv2.solvePnPRefineLM(match.points[kept[:, 1]].astype(np.float64),
-                                                 query.keypoints[kept[:, 0]].astype(np.float64), intrinsics, None,
-                                                 rotation, translation)
+    inliers = inliers.reshape(-1)
+    for _ in range(2):  # the minimal sample's pose leaves out inliers that the refined pose takes in: refine again
+        rotation, translation = cv2.solvePnPRefineLM(points[inliers], pixels[inliers], intrinsics, None, rotation,
+                                                     translation)
+        projected = cv2.projectPoints(points, rotation, translation, intrinsics, None)[0].reshape(-1, 2)
+        inliers = np.flatnonzero(np.linalg.norm(projected - pixels, axis=1) < bound)
+    count = len(inliers)
     query_from_match = torch.eye(4, dtype=torch.float64)
     query_from_match[:3, :3] = torch.from_numpy(cv2.Rodrigues(rotation)[0])
     query_from_match[:3, 3] = torch.from_numpy(translation.reshape(3))
