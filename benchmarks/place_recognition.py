@@ -139,7 +139,6 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     path = OUT / "place_recognition.json"
-    document = json.loads(path.read_text()) if path.exists() else {}
     started = {"commit": git_commit(), "threads": torch.get_num_threads(), "load_average": os.getloadavg()}
     if args.part == "synthetic":
         rows = [synthetic(*setting) for setting in SYNTHETIC]
@@ -147,6 +146,7 @@ def main() -> None:
         without, with_loops = tum(args.tum_frames, False), tum(args.tum_frames, True)
         rows = [{**with_loops, "ate_rmse_m_without": without["ate_rmse_m"], "ate_rmse_m_with": with_loops["ate_rmse_m"],
                  "seconds_without": without["seconds"]}]
+    document = json.loads(path.read_text()) if path.exists() else {}  # read now: the other part may have run meanwhile
     document[args.part] = {**started, "rows": rows}
     OUT.mkdir(exist_ok=True)
     path.write_text(json.dumps(document, indent=2, default=float) + "\n")
