@@ -10,13 +10,14 @@ from rclpy.executors import MultiThreadedExecutor
 class NodeExecutor(MultiThreadedExecutor):
     """A multi-threaded executor (each node's callback groups decide what runs in parallel: a node's inputs keep
     arriving while it processes a frame, and nodes never wait for each other) whose ``shutdown`` returns only once
-    the callbacks in progress are done, so nodes can be destroyed and maps saved safely (rclpy 7.1's does not
-    wait for its worker threads)."""
+    the callbacks in progress and queued are done, so nodes can be destroyed and maps saved safely. rclpy 7.1's does
+    not wait for its worker threads, and destroys its guard condition under them: a queued callback's handler then
+    fails on it ('cannot use Destroyable because destruction was requested', printed when the task is collected).
+    Call it once nothing spins the executor any more."""
 
     def shutdown(self, timeout_sec: float | None = None) -> bool:
-        done = super().shutdown(timeout_sec)
-        self._executor.shutdown(wait=True)  # the worker pool: returns when the running callbacks have
-        return done
+        self._executor.shutdown(wait=True)  # the worker pool: its running and queued callbacks run to their end
+        return super().shutdown(timeout_sec)
 
 
 def exit_now(code: int) -> None:

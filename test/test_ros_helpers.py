@@ -1,5 +1,7 @@
 """gausem_ros helpers: approximate-time sync, TF broadcaster selection, QoS profiles and bag IO."""
+import gc
 import sys
+import threading
 import time
 import types
 
@@ -9,6 +11,9 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
+import rclpy  # noqa: E402
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup  # noqa: E402
+from rclpy.context import Context  # noqa: E402
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag2 import Writer as Ros2Writer  # noqa: E402
@@ -18,6 +23,7 @@ from sensor_msgs.msg import Image  # noqa: E402
 import msg_adapters as ma  # noqa: E402
 from gausem_core.geometry import PinholeCamera  # noqa: E402
 from gausem_ros import bags, qos, sync, tf  # noqa: E402
+from gausem_ros.executor import NodeExecutor  # noqa: E402
 
 
 # --- approximate-time sync ------------------------------------------------------------------------------------------
@@ -362,3 +368,37 @@ def test_a_ctrl_c_racing_the_spin_ends_the_loop_and_a_real_error_does_not_hide()
                     spin_until_done(executor, None)
         finally:
             rclpy.try_shutdown(context=context)
+
+
+# --- the executor ----------------------------------------------------------------------------------------------------
+def test_executor_shutdown_waits_for_the_callbacks_and_leaves_no_failed_task(capfd):
+    """shutdown returns after the callback in progress, and the handlers still queued then run against a live
+    executor (rclpy's own shutdown destroyed its guard condition first: 'cannot use Destroyable', printed at exit)."""
+    context = Context()
+    rclpy.init(context=context, domain_id=163)
+    executor = NodeExecutor(num_threads=2, context=context)
+    node = rclpy.create_node("slow_callbacks", context=context)
+    started, finished = threading.Event(), []
+
+    def slow():
+        started.set()
+        time.sleep(0.2)
+        finished.append(time.monotonic())
+
+    for _ in range(3):  # one more than the pool's threads: a handler waits in the queue
+        node.create_timer(0.005, slow, callback_group=MutuallyExclusiveCallbackGroup())
+    executor.add_node(node)
+    try:
+        end = time.monotonic() + 5.0
+        while context.ok() and time.monotonic() < end and not (started.is_set() and time.monotonic() > end - 4.7):
+            executor.spin_once(timeout_sec=0.01)
+        assert started.is_set()
+        executor.shutdown()
+        done_at = time.monotonic()
+        assert finished and finished[-1] <= done_at
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+    del executor
+    gc.collect()
+    assert "never retrieved" not in capfd.readouterr().err
