@@ -84,5 +84,5 @@ def verify(query: OrbFeatures, match: OrbFeatures, query_obs: Observation, match
     query_from_match[:3, 3] = torch.from_numpy(translation.reshape(3))
     with torch.no_grad():
         overlap, fitness = warp_agreement(match_obs, query_obs, query_from_match, max_depth_residual)
-    passed = overlap >= cfg.min_overlap and fitness >= cfg.min_fitness
+    passed = count >= cfg.min_inliers and overlap >= cfg.min_overlap and fitness >= cfg.min_fitness
     return Verification(passed, len(pairs), count, overlap, fitness, invert_pose(query_from_match))
