@@ -35,6 +35,7 @@ from gausem_core.report import format_summary
 
 from .evaluation import write_report
 from .executor import NodeExecutor, exit_now
+from .nodes.common import ros_process
 from .nodes.loop_detection import LoopDetectionNode
 from .nodes.pose_graph import PoseGraphNode
 from .nodes.segmentation import SegmentationNode
@@ -59,24 +60,13 @@ def spin_until_done(executor, player, linger: float = 1.0, on_spin: Callable[[],
     (the tracker's pending frames processed; ``drain_timeout`` s at most); forever without a player. ``on_spin``
     after every spin."""
     while rclpy.ok(context=executor.context) and (player is None or not player.done):
-        _spin_once(executor, on_spin)
+        executor.spin_once(timeout_sec=0.1)
+        on_spin()
     start = time.monotonic()
     while rclpy.ok(context=executor.context) and (time.monotonic() < start + linger or not drained()) \
             and time.monotonic() < start + drain_timeout:
-        _spin_once(executor, on_spin)
-
-
-def _spin_once(executor, on_spin: Callable[[], None]) -> None:
-    """One spin, then ``on_spin``. A signal that shuts the context down between the loop's ``rclpy.ok`` check and
-    the spin makes rclpy raise RCLError (a RuntimeError: "the given context is not valid"); that is a Ctrl-C, not a
-    failure, and the loop's next check ends it."""
-    try:
         executor.spin_once(timeout_sec=0.1)
-    except RuntimeError:
-        if rclpy.ok(context=executor.context):
-            raise
-        return
-    on_spin()
+        on_spin()
 
 
 def progress_bar(tracking: TrackingMappingNode, disable: bool) -> tuple[tqdm, Callable[[], None]]:
@@ -149,46 +139,44 @@ def accounting(tracking: TrackingMappingNode, player=None) -> str:
 def main(args=None) -> int:
     argv = sys.argv if args is None else ["gausem-ros", *args]
     ns = parse_arguments(argv)
-    rclpy.init(args=argv)
-    nodes, player = [], None
-    executor = NodeExecutor(num_threads=5)
-    try:
-        nodes = build_nodes()
-        player = player_from_args(ns) if ns.source else None
-        for node in nodes + ([player] if player else []):
-            executor.add_node(node)
-        tracking = nodes[0]
-        bar, update = progress_bar(tracking, disable=player is None or ns.quiet)
-        interrupted = False
+    nodes, player, code = [], None, 0
+    with ros_process(argv):  # SIGINT and SIGTERM raise KeyboardInterrupt in the spin
+        executor = NodeExecutor(num_threads=5)
         try:
-            spin_until_done(executor, player, on_spin=update,
-                            drained=lambda: tracking.summary()["frames_pending"] == 0)
+            nodes = build_nodes()
+            player = player_from_args(ns) if ns.source else None
+            for node in nodes + ([player] if player else []):
+                executor.add_node(node)
+            tracking = nodes[0]
+            bar, update = progress_bar(tracking, disable=player is None or ns.quiet)
+            interrupted = False
+            try:
+                spin_until_done(executor, player, on_spin=update,
+                                drained=lambda: tracking.summary()["frames_pending"] == 0)
+            except (KeyboardInterrupt, ExternalShutdownException):
+                interrupted = True
+            bar.close()
+            if interrupted:
+                tracking.interrupt()
+            executor.shutdown()  # waits for the frame in progress
+            tracking.get_logger().info(accounting(tracking, player))
+            if player is not None and not interrupted:
+                tracking.finish()  # the sequence is over: global refinement, as the offline pipeline does
+            if ns.save and tracking.frames_processed:
+                ply, trajectory = tracking.save_map(ns.save)
+                tracking.get_logger().info(f"wrote {ply} and {trajectory}")
+            if ns.report and not interrupted:
+                report(tracking, player, ns, argv)
         except (KeyboardInterrupt, ExternalShutdownException):
-            interrupted = True
-        interrupted = interrupted or not rclpy.ok()  # SIGTERM shuts the context down without an exception
-        bar.close()
-        if interrupted:
-            tracking.interrupt()
-        executor.shutdown()  # waits for the frame in progress
-        tracking.get_logger().info(accounting(tracking, player))
-        if player is not None and not interrupted:
-            tracking.finish()  # the sequence is over: global refinement, as the offline pipeline does
-        if ns.save and tracking.frames_processed:
-            ply, trajectory = tracking.save_map(ns.save)
-            tracking.get_logger().info(f"wrote {ply} and {trajectory}")
-        if ns.report and not interrupted:
-            report(tracking, player, ns, argv)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as err:
-        rclpy.logging.get_logger("gausem").error(str(err))
-        return 1
-    finally:
-        executor.shutdown()
-        for node in nodes + ([player] if player else []):
-            node.destroy_node()
-        rclpy.try_shutdown()
-    code = 1 if player is not None and player.error else 0
+            pass
+        except ValueError as err:
+            rclpy.logging.get_logger("gausem").error(str(err))
+            code = 1
+        finally:
+            executor.shutdown()
+            for node in nodes + ([player] if player else []):
+                node.destroy_node()
+    code = code or (1 if player is not None and player.error else 0)
     if args is None:  # a command line
         exit_now(code)
     return code

@@ -337,39 +337,6 @@ def test_loop_answers_hold_the_next_frame_until_answered_given_up_or_unheard():
         LoopAnswers(-1.0, lambda: True, lambda: True, given_up.append)
 
 
-# --- run_all's spin loop --------------------------------------------------------------------------------------------
-class ShutdownDuringSpin:
-    """An executor stand-in whose spin shuts its context down and then fails as rclpy does after a Ctrl-C."""
-
-    def __init__(self, context, shut_down: bool):
-        self.context, self.shut_down, self.spins = context, shut_down, 0
-
-    def spin_once(self, timeout_sec):
-        self.spins += 1
-        if self.shut_down:
-            self.context.shutdown()
-        raise RuntimeError("failed to initialize wait set: the given context is not valid")
-
-
-def test_a_ctrl_c_racing_the_spin_ends_the_loop_and_a_real_error_does_not_hide():
-    import rclpy
-
-    from gausem_ros.run_all import spin_until_done
-    for shut_down in (True, False):
-        context = rclpy.Context()
-        rclpy.init(context=context, domain_id=139)
-        executor = ShutdownDuringSpin(context, shut_down)
-        try:
-            if shut_down:  # the context went down under the spin: a Ctrl-C, the loop just ends
-                spin_until_done(executor, None)
-                assert executor.spins == 1 and not rclpy.ok(context=context)
-            else:  # the context is fine: the error is real and propagates
-                with pytest.raises(RuntimeError, match="wait set"):
-                    spin_until_done(executor, None)
-        finally:
-            rclpy.try_shutdown(context=context)
-
-
 # --- the executor ----------------------------------------------------------------------------------------------------
 def test_executor_shutdown_waits_for_the_callbacks_and_leaves_no_failed_task(capfd):
     """shutdown returns after the callback in progress, and the handlers still queued then run against a live

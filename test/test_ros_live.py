@@ -319,18 +319,19 @@ def torch_equal(a, b) -> bool:
 
 
 @pytest.mark.slow
-def test_ctrl_c_ends_gausem_ros_quickly_and_save_still_writes_the_map(tmp_path):
-    env = {**os.environ, "PYTHONPATH": str(REPO), "ROS_DOMAIN_ID": "136", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+@pytest.mark.parametrize("signum, domain", [(signal.SIGINT, 136), (signal.SIGTERM, 164)])
+def test_ctrl_c_or_sigterm_ends_gausem_ros_quickly_and_save_still_writes_the_map(tmp_path, signum, domain):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     cmd = [sys.executable, "-m", "gausem_ros.run_all", "synthetic", "--size", "40x30", "--max-frames", "900",
            "--rate", "1", "--quiet", "--save", str(tmp_path / "out"), "--ros-args",
            *ros_param_args({**FAST_SLAM, "loop.enabled": False})]
-    with ros_session(136) as (ctx, executor), (tmp_path / "log").open("w") as log:
+    with ros_session(domain) as (ctx, executor), (tmp_path / "log").open("w") as log:
         recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS)])
         executor.add_node(recorder.node)
         process = subprocess.Popen(cmd, env=env, cwd=tmp_path, stderr=log, stdout=log)
         assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) >= 2
                           or process.poll() is not None, 120.0)  # two frames went out: the run is under way
-        process.send_signal(signal.SIGINT)
+        process.send_signal(signum)
         start = time.monotonic()
         returncode = process.wait(30)
         seconds = time.monotonic() - start

@@ -3,6 +3,7 @@ dropped-input reporting (and the guard that turns an exception on one input into
 queue and the ``main`` runner."""
 from __future__ import annotations
 
+import contextlib
 import functools
 import signal
 import threading
@@ -213,35 +214,45 @@ def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
-def run_node(factory: Callable, args=None) -> int:
-    """``rclpy.init(args)``, build the node, spin it on a multi-threaded executor (its callback groups decide what
-    runs in parallel) until SIGINT or SIGTERM (a normal end: 0); 1 when the node cannot be built. The signals end the
-    spin here, not through rclpy's own handlers: those shut the context down at once, under the node's live entities
-    and the callback in progress, and a node so ended under the launcher now and then died of SIGSEGV in a DDS thread
-    (loop_detection, pose_graph) or raised RCLError "context is not valid" from the spin (tracking_mapping). Here the
-    frame in progress finishes early, the executor waits for it, the node is destroyed, and only then does the
-    context shut down."""
+@contextlib.contextmanager
+def ros_process(args=None):
+    """``rclpy.init(args)`` for a command-line process whose spin loop SIGINT and SIGTERM end (as KeyboardInterrupt),
+    not rclpy's own signal handlers: those shut the context down at once, under the nodes' live entities and the
+    callback in progress (a node so ended under the launcher now and then died of SIGSEGV in a DDS thread, or its
+    spin raised RCLError "context is not valid"). The caller finishes the frame in progress, shuts the executor
+    down and destroys its nodes inside the block; the context shuts down after it."""
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     previous = signal.signal(signal.SIGTERM, _interrupt)
-    node, executor = None, NodeExecutor(num_threads=2)
     try:
-        node = factory()
-        executor.add_node(node)
-        while rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)  # a signal is seen within 0.1 s
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as err:  # a configuration the node cannot run with; the message says which
-        rclpy.logging.get_logger("gausem").error(str(err))
-        return 1
+        yield
     finally:
         signal.signal(signal.SIGTERM, previous)
-        if hasattr(node, "interrupt"):  # a frame in progress finishes early
-            node.interrupt()
-        executor.shutdown()  # waits for the callback in progress
-        if node is not None:
-            node.destroy_node()
         rclpy.try_shutdown()
+
+
+def run_node(factory: Callable, args=None) -> int:
+    """Build the node in a :func:`ros_process` and spin it on a multi-threaded executor (its callback groups decide
+    what runs in parallel) until SIGINT or SIGTERM (a normal end: 0); 1 when the node cannot be built. At the end
+    the frame in progress finishes early, the executor waits for it, and the node is destroyed."""
+    node = None
+    with ros_process(args):
+        executor = NodeExecutor(num_threads=2)
+        try:
+            node = factory()
+            executor.add_node(node)
+            while rclpy.ok():
+                executor.spin_once(timeout_sec=0.1)  # a signal is seen within 0.1 s
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        except ValueError as err:  # a configuration the node cannot run with; the message says which
+            rclpy.logging.get_logger("gausem").error(str(err))
+            return 1
+        finally:
+            if hasattr(node, "interrupt"):  # a frame in progress finishes early
+                node.interrupt()
+            executor.shutdown()  # waits for the callback in progress
+            if node is not None:
+                node.destroy_node()
     if args is None:  # a command line
         exit_now(0)
     return 0
