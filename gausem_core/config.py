@@ -248,6 +248,8 @@ class HealthConfig:
     lost_jump: float = 15.0  # ... lost beyond this many
     degraded_valid_depth: float = 0.3  # degraded below this fraction of pixels with valid depth ...
     lost_valid_depth: float = 0.05  # ... lost below this one
+    degraded_coverage: float = 0.3  # degraded when the map renders a silhouette over less than this fraction of the
+    # image at the pose (benchmarks/results/health_160x120.md: the worst tracked frames of the noisy walk, 0.21-0.26)
     recovery_inlier_fraction: float = 0.3  # after a loss, relocalisation accepts from this inlier fraction (its own)
     recovery_residual_z: float = 20.0  # ... and only with a residual z-score (against the frames before) up to this
 

@@ -36,7 +36,7 @@ def peak_rss_mb() -> float:
 class RunResult:
     slam: GauSemSLAM
     timestamps: list[float]
-    poses: np.ndarray  # (N, 4, 4) cam_to_world estimates
+    poses: np.ndarray  # (N, 4, 4) cam_to_world estimates (final: after loop closure and the global refinement)
     gt_poses: list[np.ndarray | None]
     frame_ids: list[int]
     dataset_positions: list[int]  # each frame's i in ``dataset[i]`` (dropped frames leave gaps)
@@ -46,6 +46,8 @@ class RunResult:
     # every frame given to the system, dropped ones included
     first_frame: int = 0  # the system's frame id of the first frame here, the next ones' counting on by one (dropped
     # frames get none); a resumed run's loaded session holds the ids before it
+    tracked_poses: np.ndarray | None = None  # (N, 4, 4) each frame's pose as tracked, before later corrections moved it
+    # (what a live subscriber got on gausem/odometry; what the frame's health judged)
 
     @property
     def fps(self) -> float:
@@ -77,7 +79,7 @@ class Pipeline:
         session is saved there after the last frame, before the global refinement (not timed)."""
         slam = slam or GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
         first = len(slam.frames)
-        gt, ids, dataset_positions, stats, health = [], [], [], [], []
+        gt, ids, dataset_positions, stats, health, tracked = [], [], [], [], [], []
         start = time.perf_counter()
         bar = tqdm(range(len(self.dataset)), desc="gausem", unit="frame", disable=not self.progress)
         for i in bar:
@@ -90,6 +92,7 @@ class Pipeline:
             if result.relocalisation is not None and not result.relocalisation.accepted:
                 continue
             gt.append(frame.gt_pose)
+            tracked.append(result.cam_to_world.detach().cpu().double().numpy())
             ids.append(frame.index)
             dataset_positions.append(i)
             stats.append({"frame": frame.index, "tracking_loss": result.tracking_loss,
@@ -104,4 +107,4 @@ class Pipeline:
         trajectory = slam.trajectory()[first:]
         poses = np.stack([p.detach().cpu().double().numpy() for _, p in trajectory])
         return RunResult(slam, [t for t, _ in trajectory], poses, gt, ids, dataset_positions, seconds, stats,
-                         health, first)
+                         health, first, np.stack(tracked) if tracked else np.zeros((0, 4, 4)))

@@ -3,6 +3,7 @@ failure end to end (flagged lost, the map untouched, tracking recovers from the 
 placement is refused, a session saved while lost goes on lost)."""
 import math
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from gausem_core.data import open_dataset
 from gausem_core.eval.health import PlantedFailure, flag_scores, relative_errors
 from gausem_core.geometry import invert_pose, make_pose, so3_exp, so3_log
 from gausem_core.pipeline import Pipeline
-from gausem_core.slam.health import HealthMonitor, condition
+from gausem_core.slam.health import HealthMonitor, condition, image_signals
 from gausem_core.slam.system import GauSemSLAM
 
 SLOT = 10  # the planted failure's frame
@@ -44,6 +45,21 @@ def test_image_signals_decide_lost_and_degraded():
     assert monitor.assess(0.1, dict(GOOD, valid_depth=0.2), at(0), None, None).status == "degraded"
     assert monitor.assess(0.1, dict(GOOD, condition=9.0), at(0), None, None).reasons == ("condition",)
     assert monitor.assess(0.1, dict(GOOD, condition=math.inf), at(0), None, None).status == "degraded"
+    little_map = monitor.assess(0.1, dict(GOOD, coverage=0.2), at(0), None, None)
+    assert little_map.status == "degraded" and little_map.reasons == ("coverage",) and little_map.coverage == 0.2
+
+
+def test_image_signals_measure_the_map_in_view_and_the_share_it_explains():
+    depth = torch.full((8, 10), 2.0)
+    mask = torch.zeros(8, 10, dtype=torch.bool)
+    mask[:, :4] = True  # the map covers 32 of 80 pixels
+    rendered = depth.clone()
+    rendered[:2, :4] += 0.5  # 8 of them disagree with the observed depth
+    view = SimpleNamespace(mask=mask, depth=rendered, color=torch.zeros(8, 10, 3))
+    obs = SimpleNamespace(valid_depth=torch.ones(8, 10, dtype=torch.bool), depth=depth, rgb=torch.zeros(8, 10, 3))
+    signals = image_signals(view, obs, None, HealthConfig())
+    assert signals["coverage"] == pytest.approx(0.4) and signals["inlier_fraction"] == pytest.approx(24 / 32)
+    assert signals["valid_depth"] == 1.0 and signals["condition"] == math.inf
 
 
 def test_residual_is_judged_against_its_recent_distribution_not_its_level():

@@ -116,3 +116,22 @@ def test_stage_one_decays_the_poses_learning_rate():
     constant, decayed = moved(1.0), moved(1e-4)
     assert constant > 1e-3  # the poses move at the mapper's rate ...
     assert decayed < 0.6 * constant  # ... and settle sooner when the rate decays
+
+
+def test_a_run_keeps_the_poses_as_tracked_apart_from_the_refined_ones():
+    """``RunResult.tracked_poses`` are the poses as each frame was tracked (what its health judged); the global
+    refinement moves the keyframes afterwards, so the final poses differ where they are keyframes."""
+    import numpy as np
+
+    from gausem_core.config import load_config
+    from gausem_core.data import open_dataset
+    from gausem_core.pipeline import Pipeline
+
+    cfg = load_config(None, {"loop.enabled": False, "device": "cpu", "backend": "torch", "mapping.every": 2,
+                             "mapping.init_iterations": 5, "mapping.iterations": 3,
+                             "refinement.iterations_per_keyframe": 2})
+    result = Pipeline(open_dataset("synthetic", size=(40, 30), max_frames=3), cfg, progress=False).run()
+    assert result.tracked_poses.shape == result.poses.shape == (3, 4, 4)
+    np.testing.assert_allclose(result.tracked_poses[0], result.poses[0])  # the fixed first keyframe
+    np.testing.assert_allclose(result.tracked_poses[1], result.poses[1])  # tracked from it, not moved
+    assert not np.allclose(result.tracked_poses[2], result.poses[2])  # a keyframe moved by the refinement

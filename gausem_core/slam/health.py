@@ -11,7 +11,9 @@ Signals of a tracked frame (:class:`TrackingHealth`):
   median depth so that metres and radians compare (large: the pose is weakly constrained in some direction);
 - ``jump``: how far the pose departs from the constant-velocity prediction, in typical per-frame motions (the median
   of the recent ones, floored by ``min_translation`` / ``min_rotation``), the larger of translation and rotation;
-- ``valid_depth``: the fraction of pixels with a valid depth.
+- ``valid_depth``: the fraction of pixels with a valid depth;
+- ``coverage``: the fraction of the image where the map renders a silhouette at the pose (little map in view leaves
+  the pose weakly constrained, as few tracked map points do in feature-based SLAM).
 
 Rules (:class:`HealthMonitor`, thresholds in ``HealthConfig``): lost when the inlier fraction, the valid depth or the
 jump passes its ``lost_`` threshold; else degraded when any signal passes its ``degraded_`` threshold; else ok.
@@ -30,7 +32,8 @@ from gausem_core.config import HealthConfig
 from gausem_core.geometry import invert_pose, so3_log
 
 STATUSES = ("ok", "degraded", "lost")
-SIGNALS = ("inlier_fraction", "residual_z", "condition", "jump", "valid_depth")
+SIGNALS = ("inlier_fraction", "residual_z", "condition", "jump", "valid_depth", "coverage")
+LOW_IS_BAD = ("inlier_fraction", "valid_depth", "coverage")  # signals whose small values are the bad ones
 
 
 @dataclass(frozen=True)
@@ -43,6 +46,7 @@ class TrackingHealth:
     condition: float = float("nan")
     jump: float = 0.0
     valid_depth: float = float("nan")
+    coverage: float = float("nan")
     reasons: tuple[str, ...] = ()
 
     def signals(self) -> dict[str, float]:
@@ -52,8 +56,8 @@ class TrackingHealth:
 
 
 def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig) -> dict[str, float]:
-    """``inlier_fraction``, ``condition`` and ``valid_depth`` of a frame from the model ``view`` rendered at its pose
-    and the alignment ``hessian`` there (see :func:`gausem_core.slam.tracker.inspect_pose`)."""
+    """``inlier_fraction``, ``condition``, ``valid_depth`` and ``coverage`` of a frame from the model ``view`` rendered
+    at its pose and the alignment ``hessian`` there (see :func:`gausem_core.slam.tracker.inspect_pose`)."""
     valid = obs.valid_depth
     silhouette = view.mask
     depth_ok = (view.depth - obs.depth).abs() < cfg.inlier_depth
@@ -62,7 +66,7 @@ def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig) ->
     covered = int(silhouette.sum())
     inlier_fraction = float(inliers.sum()) / covered if covered else math.nan
     return {"inlier_fraction": inlier_fraction, "condition": condition(hessian, view.depth[silhouette]),
-            "valid_depth": float(valid.float().mean())}
+            "valid_depth": float(valid.float().mean()), "coverage": covered / silhouette.numel()}
 
 
 def condition(hessian: torch.Tensor | None, depths: torch.Tensor) -> float:
@@ -137,8 +141,7 @@ class HealthMonitor:
             threshold = getattr(self.cfg, f"{level}_{name}", None)
             if threshold is None:
                 continue
-            low_is_bad = name in ("inlier_fraction", "valid_depth")
-            if (value < threshold) if low_is_bad else (value > threshold):
+            if (value < threshold) if name in LOW_IS_BAD else (value > threshold):
                 fired.append(name)
         return fired
 
