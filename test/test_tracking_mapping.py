@@ -136,6 +136,10 @@ def test_repeat_motion_moves_on_step_by_step():
     three = repeat_motion(start, step, 3)
     assert torch.allclose(three, start @ se3_exp(3 * torch.tensor([0.03, 0.01, 0.0, 0.01, 0.0, 0.02])), atol=1e-5)
     assert torch.allclose(repeat_motion(start, step), start @ step, atol=1e-6)
+    half = repeat_motion(start, step, 0.5)  # half the screw motion: twice that is one step
+    assert torch.allclose(repeat_motion(start, invert_pose(start) @ half, 2.0), start @ step, atol=1e-5)
+    assert torch.allclose(repeat_motion(start, step, 2.5),
+                          start @ se3_exp(2.5 * torch.tensor([0.03, 0.01, 0.0, 0.01, 0.0, 0.02])), atol=1e-5)
     with pytest.raises(ValueError, match="steps"):
         repeat_motion(start, step, 0)
 
@@ -183,3 +187,33 @@ def test_mapping_loss_is_eq3_with_the_eq4_ssim_losses_of_colour_and_semantics():
     depth = (out.expected_depth - obs.depth).abs()[valid].mean() + (1 - out.alpha)[valid].mean()
     expected = 2.0 * depth + 1.5 * eq4(out.color, obs.rgb, 0.8) + 0.25 * eq4(out.semantic, obs.semantic, 0.8)
     assert mapping_loss(out, obs, 1.5, 2.0, 0.25, 0.8).item() == pytest.approx(expected.item(), rel=1e-12)
+
+
+def test_the_motion_model_predicts_across_skipped_frames_by_their_timestamps():
+    """A live node that falls behind skips frames: the constant-velocity prediction for the next one it processes
+    repeats the last motion over the time elapsed, not once; without increasing stamps it counts frames. Frames 1-3
+    are recorded at their true poses (the motion model alone, not the tracker, is under test)."""
+    from gausem_core.slam.system import FrameRecord, GauSemSLAM
+
+    cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "mapping.init_iterations": 5})
+    dataset = open_dataset("synthetic", size=(40, 30), max_frames=12)
+    pipeline = Pipeline(dataset, cfg, progress=False)
+    slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
+    slam.process(pipeline.observation(dataset[0]))
+    origin = np.linalg.inv(dataset[0].gt_pose)
+
+    def truth(i):
+        return torch.tensor(origin @ dataset[i].gt_pose, dtype=torch.float32)
+    keyframe = slam.active.keyframes[0]
+    for i in range(1, 4):
+        slam.frames.append(FrameRecord(i, dataset[i].timestamp, slam.active, keyframe,
+                                       invert_pose(keyframe.cam_to_world) @ truth(i)))
+    _, predicted, _ = slam._motion_model(dataset[10].timestamp)  # frames 4-9 skipped
+    once = constant_velocity(truth(3), truth(2))
+
+    def error(pose):
+        return float((invert_pose(pose.double()) @ truth(10).double())[:3, 3].norm())
+    assert error(predicted) < 0.3 * error(once)
+    jittered = dataset[3].timestamp + 1.3 * (dataset[3].timestamp - dataset[2].timestamp)  # stamp jitter, no gap
+    for stamp in (jittered, dataset[3].timestamp):  # ... and no time elapsed: one frame on, by the count
+        assert torch.allclose(slam._motion_model(stamp)[1], once, atol=1e-5)

@@ -40,6 +40,9 @@ from gausem_core.slam.submap_store import SubmapStore
 from gausem_core.slam.tracker import Tracker, TrackingResult, inspect_pose, repeat_motion
 
 _IMAGES = ("rgb", "depth", "semantic", "labels")
+MAX_PREDICTION_S = 1.0  # the constant-velocity prediction extrapolates at most this far past the last good frame
+STAMP_JITTER = 0.5  # ... and goes by the stamps only where they disagree with the frame count by more than this
+# share: camera stamps jitter (TUM fr1/rpy: intervals 27-40 ms at 30 Hz), skipped frames are a clear gap
 
 
 def _float64(pose: torch.Tensor) -> torch.Tensor:
@@ -276,24 +279,31 @@ class GauSemSLAM:
         return TrackingResult(local, relocalised.tracking_loss, relocalised.iterations), relocalised
 
     def _track(self, obs: Observation) -> TrackingResult:
-        previous, predicted, _ = self._motion_model()
+        previous, predicted, _ = self._motion_model(obs.timestamp)
         if predicted is None:
             return self.tracker.track(self.active.cloud, obs, previous)
         return self.tracker.track(self.active.cloud, obs, predicted, [previous])
 
-    def _motion_model(self) -> tuple[torch.Tensor, torch.Tensor | None, int]:
-        """The last good (not lost) frame's pose in the active submap, the constant-velocity prediction for the next
-        frame, and how many frames after the last good one that is (lost and dropped frames count). The prediction
-        repeats the motion between the latest two consecutive good frames of the tracking segment that many times;
-        None without such a pair or with ``tracking.constant_velocity`` off."""
+    def _motion_model(self, timestamp: float) -> tuple[torch.Tensor, torch.Tensor | None, bool]:
+        """The last good (not lost) frame's pose in the active submap, the constant-velocity prediction for a frame
+        stamped ``timestamp``, and whether that frame follows the last good one directly (no lost or dropped frame
+        between). The prediction repeats the motion between the latest two consecutive good frames of the tracking
+        segment once per frame since the last good one (lost and dropped frames count), or, where the stamps say
+        clearly more or less time passed (:data:`STAMP_JITTER`: frames a live node skipped), over the time since the
+        last good frame in units of that pair's interval (at most :data:`MAX_PREDICTION_S` ahead). None without such
+        a pair or with ``tracking.constant_velocity`` off."""
         good = self._last_good()
-        steps = len(self.frames) - good + self.dropped
+        frames_after = len(self.frames) - good + self.dropped
         previous = self._local_pose(good)
         pair = self._latest_good_pair(good) if self.cfg.tracking.constant_velocity else None
         if pair is None:
-            return previous, None, steps
+            return previous, None, frames_after == 1
         relative = invert_pose(self._local_pose(pair - 1)) @ self._local_pose(pair)
-        return previous, repeat_motion(previous, relative, steps), steps
+        interval = self.frames[pair].timestamp - self.frames[pair - 1].timestamp
+        elapsed = min(timestamp - self.frames[good].timestamp, MAX_PREDICTION_S)
+        by_time = elapsed / interval if interval > 0 and elapsed > 0 else frames_after
+        steps = frames_after if abs(by_time / frames_after - 1) <= STAMP_JITTER else by_time
+        return previous, repeat_motion(previous, relative, steps), frames_after == 1
 
     def _last_good(self) -> int:
         """Index of the last recorded frame not judged lost (the first frame never is)."""
@@ -318,8 +328,8 @@ class GauSemSLAM:
         view, hessian = inspect_pose(self.active.cloud, obs, tracked.cam_to_world, self.cfg.tracking,
                                      self.cfg.backend)
         image = image_signals(view, obs, hessian, self.cfg.health)
-        previous, predicted, steps = self._motion_model()
-        return self.health.assess(tracked.loss, image, tracked.cam_to_world, previous if steps == 1 else None,
+        previous, predicted, consecutive = self._motion_model(obs.timestamp)
+        return self.health.assess(tracked.loss, image, tracked.cam_to_world, previous if consecutive else None,
                                   previous if predicted is None else predicted)
 
     def _relocalised_health(self, obs: Observation, relocalised: RelocalisationResult) -> TrackingHealth:
@@ -355,7 +365,7 @@ class GauSemSLAM:
                   if self.loop_closure is not None else [])
         local = invert_pose(last.submap.anchor) @ last.cam_to_world
         starts = relocalisation_starts(self.submaps, (last.submap, local), ranked, cfg.candidates)
-        _, predicted, _ = self._motion_model()
+        _, predicted, _ = self._motion_model(obs.timestamp)
         if predicted is not None:
             starts.insert(0, Start(self.active, predicted, "constant velocity"))
         placed = track_from_starts(obs, starts, self.tracker, cfg, self.device)

@@ -8,7 +8,7 @@ import torch
 
 from gausem_core.config import TrackingConfig
 from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import invert_pose, project_to_se3, se3_exp
+from gausem_core.geometry import invert_pose, project_to_se3, se3_exp, se3_log
 from gausem_core.render import render
 from gausem_core.slam.adam import AdamSteps, ParameterGroup, has_stalled
 from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, align_level,
@@ -34,12 +34,15 @@ def constant_velocity(previous: torch.Tensor, before_previous: torch.Tensor | No
     return repeat_motion(previous, invert_pose(before_previous) @ previous)
 
 
-def repeat_motion(pose: torch.Tensor, relative: torch.Tensor, steps: int = 1) -> torch.Tensor:
-    """``pose`` moved on by the relative motion ``relative`` (pose-from-next) ``steps`` times, projected onto
-    SE(3)."""
-    if steps < 1:
-        raise ValueError(f"repeat_motion: steps must be >= 1, got {steps}")
-    for _ in range(steps):
+def repeat_motion(pose: torch.Tensor, relative: torch.Tensor, steps: float = 1) -> torch.Tensor:
+    """``pose`` moved on by the relative motion ``relative`` (pose-from-next) ``steps`` times, projected onto SE(3):
+    a whole number of steps as repeated products, a fractional one along the screw motion, ``exp(steps log
+    relative)``."""
+    if not steps > 0:
+        raise ValueError(f"repeat_motion: steps must be > 0, got {steps}")
+    if steps != int(steps):
+        return project_to_se3(pose @ se3_exp(se3_log(relative.double()) * steps).to(pose.dtype))
+    for _ in range(int(steps)):
         pose = pose @ relative
     return project_to_se3(pose)
 
