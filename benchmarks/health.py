@@ -6,8 +6,9 @@ Runs the pipeline on (a) the synthetic sequence with a planted failure (frame ``
 against ground truth (frame i-1 to i, translation and rotation) and reports, for each, the share of the 1 % and 5 %
 worst frames flagged degraded or lost and the false-flag rate (flagged frames outside the 5 % worst). The errors are
 those of the poses as tracked, which the status judges (and a live subscriber gets), and, for comparison, of the final
-poses, which loop closure and the global refinement moved later (by submap, so their errors jump where submaps meet). Frames dropped
-by a failed relocalisation have no pose and are counted as flags, not ranked. Run from the repository root, e.g.
+poses, which loop closure and the global refinement moved later (by submap, so their errors jump where submaps
+meet). Frames dropped by a failed relocalisation have no pose and are counted as flags, not ranked. Run from the
+repository root, e.g.
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/health.py --frames 120 --out benchmarks/results/health_160x120.md
 """
 from __future__ import annotations
@@ -40,13 +41,13 @@ def evaluate(name: str, spec: str, dataset) -> dict:
     status = {frame: health.status for frame, _, health in result.health}
     reasons = Counter(r for _, _, health in result.health for r in health.reasons)
     flagged = np.array([status[f] != "ok" for f in result.frame_ids])
-    ranked = {}
-    for poses_name, poses in (("tracked", result.tracked_poses), ("final", result.poses)):
-        t, r = relative_errors(poses, np.stack(result.gt_poses))
-        ranked[f"{poses_name}, translation"] = flag_scores(t[1:], flagged[1:])
-        ranked[f"{poses_name}, rotation"] = flag_scores(r[1:], flagged[1:])
-        if poses_name == "tracked":
-            translation, rotation = t, r
+    truths = np.stack(result.gt_poses)
+    errors = {poses: relative_errors(estimate, truths)
+              for poses, estimate in (("tracked", result.tracked_poses), ("final", result.poses))}
+    ranked = {f"{poses}, {by}": flag_scores(error[1:], flagged[1:])
+              for poses, (translation, rotation) in errors.items()
+              for by, error in (("translation", translation), ("rotation", rotation))}
+    translation, rotation = errors["tracked"]
     worst = int(np.argmax(translation))
     return {"name": name, "frames": len(result.health), "seconds": round(seconds, 1),
             "statuses": dict(Counter(status.values())), "reasons": dict(reasons), "scores": ranked,
