@@ -32,6 +32,8 @@ from functools import partial
 
 from msg_adapters.stamps import header_seconds
 
+from .qos import INPUT_QOS_HINT, subscribe_camera
+
 
 class ApproximateTimeSync:
     def __init__(self, names: Sequence[str], callback: Callable[..., None], queue_size: int = 10,
@@ -157,8 +159,8 @@ def make_synchronizer(node, inputs: Sequence[tuple[str, type, str]], callback: C
                       on_drop: Callable[[int, str, str], None] = lambda i, reason, detail: None,
                       callback_group=None) -> SynchronizedInputs:
     """Subscribe ``node`` to ``inputs`` ((name, msg type, topic), stamped messages) and call ``callback(*msgs)``
-    with approximately synchronised messages, in the order of ``inputs``."""
+    with approximately synchronised messages, in the order of ``inputs`` (subscribed with :func:`subscribe_camera`)."""
     sync = ApproximateTimeSync([name for name, _, _ in inputs], callback, queue_size, slop, on_drop)
-    subs = [node.create_subscription(msg_type, topic, partial(_feed, sync, i), qos, callback_group=callback_group)
+    subs = [subscribe_camera(node, msg_type, topic, partial(_feed, sync, i), qos, callback_group, INPUT_QOS_HINT)
             for i, (_, msg_type, topic) in enumerate(inputs)]
     return SynchronizedInputs(sync, subs)

@@ -1,6 +1,7 @@
 """gausem_ros helpers: approximate-time sync, TF broadcaster selection, QoS profiles and bag IO."""
 import gc
 import sys
+import threading
 import time
 import types
 
@@ -121,9 +122,12 @@ class FakeNode:
     def __init__(self):
         self.subscriptions, self.publishers, self.warnings = [], [], []
 
-    def create_subscription(self, msg_type, topic, callback, qos_profile, callback_group=None):
+    def create_subscription(self, msg_type, topic, callback, qos_profile, callback_group=None, event_callbacks=None):
         self.subscriptions.append((msg_type, topic, callback, qos_profile))
-        return len(self.subscriptions)
+        return types.SimpleNamespace(topic_name=topic, event_callbacks=event_callbacks)
+
+    def create_timer(self, period, callback):
+        return types.SimpleNamespace(period=period, callback=callback)
 
     def create_publisher(self, msg_type, topic, qos_profile):
         pub = types.SimpleNamespace(topic=topic, qos=qos_profile, sent=[])
@@ -190,6 +194,109 @@ def test_tf_falls_back_to_a_tfmessage_publisher(monkeypatch):
 
 
 # --- QoS --------------------------------------------------------------------------------------------------------------
+def test_incompatibility_follows_the_request_offered_rules():
+    assert qos.incompatibility(qos.SENSOR_QOS, qos.IMAGE_QOS) == "it publishes best effort and this subscription is reliable"
+    assert qos.incompatibility(qos.IMAGE_QOS, qos.SENSOR_QOS) is None  # reliable reaches best effort
+    assert "volatile" in qos.incompatibility(qos.IMAGE_QOS, qos.LATCHED_QOS)
+    assert qos.incompatibility(qos.LATCHED_QOS, qos.IMAGE_QOS) is None
+
+
+def _camera_node(context, callback, default_event_handlers=False):
+    node = rclpy.create_node("camera_input", context=context)
+    group = MutuallyExclusiveCallbackGroup()
+    topics = ("rgb/image", "depth/image", "semantic/labels")
+    if default_event_handlers:  # as rclpy makes them
+        return node, [node.create_subscription(Image, t, callback, qos.IMAGE_QOS, callback_group=group) for t in topics]
+    return node, [qos.subscribe_camera(node, Image, t, callback, qos.IMAGE_QOS, group, qos.INPUT_QOS_HINT)
+                  for t in topics]
+
+
+class CountingExecutor(NodeExecutor):
+    """Counts how often the executor asks whether it may wait on one of ``watched`` (once per wait set it builds)."""
+
+    def __init__(self, watched, **kwargs):
+        super().__init__(**kwargs)
+        self.watched, self.asked = watched, 0
+
+    def can_execute(self, entity) -> bool:
+        self.asked += any(entity is w for w in self.watched)
+        return super().can_execute(entity)
+
+
+def _wait_sets_per_message(domain_id: int, default_event_handlers: bool) -> float:
+    """Three camera inputs at 30 Hz in one callback group, each callback 1 ms of Python: wait sets the executor
+    builds per message received."""
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    received = []
+
+    def callback(msg):
+        received.append(msg)
+        end = time.perf_counter() + 0.001
+        while time.perf_counter() < end:
+            pass
+
+    node, subs = _camera_node(context, callback, default_event_handlers)
+    executor = CountingExecutor(subs[:1], num_threads=2, context=context)
+    source = rclpy.create_node("camera", context=context)
+    pubs = [source.create_publisher(Image, sub.topic_name, qos.IMAGE_QOS) for sub in subs]
+    image = ma.rgb_to_image(np.zeros((60, 80, 3), np.uint8), ma.make_header(0.0, "cam"))
+    stop = threading.Event()
+
+    def camera():
+        while not stop.is_set():
+            for pub in pubs:
+                pub.publish(image)
+            time.sleep(1 / 30)
+
+    executor.add_node(node)
+    thread = threading.Thread(target=camera)
+    try:
+        thread.start()
+        spin_for(executor, 3.0)
+    finally:
+        stop.set()
+        thread.join()
+        executor.shutdown()
+        node.destroy_node()
+        source.destroy_node()
+        rclpy.shutdown(context=context)
+    assert len(received) > 100
+    return executor.asked / len(received)
+
+
+def test_camera_subscriptions_do_not_make_the_executor_loop():
+    """With rclpy's default QoS-event handlers on camera inputs, Fast DDS leaves their conditions ready while a
+    message waits untaken, and the executor rebuilds its wait set in a loop (taking the interpreter lock from the
+    SLAM thread every time). Measured in one test: the same inputs with and without those handlers."""
+    ours = _wait_sets_per_message(165, default_event_handlers=False)
+    default = _wait_sets_per_message(167, default_event_handlers=True)
+    assert ours < 0.6 * default, f"wait sets per message: {ours:.2f} without the handlers, {default:.2f} with them"
+
+
+def test_a_publisher_with_incompatible_qos_is_reported_once():
+    context = Context()
+    rclpy.init(context=context, domain_id=166)
+    executor = NodeExecutor(num_threads=2, context=context)
+    node, (rgb, depth, _) = _camera_node(context, lambda msg: None)
+    source = rclpy.create_node("camera", context=context)
+    source.create_publisher(Image, "rgb/image", qos.SENSOR_QOS)  # best effort: a reliable input hears nothing
+    source.create_publisher(Image, "depth/image", qos.IMAGE_QOS)
+    executor.add_node(node)
+    executor.add_node(source)
+    try:
+        assert spin_until(executor, lambda: rgb.incompatible_publishers.reported, 10.0)
+        spin_for(executor, 2.5)  # another look: still one warning
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        source.destroy_node()
+        rclpy.shutdown(context=context)
+    [warning] = rgb.incompatible_publishers.reported.values()
+    assert warning.startswith("/rgb/image: publisher /camera offers an incompatible QoS (it publishes best effort")
+    assert warning.endswith("input_qos:=sensor_data") and not depth.incompatible_publishers.reported
+
+
 def test_qos_profiles():
     assert qos.IMAGE_QOS.reliability == ReliabilityPolicy.RELIABLE and qos.IMAGE_QOS.depth == 10
     assert qos.SENSOR_QOS.reliability == ReliabilityPolicy.BEST_EFFORT

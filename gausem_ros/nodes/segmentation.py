@@ -18,7 +18,7 @@ from gausem_core.config import SlamConfig
 from gausem_core.pipeline import resolve_device
 from gausem_core.semantics import Segmenter, segmenter_from_config
 
-from ..qos import IMAGE_QOS, input_qos
+from ..qos import IMAGE_QOS, INPUT_QOS_HINT, input_qos, subscribe_camera
 from .common import (DropReport, NewestFrameQueue, class_table, declare_parameters, declare_slam_config, run_node,
                      survives_errors)
 
@@ -53,8 +53,8 @@ class SegmentationNode(Node):
         self._color_pub = self.create_publisher(Image, "semantic/color", IMAGE_QOS)
         self._queue = NewestFrameQueue(self, self._segment, lambda _: self.drops.drop(
             "superseded", "a newer image arrived before this one was segmented"))
-        self.create_subscription(Image, "rgb/image", self._queue.put, input_qos(p.input_qos),
-                                 callback_group=MutuallyExclusiveCallbackGroup())  # images arrive while segmenting
+        subscribe_camera(self, Image, "rgb/image", self._queue.put, input_qos(p.input_qos),
+                         MutuallyExclusiveCallbackGroup(), INPUT_QOS_HINT)  # images arrive while segmenting
 
     @survives_errors
     def _segment(self, msg: Image, arrived: float) -> None:

@@ -94,7 +94,7 @@ from gausem_core.slam.loop import PlaceSignature
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
 
-from ..qos import EVENT_QOS, LATCHED_QOS, input_qos
+from ..qos import EVENT_QOS, INPUT_QOS_HINT, LATCHED_QOS, input_qos, subscribe_camera
 from ..sync import make_synchronizer
 from ..tf import make_transform_broadcaster
 from .common import (LAST_FRAME_KEY, DropReport, FrameRejected, NewestFrameQueue, class_table,
@@ -184,8 +184,7 @@ class TrackingMappingNode(Node):
         self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
             "superseded", "a newer synchronised frame arrived before this one was processed"),
             ready=self._loop_settled)
-        self.create_subscription(CameraInfo, "rgb/camera_info", self._on_camera_info, qos,
-                                 callback_group=input_group)
+        subscribe_camera(self, CameraInfo, "rgb/camera_info", self._on_camera_info, qos, input_group, INPUT_QOS_HINT)
         if self.loop_nodes:
             self._signature_pub = self.create_publisher(PointCloud2, "gausem/place_signatures", EVENT_QOS)
             self.create_subscription(PointCloud2, "gausem/loop_candidates", self._on_loop_candidates, EVENT_QOS)
