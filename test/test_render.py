@@ -286,6 +286,24 @@ def test_the_slam_system_builds_the_cpu_kernel_before_its_first_frame(monkeypatc
         GauSemSLAM(from_flat({"backend": "cpu"}), "cpu")  # asked for by name: a clear error at once
 
 
+def test_the_slam_system_renders_once_through_gsplat_before_its_first_frame(monkeypatch):
+    """gsplat compiles its CUDA kernels on first use: the system renders one Gaussian at construction."""
+    import gausem_core.render as rendering
+    from gausem_core.config import from_flat
+    from gausem_core.slam.system import GauSemSLAM
+
+    renders = []
+
+    def fake_gsplat(screen, width, height):
+        renders.append((screen.u.numel(), width, height))
+        return torch.zeros(height, width, 8)
+
+    monkeypatch.setattr(rendering, "select_backend", lambda backend, device, dtype=torch.float32: "gsplat")
+    monkeypatch.setattr(rendering, "rasterize_gsplat", fake_gsplat)
+    GauSemSLAM(from_flat({"backend": "auto"}), "cpu")
+    assert renders == [(1, 16, 16)]
+
+
 def test_gausem_info_reports_which_cpu_renderer_runs(monkeypatch):
     from gausem_core.tools.info import component_status
 

@@ -9,7 +9,7 @@ import torch
 
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, se3_exp
-from gausem_core.render import render, select_backend
+from gausem_core.render import prepare_backend, render, select_backend
 from gausem_core.render.gsplat_backend import gsplat_available
 
 pytestmark = [
@@ -60,6 +60,7 @@ def render_with_grads(backend):
 def test_auto_picks_gsplat_for_float32_cuda_clouds():
     assert select_backend("auto", "cuda") == "gsplat"
     assert select_backend("auto", "cuda", torch.float64) == "torch"
+    assert prepare_backend("auto", "cuda") == "gsplat"  # its kernels built or loaded
 
 
 def test_gsplat_images_match_the_torch_reference():

@@ -64,6 +64,20 @@ def select_backend(backend: str, device: torch.device | str, dtype: torch.dtype 
     return "gsplat" if on_gpu and gsplat_available() else "torch"
 
 
+def prepare_backend(backend: str, device: torch.device | str, dtype: torch.dtype = torch.float32) -> str:
+    """:func:`select_backend`, and for gsplat one render of a single Gaussian: gsplat compiles its CUDA kernels on a
+    machine's first use (one to two minutes, measured on an H100), which would otherwise fall in the first frame
+    (a live node's first frame then took 73 s). Call it before serving or timing frames."""
+    chosen = select_backend(backend, device, dtype)
+    if chosen == "gsplat":
+        ones = torch.ones(1, 3, dtype=dtype, device=device)
+        one = GaussianCloud.from_points(torch.tensor([[0.0, 0.0, 1.0]], dtype=dtype, device=device), ones, ones,
+                                        torch.full((1,), 0.05, dtype=dtype, device=device))
+        render(one, torch.eye(4, dtype=dtype, device=device), PinholeCamera(16.0, 16.0, 8.0, 8.0, 16, 16),
+               backend=chosen)
+    return chosen
+
+
 def render(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCamera, *, backend: str = "auto",
            near: float = 0.01) -> RenderOutput:
     """Render ``cloud`` seen from ``world_to_cam`` (4x4, world -> camera optical frame) through ``camera``."""

@@ -23,7 +23,7 @@ from gausem_core.config import SlamConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
 from gausem_core.memory import release_free_heap
-from gausem_core.render import select_backend
+from gausem_core.render import prepare_backend
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
 from gausem_core.slam.depth_filter import filter_observation
@@ -199,7 +199,7 @@ class GauSemSLAM:
                              f"{cfg.submaps.boundary_window} and {cfg.submaps.boundary_iterations}")
         self.cfg = cfg
         self.device = torch.device(device)
-        select_backend(cfg.backend, self.device)  # builds or loads the compiled CPU kernel now, not in the first frame
+        prepare_backend(cfg.backend, self.device)  # builds or loads the compiled kernels now, not in the first frame
         torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # the first optimiser imports torch._dynamo (seconds)
         self.num_classes = num_classes
         # the tracking step; another object with Tracker.track's signature may stand in (e.g. a benchmark's oracle)

@@ -173,6 +173,9 @@ class TrackingMappingNode(Node):
             lambda: self._constraint_pub.get_subscription_count() > 0,
             lambda what: self.get_logger().warning(f"no {what} answer within loop_answer_timeout = "
                                                    f"{p.loop_answer_timeout} s; going on with the next frame"))
+        if self.device.type == "cuda":  # the inputs are subscribed once the renderer is ready
+            self.get_logger().info("preparing the renderer on cuda (gsplat compiles its kernels on a machine's first "
+                                   "run: one to two minutes)")
         self._reset_state()
 
         inputs = [("rgb", Image, "rgb/image"), ("depth", Image, "depth/image")] + (
