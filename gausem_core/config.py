@@ -25,6 +25,12 @@ class GaussNewtonTrackingConfig:
     coarsest_width: int = 80  # ... and more while the coarsest is wider than this (pixels): 640 wide, 4 levels
     renders_per_level: int = 2  # model re-renders per pyramid level
     level_iterations: int = 8  # Gauss-Newton iterations per render
+    # more starts on the coarsest level: the prediction moved this far (metres) along each camera axis, both ways,
+    # and turned this far (degrees) about each. search: "gaps" after skipped or lost frames (a live node slower than
+    # its camera), "always", or "off"
+    search: str = "gaps"
+    search_translation: float = 0.03
+    search_rotation_deg: float = 3.0
     # compare colour divided by its local mean (a Gaussian of sigma this fraction of the image width), blind to
     # vignetting, exposure and white balance (slam.photometric); 0: raw colour
     color_normalisation_width: float = 0.1

@@ -208,12 +208,28 @@ def test_the_motion_model_predicts_across_skipped_frames_by_their_timestamps():
     for i in range(1, 4):
         slam.frames.append(FrameRecord(i, dataset[i].timestamp, slam.active, keyframe,
                                        invert_pose(keyframe.cam_to_world) @ truth(i)))
-    _, predicted, _ = slam._motion_model(dataset[10].timestamp)  # frames 4-9 skipped
+    skipped = slam._motion_model(dataset[10].timestamp)  # frames 4-9 skipped
     once = constant_velocity(truth(3), truth(2))
 
     def error(pose):
         return float((invert_pose(pose.double()) @ truth(10).double())[:3, 3].norm())
-    assert error(predicted) < 0.3 * error(once)
+    assert error(skipped.predicted) < 0.3 * error(once) and skipped.gap  # a gap: the tracker searches around it
     jittered = dataset[3].timestamp + 1.3 * (dataset[3].timestamp - dataset[2].timestamp)  # stamp jitter, no gap
     for stamp in (jittered, dataset[3].timestamp):  # ... and no time elapsed: one frame on, by the count
-        assert torch.allclose(slam._motion_model(stamp)[1], once, atol=1e-5)
+        motion = slam._motion_model(stamp)
+        assert torch.allclose(motion.predicted, once, atol=1e-5) and motion.consecutive and not motion.gap
+
+
+def test_the_search_starts_surround_the_start_and_an_unknown_mode_is_rejected():
+    cfg = dataclasses.replace(SlamConfig().tracking, gauss_newton=dataclasses.replace(
+        SlamConfig().tracking.gauss_newton, search_translation=0.04, search_rotation_deg=2.0))
+    pose = se3_exp(torch.tensor([0.3, -0.1, 0.2, 0.1, 0.4, -0.2], dtype=torch.float64))
+    offsets = [invert_pose(pose) @ start for start in Tracker(cfg)._search_starts(pose)]
+    moves = [float(offset[:3, 3].norm()) for offset in offsets]
+    turns = [float(so3_log(offset[:3, :3]).norm()) for offset in offsets]
+    assert len(offsets) == 12 and np.allclose(moves[:6], 0.04) and np.allclose(turns[6:], np.radians(2.0))
+    assert np.allclose(turns[:6], 0) and np.allclose(sum(o[:3, 3] for o in offsets[:6]), 0)  # both ways each axis
+    no_turns = dataclasses.replace(cfg, gauss_newton=dataclasses.replace(cfg.gauss_newton, search_rotation_deg=0.0))
+    assert len(Tracker(no_turns)._search_starts(pose)) == 6
+    with pytest.raises(ValueError, match="tracking.gauss_newton.search must be one of"):
+        Tracker(dataclasses.replace(cfg, gauss_newton=dataclasses.replace(cfg.gauss_newton, search="sometimes")))

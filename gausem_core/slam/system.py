@@ -16,6 +16,7 @@ from __future__ import annotations
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import torch
 
@@ -43,6 +44,15 @@ _IMAGES = ("rgb", "depth", "semantic", "labels")
 MAX_PREDICTION_S = 1.0  # the constant-velocity prediction extrapolates at most this far past the last good frame
 STAMP_JITTER = 0.5  # ... and goes by the stamps only where they disagree with the frame count by more than this
 # share: camera stamps jitter (TUM fr1/rpy: intervals 27-40 ms at 30 Hz), skipped frames are a clear gap
+
+
+class MotionPrediction(NamedTuple):
+    """What the motion model knows of the next frame (:meth:`GauSemSLAM._motion_model`)."""
+
+    previous: torch.Tensor  # the last good frame's cam_to_world in the active submap
+    predicted: torch.Tensor | None  # the constant-velocity prediction (None without two good frames in a row)
+    consecutive: bool  # the frame follows the last good one directly
+    gap: bool  # frames were missed since the last good one (lost or dropped, or skipped by the stamps)
 
 
 def _float64(pose: torch.Tensor) -> torch.Tensor:
@@ -279,15 +289,17 @@ class GauSemSLAM:
         return TrackingResult(local, relocalised.tracking_loss, relocalised.iterations), relocalised
 
     def _track(self, obs: Observation) -> TrackingResult:
-        previous, predicted, _ = self._motion_model(obs.timestamp)
-        if predicted is None:
-            return self.tracker.track(self.active.cloud, obs, previous)
-        return self.tracker.track(self.active.cloud, obs, predicted, [previous])
+        motion = self._motion_model(obs.timestamp)
+        mode = self.cfg.tracking.gauss_newton.search
+        search = mode == "always" or (mode == "gaps" and motion.gap)
+        if motion.predicted is None:
+            return self.tracker.track(self.active.cloud, obs, motion.previous, search=search)
+        return self.tracker.track(self.active.cloud, obs, motion.predicted, [motion.previous], search=search)
 
-    def _motion_model(self, timestamp: float) -> tuple[torch.Tensor, torch.Tensor | None, bool]:
-        """The last good (not lost) frame's pose in the active submap, the constant-velocity prediction for a frame
-        stamped ``timestamp``, and whether that frame follows the last good one directly (no lost or dropped frame
-        between). The prediction repeats the motion between the latest two consecutive good frames of the tracking
+    def _motion_model(self, timestamp: float) -> MotionPrediction:
+        """For a frame stamped ``timestamp``: the last good (not lost) frame's pose in the active submap, the
+        constant-velocity prediction, whether the frame follows the last good one directly (no lost or dropped frame
+        between), and whether frames were missed since (lost or dropped ones, or by the stamps). The prediction repeats the motion between the latest two consecutive good frames of the tracking
         segment once per frame since the last good one (lost and dropped frames count), or, where the stamps say
         clearly more or less time passed (:data:`STAMP_JITTER`: frames a live node skipped), over the time since the
         last good frame in units of that pair's interval (at most :data:`MAX_PREDICTION_S` ahead). None without such
@@ -297,13 +309,14 @@ class GauSemSLAM:
         previous = self._local_pose(good)
         pair = self._latest_good_pair(good) if self.cfg.tracking.constant_velocity else None
         if pair is None:
-            return previous, None, frames_after == 1
+            return MotionPrediction(previous, None, frames_after == 1, frames_after > 1)
         relative = invert_pose(self._local_pose(pair - 1)) @ self._local_pose(pair)
         interval = self.frames[pair].timestamp - self.frames[pair - 1].timestamp
         elapsed = min(timestamp - self.frames[good].timestamp, MAX_PREDICTION_S)
         by_time = elapsed / interval if interval > 0 and elapsed > 0 else frames_after
         steps = frames_after if abs(by_time / frames_after - 1) <= STAMP_JITTER else by_time
-        return previous, repeat_motion(previous, relative, steps), frames_after == 1
+        return MotionPrediction(previous, repeat_motion(previous, relative, steps), frames_after == 1,
+                                max(frames_after, steps) > 1 + STAMP_JITTER)
 
     def _last_good(self) -> int:
         """Index of the last recorded frame not judged lost (the first frame never is)."""
@@ -328,9 +341,10 @@ class GauSemSLAM:
         view, hessian = inspect_pose(self.active.cloud, obs, tracked.cam_to_world, self.cfg.tracking,
                                      self.cfg.backend)
         image = image_signals(view, obs, hessian, self.cfg.health)
-        previous, predicted, consecutive = self._motion_model(obs.timestamp)
-        return self.health.assess(tracked.loss, image, tracked.cam_to_world, previous if consecutive else None,
-                                  previous if predicted is None else predicted)
+        motion = self._motion_model(obs.timestamp)
+        return self.health.assess(tracked.loss, image, tracked.cam_to_world,
+                                  motion.previous if motion.consecutive else None,
+                                  motion.previous if motion.predicted is None else motion.predicted)
 
     def _relocalised_health(self, obs: Observation, relocalised: RelocalisationResult) -> TrackingHealth:
         """The health of an accepted relocalisation (see :meth:`_assess`); the monitor learns its residual."""
@@ -365,7 +379,7 @@ class GauSemSLAM:
                   if self.loop_closure is not None else [])
         local = invert_pose(last.submap.anchor) @ last.cam_to_world
         starts = relocalisation_starts(self.submaps, (last.submap, local), ranked, cfg.candidates)
-        _, predicted, _ = self._motion_model(obs.timestamp)
+        predicted = self._motion_model(obs.timestamp).predicted
         if predicted is not None:
             starts.insert(0, Start(self.active, predicted, "constant velocity"))
         placed = track_from_starts(obs, starts, self.tracker, cfg, self.device)

@@ -1,6 +1,7 @@
 """Frame-to-model tracking (paper Eq. 2): optimise the camera pose through the renderer with the Gaussians frozen."""
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -18,6 +19,7 @@ from gausem_core.slam.observation import Observation
 from gausem_core.slam.photometric import local_contrast
 
 METHODS = ("gauss_newton", "adam")
+SEARCH_MODES = ("gaps", "always", "off")
 
 
 @dataclass
@@ -86,16 +88,31 @@ class Tracker:
     def __init__(self, cfg: TrackingConfig, backend: str = "auto"):
         if cfg.method not in METHODS:
             raise ValueError(f"tracking.method must be one of {METHODS}, got {cfg.method!r}")
+        if cfg.gauss_newton.search not in SEARCH_MODES:
+            raise ValueError(f"tracking.gauss_newton.search must be one of {SEARCH_MODES}, got "
+                             f"{cfg.gauss_newton.search!r}")
         self.cfg = cfg
         self.backend = backend
 
     def track(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor,
-              alternatives: Sequence[torch.Tensor] = ()) -> TrackingResult:
+              alternatives: Sequence[torch.Tensor] = (), search: bool = False) -> TrackingResult:
         """Optimise the pose from ``init_cam_to_world``; Gauss-Newton also tries ``alternatives`` (e.g. the previous
-        pose when the motion model overshoots a sudden stop) on the coarsest level and goes on from the best."""
+        pose when the motion model overshoots a sudden stop) on the coarsest level and goes on from the best, and with
+        ``search`` the starts around ``init_cam_to_world`` that ``gauss_newton.search_*`` describe."""
         if self.cfg.method == "gauss_newton":
-            return self._track_gauss_newton(cloud.detach(), obs, [init_cam_to_world.detach(), *alternatives])
+            init = init_cam_to_world.detach()
+            starts = [init, *alternatives, *(self._search_starts(init) if search else [])]
+            return self._track_gauss_newton(cloud.detach(), obs, starts)
         return self._track_adam(cloud, obs, init_cam_to_world)
+
+    def _search_starts(self, pose: torch.Tensor) -> list[torch.Tensor]:
+        """``pose`` moved by ``search_translation`` along, and turned by ``search_rotation_deg`` about, each camera
+        axis, both ways."""
+        cfg = self.cfg.gauss_newton
+        steps = ((cfg.search_translation, range(3)), (math.radians(cfg.search_rotation_deg), range(3, 6)))
+        offsets = [step * sign * torch.eye(6, dtype=torch.float64)[axis]
+                   for step, axes in steps if step > 0 for axis in axes for sign in (1, -1)]
+        return [pose @ se3_exp(offset).to(pose) for offset in offsets]
 
     def _track_gauss_newton(self, cloud: GaussianCloud, obs: Observation,
                             starts: list[torch.Tensor]) -> TrackingResult:
