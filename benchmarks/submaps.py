@@ -66,8 +66,8 @@ class GroundTruthPoses:
         self.slam: GauSemSLAM | None = None
         self.first = torch.as_tensor(dataset[0].gt_pose)
 
-    def track(self, cloud, obs, init_cam_to_world, alternatives=()) -> TrackingResult:
-        result = self.tracker.track(cloud, obs, init_cam_to_world, alternatives)
+    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False) -> TrackingResult:
+        result = self.tracker.track(cloud, obs, init_cam_to_world, alternatives, search)
         world = invert_pose(self.first) @ torch.as_tensor(self.dataset[len(self.slam.frames)].gt_pose)
         local = invert_pose(self.slam.active.anchor.double()) @ world.to(self.slam.device)
         return TrackingResult(local.to(result.cam_to_world.dtype), result.loss, result.iterations)
