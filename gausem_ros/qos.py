@@ -26,9 +26,7 @@ LATCHED_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=R
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 _INPUT_PROFILES = {"reliable": IMAGE_QOS, "sensor_data": SENSOR_QOS}
-
-
-INPUT_QOS_HINT = "; a best-effort camera driver needs input_qos:=sensor_data"
+INPUT_QOS_HINT = "; a best-effort camera driver needs input_qos:=sensor_data"  # ends an incompatible-input warning
 
 
 def input_qos(name: str) -> QoSProfile:
@@ -65,8 +63,9 @@ class IncompatiblePublishers:
             why = incompatibility(info.qos_profile, self._qos)
             gid = bytes(info.endpoint_gid)
             if why and gid not in self.reported:
-                self.reported[gid] = (f"{topic}: publisher {info.node_namespace.rstrip('/')}/{info.node_name} offers an "
-                                      f"incompatible QoS ({why}); no messages will arrive from it{self._hint}")
+                publisher = f"{info.node_namespace.rstrip('/')}/{info.node_name}"
+                self.reported[gid] = (f"{topic}: publisher {publisher} offers an incompatible QoS ({why}); no "
+                                      f"messages will arrive from it{self._hint}")
                 self._node.get_logger().warning(self.reported[gid])
 
 

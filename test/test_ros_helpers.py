@@ -195,7 +195,8 @@ def test_tf_falls_back_to_a_tfmessage_publisher(monkeypatch):
 
 # --- QoS --------------------------------------------------------------------------------------------------------------
 def test_incompatibility_follows_the_request_offered_rules():
-    assert qos.incompatibility(qos.SENSOR_QOS, qos.IMAGE_QOS) == "it publishes best effort and this subscription is reliable"
+    assert qos.incompatibility(qos.SENSOR_QOS, qos.IMAGE_QOS) == ("it publishes best effort and this subscription "
+                                                                  "is reliable")
     assert qos.incompatibility(qos.IMAGE_QOS, qos.SENSOR_QOS) is None  # reliable reaches best effort
     assert "volatile" in qos.incompatibility(qos.IMAGE_QOS, qos.LATCHED_QOS)
     assert qos.incompatibility(qos.LATCHED_QOS, qos.IMAGE_QOS) is None

@@ -299,11 +299,12 @@ class GauSemSLAM:
     def _motion_model(self, timestamp: float) -> MotionPrediction:
         """For a frame stamped ``timestamp``: the last good (not lost) frame's pose in the active submap, the
         constant-velocity prediction, whether the frame follows the last good one directly (no lost or dropped frame
-        between), and whether frames were missed since (lost or dropped ones, or by the stamps). The prediction repeats the motion between the latest two consecutive good frames of the tracking
-        segment once per frame since the last good one (lost and dropped frames count), or, where the stamps say
-        clearly more or less time passed (:data:`STAMP_JITTER`: frames a live node skipped), over the time since the
-        last good frame in units of that pair's interval (at most :data:`MAX_PREDICTION_S` ahead). None without such
-        a pair or with ``tracking.constant_velocity`` off."""
+        between), and whether frames were missed since (lost or dropped ones, or by the stamps). The prediction repeats
+        the motion between the latest two consecutive good frames of the tracking segment once per frame since the last
+        good one (lost and dropped frames count), or, where the stamps say clearly more or less time passed
+        (:data:`STAMP_JITTER`: frames a live node skipped), over the time since the last good frame in units of that
+        pair's interval (at most :data:`MAX_PREDICTION_S` ahead). None without such a pair or with
+        ``tracking.constant_velocity`` off."""
         good = self._last_good()
         frames_after = len(self.frames) - good + self.dropped
         previous = self._local_pose(good)
