@@ -46,8 +46,8 @@ def live_positions(length: int, max_gap: int, seed: int) -> list[int]:
     """0, then each next position 1 to ``max_gap`` frames on (uniform, seeded)."""
     rng = np.random.default_rng(seed)
     positions = [0]
-    while (step := int(rng.integers(1, max_gap + 1))) and positions[-1] + step < length:
-        positions.append(positions[-1] + step)
+    while (following := positions[-1] + int(rng.integers(1, max_gap + 1))) < length:
+        positions.append(following)
     return positions
 
 
