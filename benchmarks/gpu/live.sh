@@ -2,13 +2,16 @@
 # The GPU session's checks, run there from the repository root with .gpu/ carried (benchmarks/gpu/bundle.py made
 # .gpu/prefix.txz; add .gpu/gsplat_build.tgz once a first run has returned it in $OUT):
 #   1. set-up (benchmarks/gpu/env.sh) and gsplat's kernels, built and saved to $OUT when not carried;
-#   2. the tracking node live, as on a robot: its own process (stacks sampled, benchmarks/stack_sampler.py) and the
-#      player in another at the camera's rate, the synthetic walk at each of $SIZES; then the processed frames, the
-#      gaps between them and their ATE against the player's ground truth;
-#   3. the CUDA-marked tests.
-# Environment: SIZES (default "160x120 640x480"), SWITCH (the node's sys.setswitchinterval), TESTS=0 to skip 3.
+#   2. the tracking node live on the synthetic loop (360 frames, 12 s at 30 Hz), its threads' stacks sampled
+#      (benchmarks/stack_sampler.py). RUNS lists MODE:SIZE:SWITCH_INTERVAL:DEVICE runs. MODE apart: the node in its
+#      own process and the player in another, as on a robot (processed frames, their gaps and ATE from the node's
+#      trajectory); inproc: `gausem-ros` on a bag of the sequence, all in one process (its report: frames processed
+#      and dropped, latency, ATE);
+#   3. the CUDA-marked tests (TESTS=0 leaves them out).
 set -u
 source benchmarks/gpu/env.sh || exit 1
+SEQUENCE=synthetic:loop
+PARAMS=params/synthetic.yaml
 T0=$SECONDS
 stage() { echo "== $((SECONDS - T0)) s: $*"; }
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
@@ -19,21 +22,24 @@ if [ ! -f .gpu/gsplat_build.tgz ]; then
 fi
 stage "set up"
 
-for size in ${SIZES:-160x120 640x480}; do
-  d=/tmp/live_$size
-  rm -rf "$d" && mkdir -p "$d"
-  python3 benchmarks/stack_sampler.py ${SWITCH:+--switch-interval $SWITCH} -m gausem_ros.nodes.tracking_mapping \
-    --ros-args --params-file params/synthetic.yaml -p save_on_exit:=true -p output_dir:="$d" > "$d/node.log" 2>&1 &
-  node=$!
-  timeout 150 python3 -m gausem_ros.player synthetic --size "$size" --rate 1 --wait-subscribers 120 \
-    --gt-out "$d/gt.txt" --ros-args --params-file params/synthetic.yaml > "$d/player.log" 2>&1
+sampled() {  # sampled SWITCH_INTERVAL MODULE ARGS...: the module with its stacks sampled, in this process
+  local switch=$1
+  shift
+  exec python3 benchmarks/stack_sampler.py --switch-interval "$switch" -m "$@"
+}
+
+apart() {  # apart DIR SIZE SWITCH DEVICE
+  local d=$1 size=$2 switch=$3 device=$4
+  (sampled "$switch" gausem_ros.nodes.tracking_mapping --ros-args --params-file $PARAMS -p device:="$device" \
+    -p save_on_exit:=true -p output_dir:="$d" > "$d/log" 2>&1) &
+  local node=$!
+  timeout 150 python3 -m gausem_ros.player $SEQUENCE --size "$size" --rate 1 --wait-subscribers 120 \
+    --gt-out "$d/gt.txt" --ros-args --params-file $PARAMS > "$d/player.log" 2>&1
+  tail -2 "$d/player.log"
   sleep 5
   kill -TERM $node
   for _ in $(seq 60); do kill -0 $node 2>/dev/null || break; sleep 1; done
   kill -KILL $node 2>/dev/null && echo "node killed 60 s after SIGTERM"
-  stage "live $size"
-  tail -2 "$d/player.log"
-  grep -E "ERROR|lost|relocalis" "$d/node.log" | head -5
   python3 - "$d" <<'EOF'
 import sys
 from pathlib import Path
@@ -50,7 +56,29 @@ if len(estimate) >= 3:
     line += f"; ATE {100 * absolute_trajectory_error(*associate_trajectories(estimate, truth)).rmse:.2f} cm"
 print(line)
 EOF
-  sed -n '/\[stack-sampler\]/,$p' "$d/node.log" | grep -v "^\s*[0-9]*\s*$" | head -60
+}
+
+inproc() {  # inproc DIR SIZE SWITCH DEVICE
+  local d=$1 size=$2 switch=$3 device=$4 bag=/tmp/bag_$2
+  [ -d "$bag" ] || python3 -m gausem_ros.convert $SEQUENCE "$bag" --size "$size" > /dev/null || return
+  (sampled "$switch" gausem_ros.run_all "$bag" --rate 1 --quiet --report "$d/report" --reference $SEQUENCE \
+    --ros-args --params-file $PARAMS -p device:="$device" > "$d/log" 2>&1) &
+  local all=$!
+  for _ in $(seq 200); do kill -0 $all 2>/dev/null || break; sleep 1; done
+  kill -TERM $all 2>/dev/null && echo "gausem-ros stopped after 200 s" && sleep 10
+  grep "frames in" "$d/log"
+  grep -E "^(ate_rmse_cm|fps) " "$d/log"
+}
+
+for run in ${RUNS:-apart:160x120:0.005:cuda apart:160x120:0.0001:cuda apart:160x120:0.005:cpu \
+                   inproc:160x120:0.005:cuda apart:640x480:0.005:cuda}; do
+  IFS=: read -r mode size switch device <<< "$run"
+  d=/tmp/live_${mode}_${size}_${switch}_$device
+  rm -rf "$d" && mkdir -p "$d"
+  stage "$run"
+  $mode "$d" "$size" "$switch" "$device"
+  grep -E "ERROR|lost|relocalis" "$d/log" | head -4
+  sed -n '/\[stack-sampler\]/,$p' "$d/log" | head -50
 done
 
 if [ "${TESTS:-1}" != 0 ]; then
