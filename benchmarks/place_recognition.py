@@ -78,6 +78,8 @@ def loop_quality(closure, observe, poses: dict[int, np.ndarray], positions: np.n
            "accepted_true": sum(overlap(r.query_frame, r.match_frame) >= MIN_OVERLAP for r in accepted),
            "revisits": len(revisits),
            "revisits_closed": sum(any(r.query_frame in run for r in accepted) for run in revisits),
+           "revisit_runs": [{"frames": [run[0], run[-1]], "keyframes": len(run),
+                             "closed": any(r.query_frame in run for r in accepted)} for run in revisits],
            "loops": [{"k": r.query_frame, "j": r.match_frame, "intra": r.intra, "accepted": r.accepted,
                       "inliers": r.inliers, "fitness": round(r.fitness, 3),
                       "true_overlap": round(overlap(r.query_frame, r.match_frame), 3)} for r in records]}
