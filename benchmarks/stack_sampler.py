@@ -26,6 +26,7 @@ OURS = ("/gausem_core/", "/gausem_ros/")
 
 
 def place(frame) -> str:
+    """A frame's innermost function (file:line), and the innermost one in GauSem's code when that is another."""
     stack = traceback.extract_stack(frame)
     top = stack[-1]
     where = f"{top.name} ({os.path.basename(top.filename)}:{top.lineno})"
@@ -36,8 +37,11 @@ def place(frame) -> str:
 
 
 class StackSampler:
+    """Counts where every other thread is, every ``interval`` s, on a daemon thread; :meth:`report` prints it."""
+
     def __init__(self, interval: float, top: int):
         self.interval, self.top = interval, top
+        self._start = time.monotonic()
         self.counts: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
         self.samples = 0
         self.cpu: dict[str, float] = {}  # thread -> CPU seconds, read every second (threads that end keep theirs)
@@ -66,6 +70,8 @@ class StackSampler:
             return
         self._reported = True
         self._stop.set()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout=1.0)  # no sample half-counted while printing
         out = sys.__stderr__
         print(f"\n[stack-sampler] {self.samples} samples in {time.monotonic() - self._start:.1f} s", file=out)
         for name, counter in list(self.counts.items()):
