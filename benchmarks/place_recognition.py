@@ -72,14 +72,13 @@ def loop_quality(closure, observe, poses: dict[int, np.ndarray], positions: np.n
             run = []
     revisits += [run] if run else []
     accepted = [r for r in records if r.accepted]
+    runs = [{"frames": [run[0], run[-1]], "keyframes": len(run), "closed": any(r.query_frame in run for r in accepted)}
+            for run in revisits]
     row = {"place_recognition": closure.place_recognition, "detected": len(records), "accepted": len(accepted),
            "rejected_by_verification": closure.rejected_candidates,
            "detected_true": sum(overlap(r.query_frame, r.match_frame) >= MIN_OVERLAP for r in records),
            "accepted_true": sum(overlap(r.query_frame, r.match_frame) >= MIN_OVERLAP for r in accepted),
-           "revisits": len(revisits),
-           "revisits_closed": sum(any(r.query_frame in run for r in accepted) for run in revisits),
-           "revisit_runs": [{"frames": [run[0], run[-1]], "keyframes": len(run),
-                             "closed": any(r.query_frame in run for r in accepted)} for run in revisits],
+           "revisits": len(runs), "revisits_closed": sum(run["closed"] for run in runs), "revisit_runs": runs,
            "loops": [{"k": r.query_frame, "j": r.match_frame, "intra": r.intra, "accepted": r.accepted,
                       "inliers": r.inliers, "fitness": round(r.fitness, 3),
                       "true_overlap": round(overlap(r.query_frame, r.match_frame), 3)} for r in records]}
