@@ -1,9 +1,10 @@
-"""Tracking across the frames a live node skips: the sequence's frames with seeded random gaps (1 to ``--max-gap``
-source frames between processed ones, true stamps kept, as a node slower than its camera sees them), run with each
-``tracking.gauss_newton.search`` mode; loop closure and the global refinement off, so the ATE is tracking's. Reports
-ATE, tracking status counts and seconds a frame. Run from the repository root, e.g.
+"""Tracking across the frames a live node skips: the sequence's frames with seeded random gaps (``--min-gap`` to
+``--max-gap`` source frames between processed ones, true stamps kept, as a node slower than its camera sees them;
+equal bounds: a node steadily N times slower), run with each variant (``--variants``: comma-separated SLAM parameter
+overrides, "" for the defaults); loop closure and the global refinement off, so the ATE is tracking's. Reports ATE,
+tracking status counts and seconds a frame. Run from the repository root, e.g.
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/frame_gaps.py --source tum:../shared/data/tum_fr1_rpy \
-        --max-gap 3 --out benchmarks/results/frame_gaps_tum_fr1_rpy.md
+        --max-gap 3 --variants tracking.gauss_newton.search=off "" --out benchmarks/results/frame_gaps_tum_fr1_rpy.md
 """
 from __future__ import annotations
 
@@ -16,13 +17,13 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from gausem_core.config import load_config
 from gausem_core.data import open_dataset
 from gausem_core.io.trajectory import Trajectory
 from gausem_core.pipeline import Pipeline
 from gausem_core.report import trajectory_metrics
-from gausem_core.slam.tracker import SEARCH_MODES
 from gausem_core.tools.run import default_params_file, parse_size
 
 
@@ -42,24 +43,32 @@ class SkippedFrames:
         return getattr(self._dataset, name)
 
 
-def live_positions(length: int, max_gap: int, seed: int) -> list[int]:
-    """0, then each next position 1 to ``max_gap`` frames on (uniform, seeded)."""
+def live_positions(length: int, min_gap: int, max_gap: int, seed: int) -> list[int]:
+    """0, then each next position ``min_gap`` to ``max_gap`` frames on (uniform, seeded)."""
     rng = np.random.default_rng(seed)
     positions = [0]
-    while (following := positions[-1] + int(rng.integers(1, max_gap + 1))) < length:
+    while (following := positions[-1] + int(rng.integers(min_gap, max_gap + 1))) < length:
         positions.append(following)
     return positions
 
 
-def run(spec: str, dataset, mode: str) -> dict:
+def overrides(variant: str) -> dict:
+    """``"K=V,K=V"`` as a dict of SLAM parameter overrides (values parsed as YAML)."""
+    pairs = [item.split("=", 1) for item in variant.split(",") if item]
+    if any(len(pair) != 2 for pair in pairs):
+        raise SystemExit(f"frame_gaps: a variant is K=V[,K=V...], got {variant!r}")
+    return {key: yaml.safe_load(value) for key, value in pairs}
+
+
+def run(spec: str, dataset, variant: str) -> dict:
     cfg = load_config(default_params_file(spec), {"device": "cpu", "loop.enabled": False, "refinement.enabled": False,
-                                                  "tracking.gauss_newton.search": mode})
+                                                  **overrides(variant)})
     result = Pipeline(dataset, cfg, progress=False).run()
     gt = [(t, pose) for t, pose in zip(result.timestamps, result.gt_poses) if pose is not None]
     metrics, _ = trajectory_metrics(Trajectory(result.timestamps, result.poses),
                                     Trajectory([t for t, _ in gt], np.array([p for _, p in gt])))
     statuses = Counter(health.status for _, _, health in result.health)
-    return {"mode": mode, "frames": len(dataset), "ate_rmse_cm": round(metrics["ate_rmse_cm"], 2),
+    return {"variant": variant or "defaults", "frames": len(dataset), "ate_rmse_cm": round(metrics["ate_rmse_cm"], 2),
             **{status: statuses.get(status, 0) for status in ("ok", "degraded", "lost")},
             "seconds_per_frame": round(result.seconds / len(dataset), 3)}
 
@@ -69,30 +78,32 @@ def main() -> None:
     parser.add_argument("--source", default="synthetic", help="dataset spec (default: synthetic)")
     parser.add_argument("--size", default="160x120")
     parser.add_argument("--frames", type=int, default=None, help="source frames to draw from (default: all)")
+    parser.add_argument("--min-gap", type=int, default=1, help="smallest step between processed frames")
     parser.add_argument("--max-gap", type=int, default=3, help="largest step between processed frames")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--modes", nargs="+", default=["off", "gaps"], choices=SEARCH_MODES)
+    parser.add_argument("--variants", nargs="+", default=[""],
+                        help='SLAM parameter overrides per run, "K=V,K=V" ("": the defaults)')
     parser.add_argument("--out", type=Path, default=None, help="write a markdown table here (and .json beside it)")
     args = parser.parse_args()
     source = open_dataset(args.source, size=parse_size(args.size), max_frames=args.frames)
-    dataset = SkippedFrames(source, live_positions(len(source), args.max_gap, args.seed))
+    dataset = SkippedFrames(source, live_positions(len(source), args.min_gap, args.max_gap, args.seed))
     rows = []
-    for mode in args.modes:
+    for variant in args.variants:
         start = time.perf_counter()
-        rows.append(run(args.source, dataset, mode))
-        print(f"{mode}: {rows[-1]} ({time.perf_counter() - start:.0f} s)", flush=True)
+        rows.append(run(args.source, dataset, variant))
+        print(f"{rows[-1]['variant']}: {rows[-1]} ({time.perf_counter() - start:.0f} s)", flush=True)
     commit = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True).stdout.strip()
-    header = (f"Frame gaps: {args.source} at {args.size}, {len(dataset)} of {len(source)} frames, steps 1-"
+    header = (f"Frame gaps: {args.source} at {args.size}, {len(dataset)} of {len(source)} frames, steps {args.min_gap}-"
               f"{args.max_gap} (seed {args.seed}); loop closure and refinement off; commit {commit}, "
               f"{datetime.date.today()}\n\n")
-    table = "| search | frames | ATE cm | ok | degraded | lost | s/frame |\n|---|---|---|---|---|---|---|\n" + "".join(
-        f"| {r['mode']} | {r['frames']} | {r['ate_rmse_cm']} | {r['ok']} | {r['degraded']} | {r['lost']} | "
+    table = "| variant | frames | ATE cm | ok | degraded | lost | s/frame |\n|---|---|---|---|---|---|---|\n" + "".join(
+        f"| {r['variant']} | {r['frames']} | {r['ate_rmse_cm']} | {r['ok']} | {r['degraded']} | {r['lost']} | "
         f"{r['seconds_per_frame']} |\n" for r in rows)
     print(header + table)
     if args.out:
         args.out.write_text(header + table)
         args.out.with_suffix(".json").write_text(json.dumps({"source": args.source, "size": args.size,
-                                                             "max_gap": args.max_gap, "seed": args.seed,
+                                                             "min_gap": args.min_gap, "max_gap": args.max_gap, "seed": args.seed,
                                                              "positions": dataset.positions, "commit": commit,
                                                              "rows": rows}, indent=1))
 

@@ -37,6 +37,20 @@ class GaussNewtonTrackingConfig:
 
 
 @dataclass
+class FeatureStartConfig:
+    """A tracking start from ORB feature matches with the last good frame (``slam.feature_start``): a basin of
+    convergence as wide as the features match, for the frames a live node skips."""
+
+    mode: str = "off"  # "gaps" (after skipped or lost frames, as gauss_newton.search), "always" or "off"
+    features: int = 500  # ORB keypoints per image
+    fast_threshold: int = 5  # ORB's FAST corner threshold (grey levels)
+    min_image_side: int = 240  # images with a shorter side are upscaled by an integer factor for ORB
+    match_ratio: float = 0.8  # nearest / second-nearest Hamming distance below this
+    max_reprojection_error: float = 3.0  # RANSAC PnP inlier bound, in pixels of the (upscaled) ORB image
+    min_inliers: int = 15  # fewer PnP inliers: no start
+
+
+@dataclass
 class AdamTrackingConfig:
     """What only the Adam tracker reads (``tracking.method: adam``: the paper's optimiser, through the renderer)."""
 
@@ -64,6 +78,7 @@ class TrackingConfig:
     silhouette_threshold: float = 0.99
     constant_velocity: bool = True
     gauss_newton: GaussNewtonTrackingConfig = field(default_factory=GaussNewtonTrackingConfig)
+    feature_start: FeatureStartConfig = field(default_factory=FeatureStartConfig)
     adam: AdamTrackingConfig = field(default_factory=AdamTrackingConfig)
 
 
@@ -72,6 +87,7 @@ class MappingConfig:
     """Submap initialisation and keyframe-window bundle adjustment (paper Eq. 3-4)."""
 
     every: int = 5  # d_map: map (and take a keyframe) every this many frames
+    min_coverage: float = 0.0  # ... and whenever the map renders a silhouette on less than this fraction of the view
     iterations: int = 30
     init_iterations: int = 200  # the paper uses 1000 on a GPU
     window: int = 8  # keyframes sampled from the most recent this many (plus the current frame)

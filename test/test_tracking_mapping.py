@@ -233,3 +233,50 @@ def test_the_search_starts_surround_the_start_and_an_unknown_mode_is_rejected():
     assert len(Tracker(no_turns)._search_starts(pose)) == 6
     with pytest.raises(ValueError, match="tracking.gauss_newton.search must be one of"):
         Tracker(dataclasses.replace(cfg, gauss_newton=dataclasses.replace(cfg.gauss_newton, search="sometimes")))
+
+
+def test_the_feature_start_places_a_frame_that_moved_beyond_the_dense_basin():
+    """Six frames of the synthetic loop apart (a node at 5 Hz on a 30 Hz camera), ORB matches with the last good
+    frame and PnP on its depth put the frame within a few centimetres; without a remembered frame, or when the
+    images share no features, there is no start."""
+    from gausem_core.config import FeatureStartConfig
+    from gausem_core.slam.feature_start import FeatureStart
+    from loop_scene import frame
+
+    (reference, reference_pose), (current, current_pose) = frame(120), frame(126)
+    start = FeatureStart(FeatureStartConfig(mode="always"))
+    assert start.predict(current, reference_pose) is None  # nothing remembered yet
+    start.remember(reference)
+    predicted = start.predict(current, reference_pose)
+    moved, _ = pose_error(reference_pose, current_pose)
+    assert predicted is not None and predicted.dtype == reference_pose.dtype
+    translation, rotation = pose_error(predicted, current_pose)
+    assert moved > 0.15 and translation < 0.04 and rotation < 1.5
+    blank = dataclasses.replace(current, rgb=torch.full_like(current.rgb, 0.5))
+    assert start.predict(blank, reference_pose) is None
+    assert start.wanted(gap=False) and not FeatureStart(FeatureStartConfig(mode="gaps")).wanted(gap=False)
+    with pytest.raises(ValueError, match="tracking.feature_start.mode must be one of"):
+        FeatureStart(FeatureStartConfig(mode="sometimes"))
+
+
+def test_frames_the_map_covers_too_little_of_are_mapped_as_keyframes():
+    """With ``mapping.min_coverage``, a camera outrunning its map (every 3rd frame of the walk) gets a keyframe
+    wherever the map covers less of its view than that; without it only every N-th frame is one."""
+    from gausem_core.slam.system import GauSemSLAM
+
+    dataset = open_dataset("synthetic", size=(64, 48), max_frames=22)
+    for min_coverage in (0.0, 0.6):
+        cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "refinement.enabled": False,
+                                                    "mapping.init_iterations": 40, "mapping.iterations": 5,
+                                                    "mapping.every": 100, "mapping.min_coverage": min_coverage})
+        pipeline = Pipeline(dataset, cfg, progress=False)
+        slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
+        results = [slam.process(pipeline.observation(dataset[i])) for i in range(0, 22, 3)]
+        keyframes = [r.frame_id for r in results if r.is_keyframe]
+        assert keyframes == sorted(kf.frame_id for s in slam.submaps for kf in s.keyframes)
+        if min_coverage == 0:
+            assert keyframes == [0]
+            continue
+        assert len(keyframes) > 1
+        for r in results[1:]:
+            assert r.is_keyframe == (r.health.status != "lost" and r.health.coverage < min_coverage), r.health

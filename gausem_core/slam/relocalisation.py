@@ -3,7 +3,7 @@ or failed (after a tracking loss).
 
 Start poses are the last tracked pose and keyframe poses (the keyframes nearest to the frame by global descriptor,
 completed by the active submap's keyframes); after a tracking loss the system puts the constant-velocity prediction
-first. The frame is tracked from each start with the map frozen, against the Gaussians of the start's submap, and the
+first, and the feature start from the last good frame before it (``tracking.feature_start``). The frame is tracked from each start with the map frozen, against the Gaussians of the start's submap, and the
 result explaining the most pixels wins: an inlier is a pixel with a valid depth where the map renders (alpha above
 ``inlier_alpha``) within ``inlier_depth`` of it. The winner is accepted when its inlier fraction reaches
 ``min_inlier_fraction``.
@@ -41,7 +41,7 @@ class RelocalisationResult:
     inlier_fraction: float
     tracking_loss: float
     iterations: int
-    start: str  # which start won: "constant velocity", "last pose" or "keyframe N"
+    start: str  # which start won: "features", "constant velocity", "last pose" or "keyframe N"
     submap_id: int  # the submap it was tracked against
     starts: int  # how many starts were tried
     health: TrackingHealth | None = None  # after a tracking loss: the health monitor's verdict on the placement

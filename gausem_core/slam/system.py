@@ -28,6 +28,7 @@ from gausem_core.render import prepare_backend
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
 from gausem_core.slam.depth_filter import filter_observation
+from gausem_core.slam.feature_start import FeatureStart
 from gausem_core.slam.events import Correction, FrameEvents, KeyframeState, SubmapChange
 from gausem_core.slam.health import HealthMonitor, TrackingHealth, image_signals
 from gausem_core.slam.loop import LoopCandidate
@@ -214,6 +215,7 @@ class GauSemSLAM:
         self.num_classes = num_classes
         # the tracking step; another object with Tracker.track's signature may stand in (e.g. a benchmark's oracle)
         self.tracker = tracker if tracker is not None else Tracker(cfg.tracking, cfg.backend)
+        self.feature_start = FeatureStart(cfg.tracking.feature_start)
         self.health = HealthMonitor(cfg.health)
         self.mapper = Mapper(cfg.mapping, cfg.backend, cfg.seed)
         self.allocation = make_allocation(cfg.submaps)
@@ -244,6 +246,7 @@ class GauSemSLAM:
         self.mapper.hurry.clear()
         if not self.submaps:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
+            self.feature_start.remember(obs)
             return self._result(None, True, loss, None, events=self._keyframe_events([]))
         tracked, relocalised = self._place(obs)
         if tracked is None:  # lost and not relocalised: the frame is dropped
@@ -257,7 +260,9 @@ class GauSemSLAM:
         self.dropped = 0
         pose = tracked.cam_to_world.detach()
         lost = health.status == "lost"
-        if lost or frame_id % self.cfg.mapping.every:
+        if not lost:
+            self.feature_start.remember(obs)
+        if lost or not self._is_keyframe(frame_id, health):
             reference = self.active.keyframes[-1]
             self.frames.append(FrameRecord(frame_id, obs.timestamp, self.active, reference,
                                            invert_pose(reference.cam_to_world) @ pose, lost))
@@ -276,6 +281,11 @@ class GauSemSLAM:
         release_free_heap()  # mapping and loop closure freed many image-sized buffers
         return self._result(tracked, True, loss, decision, relocalised, health, events)
 
+    def _is_keyframe(self, frame_id: int, health: TrackingHealth) -> bool:
+        """Every ``mapping.every``-th frame is mapped, and a frame whose view the map covers less than
+        ``mapping.min_coverage`` of (a camera outrunning its map: fast motion, or frames a live node skipped)."""
+        return frame_id % self.cfg.mapping.every == 0 or health.coverage < self.cfg.mapping.min_coverage
+
     def _place(self, obs: Observation) -> tuple[TrackingResult | None, RelocalisationResult | None]:
         """The frame's pose in the active submap: tracked, or relocalised while :attr:`lost` (None when that
         fails)."""
@@ -292,9 +302,12 @@ class GauSemSLAM:
         motion = self._motion_model(obs.timestamp)
         mode = self.cfg.tracking.gauss_newton.search
         search = mode == "always" or (mode == "gaps" and motion.gap)
+        featured = self.feature_start.predict(obs, motion.previous) if self.feature_start.wanted(motion.gap) else None
+        alternatives = [] if featured is None else [featured]
         if motion.predicted is None:
-            return self.tracker.track(self.active.cloud, obs, motion.previous, search=search)
-        return self.tracker.track(self.active.cloud, obs, motion.predicted, [motion.previous], search=search)
+            return self.tracker.track(self.active.cloud, obs, motion.previous, alternatives, search=search)
+        return self.tracker.track(self.active.cloud, obs, motion.predicted, [motion.previous, *alternatives],
+                                  search=search)
 
     def _motion_model(self, timestamp: float) -> MotionPrediction:
         """For a frame stamped ``timestamp``: the last good (not lost) frame's pose in the active submap, the
@@ -367,7 +380,8 @@ class GauSemSLAM:
         and the ``relocalisation.candidates`` keyframes nearest by global descriptor (or the active submap's
         keyframes), the best start kept. After a tracking loss it accepts from ``health.recovery_inlier_fraction``
         (the map lacks what the lost frames would have added) and only a placement that passes the health monitor
-        (:meth:`_judge_recovery`). Changes nothing; :meth:`process` uses it while :attr:`lost`."""
+        (:meth:`_judge_recovery`). With ``tracking.feature_start`` on, the feature start from the last good frame
+        comes first. Changes nothing; :meth:`process` uses it while :attr:`lost`."""
         if not self.frames:
             raise ValueError("relocalise: the map is empty (no frame processed or loaded)")
         cfg = self.cfg.relocalisation
@@ -383,6 +397,9 @@ class GauSemSLAM:
         predicted = self._motion_model(obs.timestamp).predicted
         if predicted is not None:
             starts.insert(0, Start(self.active, predicted, "constant velocity"))
+        featured = self.feature_start.predict(obs, local) if self.feature_start.wanted(gap=True) else None
+        if featured is not None:
+            starts.insert(0, Start(last.submap, featured, "features"))
         placed = track_from_starts(obs, starts, self.tracker, cfg, self.device)
         return self._judge_recovery(obs, placed) if recovering and placed.accepted else placed
 

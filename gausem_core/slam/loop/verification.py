@@ -53,36 +53,54 @@ def match_features(query: OrbFeatures, match: OrbFeatures, ratio: float) -> np.n
     return np.array(pairs, np.int64).reshape(-1, 2)
 
 
-def verify(query: OrbFeatures, match: OrbFeatures, query_obs: Observation, match_obs: Observation,
-           cfg: BowConfig, max_depth_residual: float) -> Verification:
-    """Check that the query keyframe sees the match keyframe's place (see the module docstring)."""
-    pairs = match_features(query, match, cfg.match_ratio)
+@dataclass(frozen=True)
+class FeaturePose:
+    """A pose from feature matches: ``matches`` with depth, PnP ``inliers`` and ``query_from_match`` (the match
+    camera's frame in the query camera's, float64 4x4; None when PnP found fewer than ``min_inliers``)."""
+
+    matches: int
+    inliers: int
+    query_from_match: torch.Tensor | None
+
+
+def feature_pose(query: OrbFeatures, match: OrbFeatures, camera, match_ratio: float, max_reprojection_error: float,
+                 min_inliers: int) -> FeaturePose:
+    """The query camera's pose relative to the match camera from ORB matches whose match-image point has depth:
+    RANSAC PnP (AP3P samples), then Levenberg-Marquardt on the inliers, twice."""
+    pairs = match_features(query, match, match_ratio)
     if len(pairs):
         pairs = pairs[np.isfinite(match.points[pairs[:, 1], 2])]
-    if len(pairs) < max(cfg.min_inliers, 4):
-        return Verification(False, len(pairs), 0, 0.0, 0.0, None)
-    camera = query_obs.camera
+    if len(pairs) < max(min_inliers, 4):
+        return FeaturePose(len(pairs), 0, None)
     intrinsics = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]], np.float64)
     points = match.points[pairs[:, 1]].astype(np.float64)
     pixels = query.keypoints[pairs[:, 0]].astype(np.float64)
-    bound = cfg.max_reprojection_error / query.scale
+    bound = max_reprojection_error / query.scale
     found, rotation, translation, inliers = cv2.solvePnPRansac(
         points, pixels, intrinsics, None, iterationsCount=_RANSAC_ITERATIONS, reprojectionError=bound,
         confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
     count = 0 if inliers is None else len(inliers)
-    if not found or count < cfg.min_inliers:
-        return Verification(False, len(pairs), count, 0.0, 0.0, None)
+    if not found or count < min_inliers:
+        return FeaturePose(len(pairs), count, None)
     inliers = inliers.reshape(-1)
     for _ in range(2):  # the minimal sample's pose leaves out inliers that the refined pose takes in: refine again
         rotation, translation = cv2.solvePnPRefineLM(points[inliers], pixels[inliers], intrinsics, None, rotation,
                                                      translation)
         projected = cv2.projectPoints(points, rotation, translation, intrinsics, None)[0].reshape(-1, 2)
         inliers = np.flatnonzero(np.linalg.norm(projected - pixels, axis=1) < bound)
-    count = len(inliers)
     query_from_match = torch.eye(4, dtype=torch.float64)
     query_from_match[:3, :3] = torch.from_numpy(cv2.Rodrigues(rotation)[0])
     query_from_match[:3, 3] = torch.from_numpy(translation.reshape(3))
+    return FeaturePose(len(pairs), len(inliers), query_from_match if len(inliers) >= min_inliers else None)
+
+
+def verify(query: OrbFeatures, match: OrbFeatures, query_obs: Observation, match_obs: Observation,
+           cfg: BowConfig, max_depth_residual: float) -> Verification:
+    """Check that the query keyframe sees the match keyframe's place (see the module docstring)."""
+    found = feature_pose(query, match, query_obs.camera, cfg.match_ratio, cfg.max_reprojection_error, cfg.min_inliers)
+    if found.query_from_match is None:
+        return Verification(False, found.matches, found.inliers, 0.0, 0.0, None)
     with torch.no_grad():
-        overlap, fitness = warp_agreement(match_obs, query_obs, query_from_match, max_depth_residual)
-    passed = count >= cfg.min_inliers and overlap >= cfg.min_overlap and fitness >= cfg.min_fitness
-    return Verification(passed, len(pairs), count, overlap, fitness, invert_pose(query_from_match))
+        overlap, fitness = warp_agreement(match_obs, query_obs, found.query_from_match, max_depth_residual)
+    passed = overlap >= cfg.min_overlap and fitness >= cfg.min_fitness
+    return Verification(passed, found.matches, found.inliers, overlap, fitness, invert_pose(found.query_from_match))

@@ -1,0 +1,65 @@
+"""A start pose for tracking from ORB feature matches with the last good frame.
+
+Dense alignment converges from a pixel or two at its coarsest pyramid level; a live node slower than its camera sees
+larger motions between the frames it processes. Features match across those: the current frame's ORB keypoints are
+matched to the last good frame's, whose depth makes them 3D points, and RANSAC PnP gives the current camera's pose
+relative to it (:func:`~gausem_core.slam.loop.verification.feature_pose`, as loop verification uses). That pose is one
+more start for the tracker, which keeps the start its coarsest level aligns best, so a wrong feature pose costs one
+coarse alignment, not the frame.
+"""
+from __future__ import annotations
+
+import torch
+
+from gausem_core.config import FeatureStartConfig
+from gausem_core.geometry import invert_pose, project_to_se3
+from gausem_core.slam.loop.verification import feature_pose
+from gausem_core.slam.loop.words import OrbFeatures, extract_features
+from gausem_core.slam.observation import Observation
+
+FEATURE_START_MODES = ("gaps", "always", "off")
+
+
+class FeatureStart:
+    """Remembers the last good frame (:meth:`remember`) and predicts a frame's pose from feature matches with it
+    (:meth:`predict`). Each frame's features are extracted once."""
+
+    def __init__(self, cfg: FeatureStartConfig):
+        if cfg.mode not in FEATURE_START_MODES:
+            raise ValueError(f"tracking.feature_start.mode must be one of {FEATURE_START_MODES}, got {cfg.mode!r}")
+        self.cfg = cfg
+        self._reference: tuple[Observation, OrbFeatures | None] | None = None  # the last good frame
+        self._latest: tuple[Observation, OrbFeatures] | None = None  # the last frame predicted
+
+    def wanted(self, gap: bool) -> bool:
+        """Whether to predict a frame that follows the last good one after a gap (or directly)."""
+        return self.cfg.mode == "always" or (self.cfg.mode == "gaps" and gap)
+
+    def remember(self, obs: Observation) -> None:
+        """``obs`` is the last good frame now."""
+        if self.cfg.mode != "off":
+            self._reference = obs, self._latest[1] if self._latest and self._latest[0] is obs else None
+
+    def forget(self) -> None:
+        self._reference = self._latest = None
+
+    def predict(self, obs: Observation, previous: torch.Tensor) -> torch.Tensor | None:
+        """``obs``'s cam_to_world from the last good frame's ``previous`` cam_to_world moved by the feature pose;
+        None without a remembered frame or when too few features agree on a pose."""
+        if self._reference is None:
+            return None
+        reference, features = self._reference
+        if features is None:
+            features = self._features(reference)
+            self._reference = reference, features
+        current = self._features(obs)
+        self._latest = obs, current
+        cfg = self.cfg
+        found = feature_pose(current, features, obs.camera, cfg.match_ratio, cfg.max_reprojection_error,
+                             cfg.min_inliers)
+        if found.query_from_match is None:
+            return None
+        return project_to_se3(previous.double() @ invert_pose(found.query_from_match).to(previous.device)).to(previous)
+
+    def _features(self, obs: Observation) -> OrbFeatures:
+        return extract_features(obs.rgb, obs.depth, obs.camera, self.cfg)
