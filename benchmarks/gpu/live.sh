@@ -3,7 +3,8 @@
 # .gpu/prefix.txz; add .gpu/gsplat_build.tgz once a first run has returned it in $OUT):
 #   1. set-up (benchmarks/gpu/env.sh) and gsplat's kernels, built and saved to $OUT when not carried;
 #   2. the tracking node live on the synthetic loop (360 frames, 12 s at 30 Hz), its threads' stacks sampled
-#      (benchmarks/stack_sampler.py). RUNS lists MODE:SIZE:SWITCH_INTERVAL:DEVICE runs. MODE apart: the node in its
+#      (benchmarks/stack_sampler.py). RUNS lists MODE:SIZE:SWITCH_INTERVAL:DEVICE[:live] runs (live: with the
+#      settings for skipped frames, LIVE_SETTINGS). MODE apart: the node in its
 #      own process and the player in another, as on a robot (processed frames, their gaps and ATE from the node's
 #      trajectory); inproc: `gausem-ros` on a bag of the sequence, all in one process (its report: frames processed
 #      and dropped, latency, ATE);
@@ -12,6 +13,7 @@ set -u
 source benchmarks/gpu/env.sh || exit 1
 SEQUENCE=synthetic:loop
 PARAMS=params/synthetic.yaml
+LIVE_SETTINGS="-p tracking.feature_start.mode:=always -p mapping.min_coverage:=0.6"
 T0=$SECONDS
 stage() { echo "== $((SECONDS - T0)) s: $*"; }
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
@@ -28,9 +30,10 @@ sampled() {  # sampled SWITCH_INTERVAL MODULE ARGS...: the module with its stack
   exec python3 benchmarks/stack_sampler.py --switch-interval "$switch" -m "$@"
 }
 
-apart() {  # apart DIR SIZE SWITCH DEVICE
+apart() {  # apart DIR SIZE SWITCH DEVICE [SETTINGS...]
   local d=$1 size=$2 switch=$3 device=$4
-  (sampled "$switch" gausem_ros.nodes.tracking_mapping --ros-args --params-file $PARAMS -p device:="$device" \
+  shift 4
+  (sampled "$switch" gausem_ros.nodes.tracking_mapping --ros-args --params-file $PARAMS -p device:="$device" "$@" \
     -p save_on_exit:=true -p output_dir:="$d" > "$d/log" 2>&1) &
   local node=$!
   timeout 150 python3 -m gausem_ros.player $SEQUENCE --size "$size" --rate 1 --wait-subscribers 120 \
@@ -58,11 +61,12 @@ print(line)
 EOF
 }
 
-inproc() {  # inproc DIR SIZE SWITCH DEVICE
+inproc() {  # inproc DIR SIZE SWITCH DEVICE [SETTINGS...]
   local d=$1 size=$2 switch=$3 device=$4 bag=/tmp/bag_$2
+  shift 4
   [ -d "$bag" ] || python3 -m gausem_ros.convert $SEQUENCE "$bag" --size "$size" > /dev/null || return
   (sampled "$switch" gausem_ros.run_all "$bag" --rate 1 --quiet --report "$d/report" --reference $SEQUENCE \
-    --ros-args --params-file $PARAMS -p device:="$device" > "$d/log" 2>&1) &
+    --ros-args --params-file $PARAMS -p device:="$device" "$@" > "$d/log" 2>&1) &
   local all=$!
   for _ in $(seq 200); do kill -0 $all 2>/dev/null || break; sleep 1; done
   kill -TERM $all 2>/dev/null && echo "gausem-ros stopped after 200 s" && sleep 10
@@ -70,13 +74,14 @@ inproc() {  # inproc DIR SIZE SWITCH DEVICE
   grep -E "^(ate_rmse_cm|fps) " "$d/log"
 }
 
-for run in ${RUNS:-apart:160x120:0.005:cuda apart:160x120:0.0001:cuda apart:160x120:0.005:cpu \
-                   inproc:160x120:0.005:cuda apart:640x480:0.005:cuda}; do
-  IFS=: read -r mode size switch device <<< "$run"
-  d=/tmp/live_${mode}_${size}_${switch}_$device
+for run in ${RUNS:-apart:160x120:0.005:cuda apart:160x120:0.0001:cuda apart:160x120:0.005:cuda:live \
+                   inproc:160x120:0.005:cuda apart:640x480:0.005:cuda:live}; do
+  IFS=: read -r mode size switch device settings <<< "$run"
+  d=/tmp/live_${mode}_${size}_${switch}_${device}_${settings:-defaults}
   rm -rf "$d" && mkdir -p "$d"
   stage "$run"
-  $mode "$d" "$size" "$switch" "$device"
+  if [ "$settings" = live ]; then extra=($LIVE_SETTINGS); else extra=(); fi
+  $mode "$d" "$size" "$switch" "$device" "${extra[@]}"
   grep -E "ERROR|lost|relocalis" "$d/log" | head -4
   sed -n '/\[stack-sampler\]/,$p' "$d/log" | head -50
 done
