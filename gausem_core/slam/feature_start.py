@@ -40,9 +40,6 @@ class FeatureStart:
         if self.cfg.mode != "off":
             self._reference = obs, self._latest[1] if self._latest and self._latest[0] is obs else None
 
-    def forget(self) -> None:
-        self._reference = self._latest = None
-
     def predict(self, obs: Observation, previous: torch.Tensor) -> torch.Tensor | None:
         """``obs``'s cam_to_world from the last good frame's ``previous`` cam_to_world moved by the feature pose;
         None without a remembered frame or when too few features agree on a pose."""

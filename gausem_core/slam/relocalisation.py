@@ -3,10 +3,10 @@ or failed (after a tracking loss).
 
 Start poses are the last tracked pose and keyframe poses (the keyframes nearest to the frame by global descriptor,
 completed by the active submap's keyframes); after a tracking loss the system puts the constant-velocity prediction
-first, and the feature start from the last good frame before it (``tracking.feature_start``). The frame is tracked from each start with the map frozen, against the Gaussians of the start's submap, and the
-result explaining the most pixels wins: an inlier is a pixel with a valid depth where the map renders (alpha above
-``inlier_alpha``) within ``inlier_depth`` of it. The winner is accepted when its inlier fraction reaches
-``min_inlier_fraction``.
+first, and the feature start from the last good frame before it (``tracking.feature_start``). The frame is tracked
+from each start with the map frozen, against the Gaussians of the start's submap, and the result explaining the most
+pixels wins: an inlier is a pixel with a valid depth where the map renders (alpha above ``inlier_alpha``) within
+``inlier_depth`` of it. The winner is accepted when its inlier fraction reaches ``min_inlier_fraction``.
 """
 from __future__ import annotations
 

@@ -28,8 +28,8 @@ from gausem_core.render import prepare_backend
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
 from gausem_core.slam.depth_filter import filter_observation
-from gausem_core.slam.feature_start import FeatureStart
 from gausem_core.slam.events import Correction, FrameEvents, KeyframeState, SubmapChange
+from gausem_core.slam.feature_start import FeatureStart
 from gausem_core.slam.health import HealthMonitor, TrackingHealth, image_signals
 from gausem_core.slam.loop import LoopCandidate
 from gausem_core.slam.loop_closure import LoopClosure, LoopOutcome
