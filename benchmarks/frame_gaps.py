@@ -17,14 +17,13 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from gausem_core.config import load_config
 from gausem_core.data import open_dataset
 from gausem_core.io.trajectory import Trajectory
 from gausem_core.pipeline import Pipeline
 from gausem_core.report import trajectory_metrics
-from gausem_core.tools.run import default_params_file, parse_size
+from gausem_core.tools.run import default_params_file, parse_override, parse_size
 
 
 class SkippedFrames:
@@ -53,11 +52,8 @@ def live_positions(length: int, min_gap: int, max_gap: int, seed: int) -> list[i
 
 
 def overrides(variant: str) -> dict:
-    """``"K=V,K=V"`` as a dict of SLAM parameter overrides (values parsed as YAML)."""
-    pairs = [item.split("=", 1) for item in variant.split(",") if item]
-    if any(len(pair) != 2 for pair in pairs):
-        raise SystemExit(f"frame_gaps: a variant is K=V[,K=V...], got {variant!r}")
-    return {key: yaml.safe_load(value) for key, value in pairs}
+    """``"K=V,K=V"`` as a dict of SLAM parameter overrides (each as ``gausem run --set`` reads it)."""
+    return dict(parse_override(item) for item in variant.split(",") if item)
 
 
 def run(spec: str, dataset, variant: str) -> dict:
