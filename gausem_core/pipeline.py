@@ -76,15 +76,20 @@ class Pipeline:
     def run(self, slam: GauSemSLAM | None = None, save_session: Path | None = None) -> RunResult:
         """Process the dataset with ``slam`` (a loaded session to go on with; default: a new system). The result
         holds this run's frames, less those a loaded system could not relocalise (dropped). ``save_session``: the
-        session is saved there after the last frame, before the global refinement (not timed)."""
+        session is saved there after the last frame, before the global refinement (not timed). Source frames that the
+        dataset leaves out beyond its stride (e.g. a view of the frames a live node would see) reach the system as
+        skipped ones."""
         slam = slam or GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
         first = len(slam.frames)
         gt, ids, dataset_positions, stats, health, tracked = [], [], [], [], [], []
         start = time.perf_counter()
         bar = tqdm(range(len(self.dataset)), desc="gausem", unit="frame", disable=not self.progress)
+        stride, last_index = getattr(self.dataset, "stride", 1), None
         for i in bar:
             frame = self.dataset[i]
-            result = slam.process(self.observation(frame))
+            skipped = 0 if last_index is None else max((frame.index - last_index) // stride - 1, 0)
+            last_index = frame.index
+            result = slam.process(self.observation(frame), skipped)
             health.append((frame.index, frame.timestamp, result.health))
             elapsed = time.perf_counter() - start
             bar.set_postfix(fps=f"{(i + 1) / elapsed:.2f}", loss=f"{result.tracking_loss:.4f}",

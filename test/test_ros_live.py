@@ -59,24 +59,27 @@ def test_the_player_paces_on_the_wall_clock_even_when_told_to_use_sim_time():
 def test_a_slow_tracker_skips_to_the_newest_frame_and_accounts_for_every_input():
     """30 frames at 30 Hz into a tracker that needs >= 0.2 s a frame: the player is not starved (it publishes while a
     frame is processed), the tracker never builds a backlog (latency within two processing times plus a frame
-    period), and frames in = processed + dropped + pending."""
+    period), frames in = processed + dropped + pending, and the core hears of the frames skipped before each one."""
     frames = 30
     durations = []
     published_during = []  # frames the player published while the tracker processed one
+    given = []  # (stamp, skipped) of each frame given to the core
+    source = list(open_source("synthetic", size=(40, 30), max_frames=frames))
     with ros_session(131) as (ctx, executor):
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
         process = tracking.slam.process
 
-        def slow(obs):
+        def slow(obs, skipped=0):
             start, before = time.monotonic(), player.published
             time.sleep(0.2)
-            result = process(obs)
+            result = process(obs, skipped)
             durations.append(time.monotonic() - start)
             published_during.append(player.published - before)
+            given.append((obs.timestamp, skipped))
             return result
 
         tracking.slam.process = slow
-        player = Player(open_source("synthetic", size=(40, 30), max_frames=frames), rate=1.0, context=ctx)
+        player = Player(source, rate=1.0, context=ctx)
         recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS)])
         for node in (tracking, player, recorder.node):
             executor.add_node(node)
@@ -93,6 +96,11 @@ def test_a_slow_tracker_skips_to_the_newest_frame_and_accounts_for_every_input()
     assert summary["frames_processed"] + sum(dropped.values()) == frames
     assert 2 <= summary["frames_processed"] <= frames // 2 and dropped["superseded"] >= frames // 2
     assert set(dropped) == {"superseded"}
+    position = {frame.stamp_ns: i for i, frame in enumerate(source)}
+    indices = [min(position, key=lambda ns: abs(ns - ma.seconds_to_ns(stamp))) for stamp, _ in given]
+    indices = [position[ns] for ns in indices]
+    assert [skipped for _, skipped in given] == [0] + [b - a - 1 for a, b in zip(indices, indices[1:])]
+    assert indices[-1] == frames - 1 and sum(skipped for _, skipped in given) == dropped["superseded"]
     assert summary["latency_ms.p95"] / 1e3 <= 2 * max(durations) + 1 / 30 + 0.1
 
 

@@ -220,6 +220,34 @@ def test_the_motion_model_predicts_across_skipped_frames_by_their_timestamps():
         assert torch.allclose(motion.predicted, once, atol=1e-5) and motion.consecutive and not motion.gap
 
 
+def test_the_motion_model_counts_the_frames_a_caller_skipped():
+    """A node steadily four times slower than its camera: the stamps alone show no gap (every interval alike), the
+    skipped frames it passes on do; the prediction still goes by the stamps. A good frame clears the count."""
+    from gausem_core.slam.system import FrameRecord, GauSemSLAM
+
+    cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "mapping.init_iterations": 5})
+    dataset = open_dataset("synthetic", size=(40, 30), max_frames=17)
+    pipeline = Pipeline(dataset, cfg, progress=False)
+    slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
+    slam.process(pipeline.observation(dataset[0]), skipped=5)
+    assert slam.skipped == 0
+    origin = np.linalg.inv(dataset[0].gt_pose)
+    keyframe = slam.active.keyframes[0]
+    for i in (4, 8):
+        truth = torch.tensor(origin @ dataset[i].gt_pose, dtype=torch.float32)
+        slam.frames.append(FrameRecord(i, dataset[i].timestamp, slam.active, keyframe,
+                                       invert_pose(keyframe.cam_to_world) @ truth))
+    unknown = slam._motion_model(dataset[12].timestamp)
+    assert unknown.consecutive and not unknown.gap
+    slam.skipped = 3
+    told = slam._motion_model(dataset[12].timestamp)
+    assert not told.consecutive and told.gap and torch.allclose(told.predicted, unknown.predicted)
+    with pytest.raises(ValueError, match="skipped must be >= 0"):
+        slam.process(pipeline.observation(dataset[12]), skipped=-1)
+    result = slam.process(pipeline.observation(dataset[16]), skipped=3)
+    assert result.health.status != "lost" and slam.skipped == 0
+
+
 def test_the_search_starts_surround_the_start_and_an_unknown_mode_is_rejected():
     cfg = dataclasses.replace(SlamConfig().tracking, gauss_newton=dataclasses.replace(
         SlamConfig().tracking.gauss_newton, search_translation=0.04, search_rotation_deg=2.0))

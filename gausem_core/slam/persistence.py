@@ -132,7 +132,7 @@ def _state_tree(slam: GauSemSLAM, writer: _TensorWriter) -> dict:
     loop = slam.loop_closure.state_dict() if slam.loop_closure is not None else None
     return {"submaps": [_submap_tree(s, writer) for s in slam.submaps],
             **writer.pack({"frames": frames, "segment_start": slam.segment_start, "lost": slam.lost,
-                           "dropped": slam.dropped, "health": slam.health.state_dict(),
+                           "dropped": slam.dropped, "skipped": slam.skipped, "health": slam.health.state_dict(),
                            "mapper_generator": slam.mapper.generator.get_state(), "loop_closure": loop}, STATE_FILE)}
 
 
@@ -217,6 +217,7 @@ def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torc
                                        f["relative"].to(slam.device), f.get("lost", False)))
     slam.segment_start = state["segment_start"]
     slam.dropped = state.get("dropped", 0)
+    slam.skipped = state.get("skipped", 0)
     if "health" in state:
         slam.health.load_state_dict(state["health"])
     slam.mapper.generator.set_state(state["mapper_generator"])

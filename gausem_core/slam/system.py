@@ -227,6 +227,7 @@ class GauSemSLAM:
         self.segment_start = 0  # first frame id of the current tracking segment (the motion model stays inside it;
         # load starts a new one when it relocalises)
         self.dropped = 0  # frames dropped (not relocalised while lost) since the last recorded frame
+        self.skipped = 0  # frames the caller skipped (``process``'s ``skipped``) since the last good frame
         self.detect_loops = detect_loops
         self.descriptor = make_descriptor(cfg.semantics.descriptor, cfg.semantics.dinov2_weights,
                                           device=self.device) if cfg.loop.enabled or cfg.refinement.enabled else None
@@ -237,14 +238,20 @@ class GauSemSLAM:
     def active(self) -> Submap:
         return self.submaps[-1]
 
-    def process(self, obs: Observation) -> FrameResult:
+    def process(self, obs: Observation, skipped: int = 0) -> FrameResult:
         """Track the frame against the active submap (while :attr:`lost`: relocalise it, or drop it when that
         fails); at a keyframe, start a new submap when the allocation policy says so, else map the keyframe into the
-        active one."""
+        active one. ``skipped``: the camera's frames since the previous call that the caller did not pass on (a live
+        node that fell behind, dropped inputs); the motion model counts them, as its stamps alone miss a node that is
+        steadily slower than its camera."""
+        if skipped < 0:
+            raise ValueError(f"skipped must be >= 0, got {skipped}")
         obs = filter_observation(obs, self.cfg.depth_filter)
         frame_id = len(self.frames)
         self.mapper.hurry.clear()
+        self.skipped += skipped
         if not self.submaps:
+            self.skipped = 0
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
             self.feature_start.remember(obs)
             return self._result(None, True, loss, None, events=self._keyframe_events([]))
@@ -262,6 +269,7 @@ class GauSemSLAM:
         lost = health.status == "lost"
         if not lost:
             self.feature_start.remember(obs)
+            self.skipped = 0
         if lost or not self._is_keyframe(frame_id, health):
             reference = self.active.keyframes[-1]
             self.frames.append(FrameRecord(frame_id, obs.timestamp, self.active, reference,
@@ -311,15 +319,15 @@ class GauSemSLAM:
 
     def _motion_model(self, timestamp: float) -> MotionPrediction:
         """For a frame stamped ``timestamp``: the last good (not lost) frame's pose in the active submap, the
-        constant-velocity prediction, whether the frame follows the last good one directly (no lost or dropped frame
-        between), and whether frames were missed since (lost or dropped ones, or by the stamps). The prediction repeats
-        the motion between the latest two consecutive good frames of the tracking segment once per frame since the last
-        good one (lost and dropped frames count), or, where the stamps say clearly more or less time passed
-        (:data:`STAMP_JITTER`: frames a live node skipped), over the time since the last good frame in units of that
-        pair's interval (at most :data:`MAX_PREDICTION_S` ahead). None without such a pair or with
+        constant-velocity prediction, whether the frame follows the last good one directly (no lost, dropped or skipped
+        frame between), and whether frames were missed since (lost, dropped or skipped ones, or by the stamps). The
+        prediction repeats the motion between the latest two consecutive good frames of the tracking segment once per
+        frame since the last good one (lost, dropped and skipped frames count), or, where the stamps say clearly more or
+        less time passed (:data:`STAMP_JITTER`: frames a live node skipped), over the time since the last good frame in
+        units of that pair's interval (at most :data:`MAX_PREDICTION_S` ahead). None without such a pair or with
         ``tracking.constant_velocity`` off."""
         good = self._last_good()
-        frames_after = len(self.frames) - good + self.dropped
+        frames_after = len(self.frames) - good + self.dropped + self.skipped
         previous = self._local_pose(good)
         pair = self._latest_good_pair(good) if self.cfg.tracking.constant_velocity else None
         if pair is None:

@@ -41,7 +41,10 @@ overflowed), ``unmatched`` (no depth/labels within ``sync_slop``; the warning gi
 ``stale_stamp`` / ``duplicate_stamp`` (stamps going backwards or repeated), bad input (wrong encodings, data
 shorter than the declared size, a side below ``min_image_size``, size mismatches, too little valid depth, no
 camera_info yet, labels outside the class table), ``tracking_diverged`` (a pose estimate that is not finite: nothing
-is published for it) and ``processing_error`` (any input whose handling raises; the node goes on). Frames of more
+is published for it) and ``processing_error`` (any input whose handling raises; the node goes on). The core hears
+of the frames dropped before it (superseded, lost in transport, unmatched, bad input) with the next frame it gets,
+as skipped ones (``GauSemSLAM.process``): its motion model and ``tracking.feature_start`` then treat that frame as
+following a gap, even where a steadily slow node's stamps cannot show one. Frames of more
 than ``max_image_pixels`` pixels are downscaled (aspect kept, intrinsics scaled). ``frames_in``, ``frames_processed``,
 ``frames_pending`` and the latency from a synchronised frame's arrival to its pose's publication (``latency_ms.median``
 / ``.p95`` over the last 100 frames) are published with the counts; :meth:`TrackingMappingNode.summary` gives them
@@ -68,6 +71,7 @@ Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
 from __future__ import annotations
 
 import math
+import threading
 import time
 from pathlib import Path
 
@@ -168,6 +172,8 @@ class TrackingMappingNode(Node):
         self.camera = None  # the latest valid rgb/camera_info (PinholeCamera)
         self.latencies: list[float] = []  # seconds from a frame's arrival to its pose's publication
         self._in_progress = False  # a frame is being processed
+        self._skipped = 0  # frames dropped before reaching the core since the last one given to it
+        self._skip_lock = threading.Lock()  # superseded frames are counted from the input callback group
         self._loop_answers = LoopAnswers(
             p.loop_answer_timeout, lambda: self._signature_pub.get_subscription_count() > 0,
             lambda: self._constraint_pub.get_subscription_count() > 0,
@@ -184,7 +190,7 @@ class TrackingMappingNode(Node):
         input_group = MutuallyExclusiveCallbackGroup()  # inputs arrive while a frame is processed
         self._inputs = make_synchronizer(self, inputs, self._on_frame, qos, queue_size=p.sync_queue_size,
                                          slop=p.sync_slop, on_drop=self._on_sync_drop, callback_group=input_group)
-        self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
+        self._queue = NewestFrameQueue(self, self._process, lambda _: self._skip(
             "superseded", "a newer synchronised frame arrived before this one was processed"),
             ready=self._loop_settled)
         subscribe_camera(self, CameraInfo, "rgb/camera_info", self._on_camera_info, qos, input_group, INPUT_QOS_HINT)
@@ -255,7 +261,14 @@ class TrackingMappingNode(Node):
         if reason == "unmatched" and silent:
             reason = f"no_{silent[0]}"
             detail += NO_LABELS_HINT if silent[0] == "labels" else ""
-        self.drops.drop(SYNC_REASONS.get(reason, reason), detail)
+        self._skip(SYNC_REASONS.get(reason, reason), detail)
+
+    def _skip(self, reason: str, detail: str) -> None:
+        """A frame dropped before it reached the core: counted by reason, and passed on to the core with the next
+        frame as a skipped one (its motion model then knows that the camera moved on for longer)."""
+        with self._skip_lock:
+            self._skipped += 1
+        self.drops.drop(reason, detail)
 
     def _observation(self, rgb_msg: Image, depth_msg: Image, labels_msg: Image | None = None) -> Observation:
         """Validated observation of one synchronised frame (downscaled to ``max_image_pixels``), or FrameRejected
@@ -339,7 +352,7 @@ class TrackingMappingNode(Node):
             obs = self._observation(*msgs)
         except FrameRejected as err:
             self._in_progress = False
-            self.drops.drop(err.reason, str(err))
+            self._skip(err.reason, str(err))
             return
         try:
             self._track_and_publish(obs, msgs[0].header.frame_id, arrived)
@@ -349,7 +362,9 @@ class TrackingMappingNode(Node):
         self._busy = (self._busy[0] if self._busy else start, time.perf_counter())
 
     def _track_and_publish(self, obs: Observation, image_frame: str, arrived: float) -> None:
-        result = self.slam.process(obs)
+        with self._skip_lock:
+            skipped, self._skipped = self._skipped, 0
+        result = self.slam.process(obs, skipped)
         self._last_stamp = obs.timestamp
         self.health = result.health
         self.health_log.append((result.frame_id, obs.timestamp, result.health))
