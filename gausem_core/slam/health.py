@@ -101,19 +101,24 @@ class HealthMonitor:
         self.motions.clear()
 
     def assess(self, loss: float, image: dict[str, float], pose: torch.Tensor, previous: torch.Tensor | None,
-               predicted: torch.Tensor | None) -> TrackingHealth:
+               predicted: torch.Tensor | None, steps: float = 1.0) -> TrackingHealth:
         """The health of a frame tracked to ``pose`` with residual ``loss`` and :func:`image_signals` ``image``
-        (:meth:`judge`), learnt from unless lost (:meth:`learn`); ``previous`` is the pose of the frame just before
-        (None when unknown) and ``predicted`` the motion model's (None at a segment start)."""
-        health = self.judge(loss, image, pose, predicted)
+        (:meth:`judge`), learnt from unless lost (:meth:`learn`); ``previous`` is the pose of the last good frame
+        (None when unknown), ``predicted`` the motion model's (None at a segment start), which repeats the latest
+        motion ``steps`` times since ``previous``. The motion learnt is per step: the one since ``previous`` over
+        ``steps``."""
+        health = self.judge(loss, image, pose, predicted, steps)
         if health.status != "lost":
-            self.learn(loss, None if previous is None else motion(previous, pose))
+            moved = None if previous is None else tuple(m / max(steps, 1.0) for m in motion(previous, pose))
+            self.learn(loss, moved)
         return health
 
     def judge(self, loss: float, image: dict[str, float], pose: torch.Tensor,
-              predicted: torch.Tensor | None) -> TrackingHealth:
-        """The health of a frame at ``pose`` against the recent frames, learning nothing (see :meth:`assess`)."""
-        signals = dict(image, residual_z=self._residual_z(loss), jump=self._jump(pose, predicted))
+              predicted: torch.Tensor | None, steps: float = 1.0) -> TrackingHealth:
+        """The health of a frame at ``pose`` against the recent frames, learning nothing (see :meth:`assess`); the
+        pose jump from ``predicted`` counts in typical motions per step it predicts over (a prediction across skipped
+        frames errs more)."""
+        signals = dict(image, residual_z=self._residual_z(loss), jump=self._jump(pose, predicted) / max(steps, 1.0))
         lost = self._fired(signals, "lost")
         degraded = self._fired(signals, "degraded")
         status = "lost" if lost else "degraded" if degraded else "ok"

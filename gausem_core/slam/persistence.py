@@ -128,7 +128,8 @@ def _submap_tree(submap: Submap, writer: _TensorWriter) -> dict:
 
 def _state_tree(slam: GauSemSLAM, writer: _TensorWriter) -> dict:
     frames = [{"frame_id": f.frame_id, "timestamp": f.timestamp, "submap": f.submap.submap_id,
-               "reference": f.reference.frame_id, "relative": f.relative, "lost": f.lost} for f in slam.frames]
+               "reference": f.reference.frame_id, "relative": f.relative, "lost": f.lost,
+               "skipped": f.skipped} for f in slam.frames]
     loop = slam.loop_closure.state_dict() if slam.loop_closure is not None else None
     return {"submaps": [_submap_tree(s, writer) for s in slam.submaps],
             **writer.pack({"frames": frames, "segment_start": slam.segment_start, "lost": slam.lost,
@@ -214,7 +215,7 @@ def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torc
         submap = by_id[f["submap"]]
         reference = next(kf for kf in submap.keyframes if kf.frame_id == f["reference"])
         slam.frames.append(FrameRecord(f["frame_id"], f["timestamp"], submap, reference,
-                                       f["relative"].to(slam.device), f.get("lost", False)))
+                                       f["relative"].to(slam.device), f.get("lost", False), f.get("skipped", 0)))
     slam.segment_start = state["segment_start"]
     slam.dropped = state.get("dropped", 0)
     slam.skipped = state.get("skipped", 0)

@@ -52,8 +52,8 @@ class MotionPrediction(NamedTuple):
 
     previous: torch.Tensor  # the last good frame's cam_to_world in the active submap
     predicted: torch.Tensor | None  # the constant-velocity prediction (None without two good frames in a row)
-    consecutive: bool  # the frame follows the last good one directly
     gap: bool  # frames were missed since the last good one (lost or dropped, or skipped by the stamps)
+    steps: float  # the latest motions the prediction repeats: frames since the last good one, or by the stamps
 
 
 def _float64(pose: torch.Tensor) -> torch.Tensor:
@@ -159,6 +159,7 @@ class FrameRecord:
     reference: Keyframe
     relative: torch.Tensor  # reference-keyframe-from-camera
     lost: bool = False  # tracking was judged lost: the pose is kept for the record, nothing else uses it
+    skipped: int = 0  # camera frames missed just before this one (skipped by the caller, or dropped)
 
     @property
     def cam_to_world(self) -> torch.Tensor:
@@ -227,7 +228,7 @@ class GauSemSLAM:
         self.segment_start = 0  # first frame id of the current tracking segment (the motion model stays inside it;
         # load starts a new one when it relocalises)
         self.dropped = 0  # frames dropped (not relocalised while lost) since the last recorded frame
-        self.skipped = 0  # frames the caller skipped (``process``'s ``skipped``) since the last good frame
+        self.skipped = 0  # frames the caller skipped (``process``'s ``skipped``) since the last recorded frame
         self.detect_loops = detect_loops
         self.descriptor = make_descriptor(cfg.semantics.descriptor, cfg.semantics.dinov2_weights,
                                           device=self.device) if cfg.loop.enabled or cfg.refinement.enabled else None
@@ -264,16 +265,15 @@ class GauSemSLAM:
                                relocalised, replace(judged, status="lost",
                                                     reasons=(*judged.reasons, "relocalisation_failed")))
         health = self._assess(obs, tracked, relocalised)
-        self.dropped = 0
+        missed, self.dropped, self.skipped = self.dropped + self.skipped, 0, 0
         pose = tracked.cam_to_world.detach()
         lost = health.status == "lost"
         if not lost:
             self.feature_start.remember(obs)
-            self.skipped = 0
         if lost or not self._is_keyframe(frame_id, health):
             reference = self.active.keyframes[-1]
             self.frames.append(FrameRecord(frame_id, obs.timestamp, self.active, reference,
-                                           invert_pose(reference.cam_to_world) @ pose, lost))
+                                           invert_pose(reference.cam_to_world) @ pose, lost, missed))
             self.lost = lost
             return self._result(tracked, False, None, None, relocalised, health)
         decision = self.allocation.should_start_new(self.active.extent, obs, pose)
@@ -285,6 +285,7 @@ class GauSemSLAM:
             loss = self._open_submap(obs, frame_id, anchor)
         else:
             loss = self._map_keyframe(obs, frame_id, pose)
+        self.frames[-1].skipped = missed
         events = self._keyframe_events(closed)
         release_free_heap()  # mapping and loop closure freed many image-sized buffers
         return self._result(tracked, True, loss, decision, relocalised, health, events)
@@ -319,26 +320,28 @@ class GauSemSLAM:
 
     def _motion_model(self, timestamp: float) -> MotionPrediction:
         """For a frame stamped ``timestamp``: the last good (not lost) frame's pose in the active submap, the
-        constant-velocity prediction, whether the frame follows the last good one directly (no lost, dropped or skipped
-        frame between), and whether frames were missed since (lost, dropped or skipped ones, or by the stamps). The
-        prediction repeats the motion between the latest two consecutive good frames of the tracking segment once per
-        frame since the last good one (lost, dropped and skipped frames count), or, where the stamps say clearly more or
-        less time passed (:data:`STAMP_JITTER`: frames a live node skipped), over the time since the last good frame in
-        units of that pair's interval (at most :data:`MAX_PREDICTION_S` ahead). None without such a pair or with
-        ``tracking.constant_velocity`` off."""
+        constant-velocity prediction, whether camera frames were missed since the last good one (lost, dropped or
+        skipped ones, or by the stamps), and how many times the prediction repeats the latest motion. That motion is
+        the one between the latest two consecutively recorded good frames of the tracking segment; it is repeated once
+        per the camera frames it spans in the camera frames since the last good one (lost, dropped and skipped frames
+        count), or, where the stamps say clearly more or less time passed (:data:`STAMP_JITTER`: a gap that nobody
+        counted), over the time since the last good frame in units of that pair's interval (at most
+        :data:`MAX_PREDICTION_S` ahead). No prediction without such a pair or with ``tracking.constant_velocity``
+        off."""
         good = self._last_good()
-        frames_after = len(self.frames) - good + self.dropped + self.skipped
+        frames_after = sum(1 + f.skipped for f in self.frames[good + 1:]) + 1 + self.dropped + self.skipped
         previous = self._local_pose(good)
         pair = self._latest_good_pair(good) if self.cfg.tracking.constant_velocity else None
         if pair is None:
-            return MotionPrediction(previous, None, frames_after == 1, frames_after > 1)
+            return MotionPrediction(previous, None, frames_after > 1, frames_after)
         relative = invert_pose(self._local_pose(pair - 1)) @ self._local_pose(pair)
         interval = self.frames[pair].timestamp - self.frames[pair - 1].timestamp
+        by_count = frames_after / (1 + self.frames[pair].skipped)
         elapsed = min(timestamp - self.frames[good].timestamp, MAX_PREDICTION_S)
-        by_time = elapsed / interval if interval > 0 and elapsed > 0 else frames_after
-        steps = frames_after if abs(by_time / frames_after - 1) <= STAMP_JITTER else by_time
-        return MotionPrediction(previous, repeat_motion(previous, relative, steps), frames_after == 1,
-                                max(frames_after, steps) > 1 + STAMP_JITTER)
+        by_time = elapsed / interval if interval > 0 and elapsed > 0 else by_count
+        steps = by_count if abs(by_time / by_count - 1) <= STAMP_JITTER else by_time
+        return MotionPrediction(previous, repeat_motion(previous, relative, steps),
+                                max(frames_after, steps) > 1 + STAMP_JITTER, steps)
 
     def _last_good(self) -> int:
         """Index of the last recorded frame not judged lost (the first frame never is)."""
@@ -364,9 +367,8 @@ class GauSemSLAM:
                                      self.cfg.backend)
         image = image_signals(view, obs, hessian, self.cfg.health)
         motion = self._motion_model(obs.timestamp)
-        return self.health.assess(tracked.loss, image, tracked.cam_to_world,
-                                  motion.previous if motion.consecutive else None,
-                                  motion.previous if motion.predicted is None else motion.predicted)
+        return self.health.assess(tracked.loss, image, tracked.cam_to_world, motion.previous,
+                                  motion.previous if motion.predicted is None else motion.predicted, motion.steps)
 
     def _relocalised_health(self, obs: Observation, relocalised: RelocalisationResult) -> TrackingHealth:
         """The health of an accepted relocalisation (see :meth:`_assess`); the monitor learns its residual."""
