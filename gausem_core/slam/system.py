@@ -52,7 +52,7 @@ class MotionPrediction(NamedTuple):
 
     previous: torch.Tensor  # the last good frame's cam_to_world in the active submap
     predicted: torch.Tensor | None  # the constant-velocity prediction (None without two good frames in a row)
-    gap: bool  # frames were missed since the last good one (lost or dropped, or skipped by the stamps)
+    gap: bool  # camera frames were missed since the last good one (lost, dropped or skipped; or by the stamps)
     steps: float  # the latest motions the prediction repeats: frames since the last good one, or by the stamps
 
 
