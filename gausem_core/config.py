@@ -16,6 +16,19 @@ from typing import Any
 
 import yaml
 
+GAP_MODES = ("gaps", "always", "off")  # when a measure for missed camera frames applies: after them, always, never
+
+
+def check_gap_mode(name: str, mode: str) -> None:
+    """ValueError naming the parameter ``name`` unless ``mode`` is one of :data:`GAP_MODES`."""
+    if mode not in GAP_MODES:
+        raise ValueError(f"{name} must be one of {GAP_MODES}, got {mode!r}")
+
+
+def gap_mode_applies(mode: str, gap: bool) -> bool:
+    """Whether a :data:`GAP_MODES` setting applies to a frame (``gap``: camera frames were missed before it)."""
+    return mode == "always" or (mode == "gaps" and gap)
+
 
 @dataclass
 class GaussNewtonTrackingConfig:
@@ -41,7 +54,7 @@ class FeatureStartConfig:
     """A tracking start from ORB feature matches with the last good frame (``slam.feature_start``): a basin of
     convergence as wide as the features match, for the frames a live node skips."""
 
-    mode: str = "off"  # "gaps" (after skipped or lost frames, as gauss_newton.search), "always" or "off"
+    mode: str = "gaps"  # "gaps" (after skipped or lost frames, as gauss_newton.search), "always" or "off"
     features: int = 500  # ORB keypoints per image
     fast_threshold: int = 5  # ORB's FAST corner threshold (grey levels)
     min_image_side: int = 240  # images with a shorter side are upscaled by an integer factor for ORB
@@ -86,8 +99,11 @@ class TrackingConfig:
 class MappingConfig:
     """Submap initialisation and keyframe-window bundle adjustment (paper Eq. 3-4)."""
 
-    every: int = 5  # d_map: map (and take a keyframe) every this many frames
-    min_coverage: float = 0.0  # ... and whenever the map renders a silhouette on less than this fraction of the view
+    every: int = 5  # d_map: map (and take a keyframe) every this many frames, ...
+    # ... and (coverage_keyframes: "gaps" after skipped or lost frames, as tracking.gauss_newton.search, "always" or
+    # "off") whenever the map renders a silhouette on less than min_coverage of the view
+    coverage_keyframes: str = "gaps"
+    min_coverage: float = 0.6
     iterations: int = 30
     init_iterations: int = 200  # the paper uses 1000 on a GPU
     window: int = 8  # keyframes sampled from the most recent this many (plus the current frame)

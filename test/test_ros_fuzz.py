@@ -73,7 +73,8 @@ class _Session:
         assert spin_until(executor, lambda: all(p.get_subscription_count() for p in self.pubs + [self.info_pub]), 5.0)
         self.observations = []
         process = self.node.slam.process
-        self.node.slam.process = lambda obs: (self.observations.append(obs), process(obs))[1]
+        self.node.slam.process = lambda obs, skipped=0: (self.observations.append(obs),
+                                                           process(obs, skipped))[1]
 
     def camera_info(self, camera: PinholeCamera) -> None:
         self.info_pub.publish(ma.camera_to_camera_info(camera, ma.make_header(0.0, "cam")))
@@ -161,7 +162,7 @@ def test_an_exception_while_handling_an_input_is_counted_and_the_node_goes_on():
         session.camera_info(CAMERA)
         process = session.node.slam.process
 
-        def fail_once(obs):
+        def fail_once(obs, skipped=0):
             session.node.slam.process = process
             raise RuntimeError("injected failure")
         session.node.slam.process = fail_once

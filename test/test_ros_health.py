@@ -51,7 +51,7 @@ def test_tracking_health_reaches_diagnostics_and_odometry_and_a_lost_frame_is_dr
 
         def send(stamp, health=None, expect=None):
             tracking.slam.process = process if health is None else (
-                lambda obs: dataclasses.replace(process(obs), health=health))
+                lambda obs, skipped=0: dataclasses.replace(process(obs, skipped), health=health))
             for pub, msg in zip(pubs, frame(stamp)):
                 pub.publish(msg)
             assert spin_until(executor, expect, 20.0), dict(tracking.drops.counts)

@@ -195,7 +195,8 @@ def test_bad_input_is_dropped_and_reported_and_the_node_keeps_running():
         send(_frame_messages(1.45), dropped("stale_stamp", 2))  # out of order: older than the last processed frame
 
         process = tracking.slam.process  # a core whose estimate diverges on the next frame
-        tracking.slam.process = lambda obs: dataclasses.replace(process(obs), cam_to_world=torch.full((4, 4), np.nan))
+        tracking.slam.process = lambda obs, skipped=0: dataclasses.replace(process(obs, skipped),
+                                                                           cam_to_world=torch.full((4, 4), np.nan))
         send(_frame_messages(1.6), dropped("tracking_diverged"))
         tracking.slam.process = process
         send(_frame_messages(1.7), lambda: tracking.frames_processed == 3)

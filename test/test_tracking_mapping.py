@@ -294,23 +294,27 @@ def test_the_feature_start_places_a_frame_that_moved_beyond_the_dense_basin():
 
 
 def test_frames_the_map_covers_too_little_of_are_mapped_as_keyframes():
-    """With ``mapping.min_coverage``, a camera outrunning its map (every 3rd frame of the walk) gets a keyframe
-    wherever the map covers less of its view than that; without it only every N-th frame is one."""
+    """A camera outrunning its map (every 3rd frame of the walk): with ``mapping.coverage_keyframes: gaps`` a frame
+    after skipped frames is a keyframe wherever the map covers less of its view than ``mapping.min_coverage``; without
+    the skipped frames counted (the stamps alike) or with the mode off, only every N-th frame is one."""
     from gausem_core.slam.system import GauSemSLAM
 
     dataset = open_dataset("synthetic", size=(64, 48), max_frames=22)
-    for min_coverage in (0.0, 0.6):
+    for mode, skipped in (("off", 2), ("gaps", 0), ("gaps", 2)):
         cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "refinement.enabled": False,
                                                     "mapping.init_iterations": 40, "mapping.iterations": 5,
-                                                    "mapping.every": 100, "mapping.min_coverage": min_coverage})
+                                                    "mapping.every": 100, "mapping.min_coverage": 0.6,
+                                                    "mapping.coverage_keyframes": mode})
         pipeline = Pipeline(dataset, cfg, progress=False)
         slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
-        results = [slam.process(pipeline.observation(dataset[i])) for i in range(0, 22, 3)]
+        results = [slam.process(pipeline.observation(dataset[i]), skipped if i else 0) for i in range(0, 22, 3)]
         keyframes = [r.frame_id for r in results if r.is_keyframe]
         assert keyframes == sorted(kf.frame_id for s in slam.submaps for kf in s.keyframes)
-        if min_coverage == 0:
-            assert keyframes == [0]
+        if mode == "off" or not skipped:
+            assert keyframes == [0], (mode, skipped)
             continue
         assert len(keyframes) > 1
         for r in results[1:]:
-            assert r.is_keyframe == (r.health.status != "lost" and r.health.coverage < min_coverage), r.health
+            assert r.is_keyframe == (r.health.status != "lost" and r.health.coverage < 0.6), r.health
+    with pytest.raises(ValueError, match="mapping.coverage_keyframes must be one of"):
+        GauSemSLAM(dataclasses.replace(cfg, mapping=dataclasses.replace(cfg.mapping, coverage_keyframes="often")))

@@ -11,29 +11,27 @@ from __future__ import annotations
 
 import torch
 
-from gausem_core.config import FeatureStartConfig
+from gausem_core.config import FeatureStartConfig, check_gap_mode, gap_mode_applies
 from gausem_core.geometry import invert_pose, project_to_se3
 from gausem_core.slam.loop.verification import feature_pose
 from gausem_core.slam.loop.words import OrbFeatures, extract_features
 from gausem_core.slam.observation import Observation
 
-FEATURE_START_MODES = ("gaps", "always", "off")
-
 
 class FeatureStart:
     """Remembers the last good frame (:meth:`remember`) and predicts a frame's pose from feature matches with it
-    (:meth:`predict`). Each frame's features are extracted once."""
+    (:meth:`predict`). Each frame's features are extracted once; a saved session keeps the last good frame's
+    (:meth:`state_dict`)."""
 
     def __init__(self, cfg: FeatureStartConfig):
-        if cfg.mode not in FEATURE_START_MODES:
-            raise ValueError(f"tracking.feature_start.mode must be one of {FEATURE_START_MODES}, got {cfg.mode!r}")
+        check_gap_mode("tracking.feature_start.mode", cfg.mode)
         self.cfg = cfg
-        self._reference: tuple[Observation, OrbFeatures | None] | None = None  # the last good frame
+        self._reference: tuple[Observation | None, OrbFeatures | None] | None = None  # the last good frame
         self._latest: tuple[Observation, OrbFeatures] | None = None  # the last frame predicted
 
     def wanted(self, gap: bool) -> bool:
         """Whether to predict a frame that follows the last good one after a gap (or directly)."""
-        return self.cfg.mode == "always" or (self.cfg.mode == "gaps" and gap)
+        return gap_mode_applies(self.cfg.mode, gap)
 
     def remember(self, obs: Observation) -> None:
         """``obs`` is the last good frame now."""
@@ -45,10 +43,7 @@ class FeatureStart:
         None without a remembered frame or when too few features agree on a pose."""
         if self._reference is None:
             return None
-        reference, features = self._reference
-        if features is None:
-            features = self._features(reference)
-            self._reference = reference, features
+        features = self._reference_features()
         current = self._features(obs)
         self._latest = obs, current
         cfg = self.cfg
@@ -57,6 +52,21 @@ class FeatureStart:
         if found.query_from_match is None:
             return None
         return project_to_se3(previous.double() @ invert_pose(found.query_from_match).to(previous.device)).to(previous)
+
+    def state_dict(self) -> dict | None:
+        """The last good frame's features as tensors (None without one)."""
+        return None if self._reference is None else self._reference_features().tensors()
+
+    def load_state_dict(self, state: dict | None) -> None:
+        """Remember the features of :meth:`state_dict`."""
+        self._reference = None if state is None else (None, OrbFeatures.from_tensors(state))
+
+    def _reference_features(self) -> OrbFeatures:
+        reference, features = self._reference
+        if features is None:
+            features = self._features(reference)
+            self._reference = reference, features
+        return features
 
     def _features(self, obs: Observation) -> OrbFeatures:
         return extract_features(obs.rgb, obs.depth, obs.camera, self.cfg)

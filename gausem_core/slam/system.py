@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import torch
 
-from gausem_core.config import SlamConfig
+from gausem_core.config import SlamConfig, check_gap_mode, gap_mode_applies
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
 from gausem_core.memory import release_free_heap
@@ -209,6 +209,7 @@ class GauSemSLAM:
         if cfg.submaps.boundary_window < 1 or cfg.submaps.boundary_iterations < 0:
             raise ValueError("submaps.boundary_window must be >= 1 and submaps.boundary_iterations >= 0, got "
                              f"{cfg.submaps.boundary_window} and {cfg.submaps.boundary_iterations}")
+        check_gap_mode("mapping.coverage_keyframes", cfg.mapping.coverage_keyframes)
         self.cfg = cfg
         self.device = torch.device(device)
         prepare_backend(cfg.backend, self.device)  # builds or loads the compiled kernels now, not in the first frame
@@ -256,7 +257,8 @@ class GauSemSLAM:
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
             self.feature_start.remember(obs)
             return self._result(None, True, loss, None, events=self._keyframe_events([]))
-        tracked, relocalised = self._place(obs)
+        motion = self._motion_model(obs.timestamp)
+        tracked, relocalised = self._place(obs, motion)
         if tracked is None:  # lost and not relocalised: the frame is dropped
             self.dropped += 1
             judged = relocalised.health or TrackingHealth("lost")
@@ -264,13 +266,13 @@ class GauSemSLAM:
                                relocalised.iterations, None, self.active.num_gaussians, self.active.submap_id, None,
                                relocalised, replace(judged, status="lost",
                                                     reasons=(*judged.reasons, "relocalisation_failed")))
-        health = self._assess(obs, tracked, relocalised)
+        health = self._assess(obs, tracked, relocalised, motion)
         missed, self.dropped, self.skipped = self.dropped + self.skipped, 0, 0
         pose = tracked.cam_to_world.detach()
         lost = health.status == "lost"
         if not lost:
             self.feature_start.remember(obs)
-        if lost or not self._is_keyframe(frame_id, health):
+        if lost or not self._is_keyframe(frame_id, health, motion.gap or relocalised is not None):
             reference = self.active.keyframes[-1]
             self.frames.append(FrameRecord(frame_id, obs.timestamp, self.active, reference,
                                            invert_pose(reference.cam_to_world) @ pose, lost, missed))
@@ -290,16 +292,20 @@ class GauSemSLAM:
         release_free_heap()  # mapping and loop closure freed many image-sized buffers
         return self._result(tracked, True, loss, decision, relocalised, health, events)
 
-    def _is_keyframe(self, frame_id: int, health: TrackingHealth) -> bool:
-        """Every ``mapping.every``-th frame is mapped, and a frame whose view the map covers less than
-        ``mapping.min_coverage`` of (a camera outrunning its map: fast motion, or frames a live node skipped)."""
-        return frame_id % self.cfg.mapping.every == 0 or health.coverage < self.cfg.mapping.min_coverage
+    def _is_keyframe(self, frame_id: int, health: TrackingHealth, gap: bool) -> bool:
+        """Every ``mapping.every``-th frame is mapped, and (``mapping.coverage_keyframes``; ``gap``: camera frames
+        were missed before it) a frame whose view the map covers less than ``mapping.min_coverage`` of: a camera
+        outrunning its map (frames a live node skipped, or fast motion)."""
+        cfg = self.cfg.mapping
+        return frame_id % cfg.every == 0 or (gap_mode_applies(cfg.coverage_keyframes, gap)
+                                             and health.coverage < cfg.min_coverage)
 
-    def _place(self, obs: Observation) -> tuple[TrackingResult | None, RelocalisationResult | None]:
+    def _place(self, obs: Observation,
+               motion: MotionPrediction) -> tuple[TrackingResult | None, RelocalisationResult | None]:
         """The frame's pose in the active submap: tracked, or relocalised while :attr:`lost` (None when that
         fails)."""
         if not self.lost:
-            return self._track(obs), None
+            return self._track(obs, motion), None
         relocalised = self.relocalise(obs)
         if not relocalised.accepted:
             return None, relocalised
@@ -307,10 +313,8 @@ class GauSemSLAM:
         local = invert_pose(self.active.anchor) @ relocalised.cam_to_world
         return TrackingResult(local, relocalised.tracking_loss, relocalised.iterations), relocalised
 
-    def _track(self, obs: Observation) -> TrackingResult:
-        motion = self._motion_model(obs.timestamp)
-        mode = self.cfg.tracking.gauss_newton.search
-        search = mode == "always" or (mode == "gaps" and motion.gap)
+    def _track(self, obs: Observation, motion: MotionPrediction) -> TrackingResult:
+        search = gap_mode_applies(self.cfg.tracking.gauss_newton.search, motion.gap)
         featured = self.feature_start.predict(obs, motion.previous) if self.feature_start.wanted(motion.gap) else None
         alternatives = [] if featured is None else [featured]
         if motion.predicted is None:
@@ -356,17 +360,17 @@ class GauSemSLAM:
                 return i
         return None
 
-    def _assess(self, obs: Observation, tracked: TrackingResult,
-                relocalised: RelocalisationResult | None) -> TrackingHealth:
-        """The health of a frame tracked to ``tracked`` in the active submap (before it is recorded). A relocalised
-        frame was judged by relocalisation (against the submap that placed it): after a restart ok, and a new motion
-        history starts; after a tracking loss as the health monitor judged it, degraded at least (``relocalised``)."""
+    def _assess(self, obs: Observation, tracked: TrackingResult, relocalised: RelocalisationResult | None,
+                motion: MotionPrediction) -> TrackingHealth:
+        """The health of a frame tracked to ``tracked`` in the active submap (before it is recorded), its pose jump
+        judged against ``motion``. A relocalised frame was judged by relocalisation (against the submap that placed
+        it): after a restart ok, and a new motion history starts; after a tracking loss as the health monitor judged
+        it, degraded at least (``relocalised``)."""
         if relocalised is not None:
             return self._relocalised_health(obs, relocalised)
         view, hessian = inspect_pose(self.active.cloud, obs, tracked.cam_to_world, self.cfg.tracking,
                                      self.cfg.backend)
         image = image_signals(view, obs, hessian, self.cfg.health)
-        motion = self._motion_model(obs.timestamp)
         return self.health.assess(tracked.loss, image, tracked.cam_to_world, motion.previous,
                                   motion.previous if motion.predicted is None else motion.predicted, motion.steps)
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gausem_core.config import TrackingConfig
+from gausem_core.config import TrackingConfig, check_gap_mode
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, project_to_se3, se3_exp, se3_log
 from gausem_core.render import render
@@ -19,7 +19,6 @@ from gausem_core.slam.observation import Observation
 from gausem_core.slam.photometric import local_contrast
 
 METHODS = ("gauss_newton", "adam")
-SEARCH_MODES = ("gaps", "always", "off")
 
 
 @dataclass
@@ -88,9 +87,7 @@ class Tracker:
     def __init__(self, cfg: TrackingConfig, backend: str = "auto"):
         if cfg.method not in METHODS:
             raise ValueError(f"tracking.method must be one of {METHODS}, got {cfg.method!r}")
-        if cfg.gauss_newton.search not in SEARCH_MODES:
-            raise ValueError(f"tracking.gauss_newton.search must be one of {SEARCH_MODES}, got "
-                             f"{cfg.gauss_newton.search!r}")
+        check_gap_mode("tracking.gauss_newton.search", cfg.gauss_newton.search)
         self.cfg = cfg
         self.backend = backend
 
