@@ -16,7 +16,8 @@ from typing import Any
 
 import yaml
 
-GAP_MODES = ("gaps", "always", "off")  # when a measure for missed camera frames applies: after them, always, never
+GAP_MODES = ("gaps", "always", "never")  # when a measure for missed camera frames applies (not "off": YAML reads an
+# unquoted off as false)
 
 
 def check_gap_mode(name: str, mode: str) -> None:
@@ -40,7 +41,7 @@ class GaussNewtonTrackingConfig:
     level_iterations: int = 8  # Gauss-Newton iterations per render
     # more starts on the coarsest level: the prediction moved this far (metres) along each camera axis, both ways,
     # and turned this far (degrees) about each. search: "gaps" after skipped or lost frames (a live node slower than
-    # its camera), "always", or "off"
+    # its camera), "always", or "never"
     search: str = "gaps"
     search_translation: float = 0.03
     search_rotation_deg: float = 3.0
@@ -54,7 +55,7 @@ class FeatureStartConfig:
     """A tracking start from ORB feature matches with the last good frame (``slam.feature_start``): a basin of
     convergence as wide as the features match, for the frames a live node skips."""
 
-    mode: str = "gaps"  # "gaps" (after skipped or lost frames, as gauss_newton.search), "always" or "off"
+    mode: str = "gaps"  # "gaps" (after skipped or lost frames, as gauss_newton.search), "always" or "never"
     features: int = 500  # ORB keypoints per image
     fast_threshold: int = 5  # ORB's FAST corner threshold (grey levels)
     min_image_side: int = 240  # images with a shorter side are upscaled by an integer factor for ORB
@@ -101,7 +102,7 @@ class MappingConfig:
 
     every: int = 5  # d_map: map (and take a keyframe) every this many frames, ...
     # ... and (coverage_keyframes: "gaps" after skipped or lost frames, as tracking.gauss_newton.search, "always" or
-    # "off") whenever the map renders a silhouette on less than min_coverage of the view
+    # "never") whenever the map renders a silhouette on less than min_coverage of the view
     coverage_keyframes: str = "gaps"
     min_coverage: float = 0.6
     iterations: int = 30
@@ -466,4 +467,7 @@ def _coerce(name: str, value: Any, default: Any) -> Any:
         return type(default)(value)
     if isinstance(default, str) and isinstance(value, str):
         return value
+    if isinstance(default, str) and isinstance(value, bool):
+        raise ValueError(f"parameter '{name}' must be a string, got {value!r} (YAML reads unquoted on/off/yes/no as "
+                         "true/false: quote the value)")
     raise ValueError(f"parameter '{name}' must be of type {type(default).__name__}, got {value!r}")

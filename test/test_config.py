@@ -37,6 +37,10 @@ def test_errors(tmp_path):
         from_flat({"tracking.adam.iterations": 2.5})
     with pytest.raises(ValueError, match="true/false"):
         from_flat({"loop.enabled": 1})
+    unquoted = tmp_path / "unquoted.yaml"
+    unquoted.write_text("/**:\n  ros__parameters:\n    tracking:\n      feature_start:\n        mode: off\n")
+    with pytest.raises(ValueError, match="'tracking.feature_start.mode' must be a string, got False .*quote"):
+        load_config(unquoted)
     with pytest.raises(FileNotFoundError):
         load_config(tmp_path / "missing.yaml")
     bad = tmp_path / "bad.yaml"

@@ -192,7 +192,7 @@ def test_a_placement_far_off_after_a_loss_is_refused(planted_run):
     slam, _, truths, _, _, observations, session = planted_run
     tracking = slam.cfg.tracking
     cfg = replace(slam.cfg, tracking=replace(tracking, constant_velocity=False,
-                                             feature_start=replace(tracking.feature_start, mode="off")))
+                                             feature_start=replace(tracking.feature_start, mode="never")))
     loaded = GauSemSLAM.load(session, cfg=cfg, relocalise=False)
     placed = loaded.relocalise(observations[SLOT + 1])
     error = invert_pose(placed.cam_to_world) @ truths[SLOT + 1]

@@ -300,7 +300,7 @@ def test_frames_the_map_covers_too_little_of_are_mapped_as_keyframes():
     from gausem_core.slam.system import GauSemSLAM
 
     dataset = open_dataset("synthetic", size=(64, 48), max_frames=22)
-    for mode, skipped in (("off", 2), ("gaps", 0), ("gaps", 2)):
+    for mode, skipped in (("never", 2), ("gaps", 0), ("gaps", 2)):
         cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "refinement.enabled": False,
                                                     "mapping.init_iterations": 40, "mapping.iterations": 5,
                                                     "mapping.every": 100, "mapping.min_coverage": 0.6,
@@ -310,7 +310,7 @@ def test_frames_the_map_covers_too_little_of_are_mapped_as_keyframes():
         results = [slam.process(pipeline.observation(dataset[i]), skipped if i else 0) for i in range(0, 22, 3)]
         keyframes = [r.frame_id for r in results if r.is_keyframe]
         assert keyframes == sorted(kf.frame_id for s in slam.submaps for kf in s.keyframes)
-        if mode == "off" or not skipped:
+        if mode == "never" or not skipped:
             assert keyframes == [0], (mode, skipped)
             continue
         assert len(keyframes) > 1

@@ -3,8 +3,8 @@
 # .gpu/prefix.txz; add .gpu/gsplat_build.tgz once a first run has returned it in $OUT):
 #   1. set-up (benchmarks/gpu/env.sh) and gsplat's kernels, built and saved to $OUT when not carried;
 #   2. the tracking node live on the synthetic loop (360 frames, 12 s at 30 Hz), its threads' stacks sampled
-#      (benchmarks/stack_sampler.py). RUNS lists MODE:SIZE:SWITCH_INTERVAL:DEVICE[:live] runs (live: with the
-#      settings for skipped frames, LIVE_SETTINGS). MODE apart: the node in its
+#      (benchmarks/stack_sampler.py). RUNS lists MODE:SIZE:SWITCH_INTERVAL:DEVICE[:off] runs (off: without the
+#      measures for skipped frames, OFF_SETTINGS; they are the defaults). MODE apart: the node in its
 #      own process and the player in another, as on a robot (processed frames, their gaps and ATE from the node's
 #      trajectory); inproc: `gausem-ros` on a bag of the sequence, all in one process (its report: frames processed
 #      and dropped, latency, ATE);
@@ -13,7 +13,7 @@ set -u
 source benchmarks/gpu/env.sh || exit 1
 SEQUENCE=synthetic:loop
 PARAMS=params/synthetic.yaml
-LIVE_SETTINGS="-p tracking.feature_start.mode:=always -p mapping.min_coverage:=0.6"
+OFF_SETTINGS="-p tracking.feature_start.mode:=never -p mapping.coverage_keyframes:=never"
 T0=$SECONDS
 stage() { echo "== $((SECONDS - T0)) s: $*"; }
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
@@ -74,13 +74,13 @@ inproc() {  # inproc DIR SIZE SWITCH DEVICE [SETTINGS...]
   grep -E "^(ate_rmse_cm|fps) " "$d/log"
 }
 
-for run in ${RUNS:-apart:160x120:0.005:cuda apart:160x120:0.0001:cuda apart:160x120:0.005:cuda:live \
-                   inproc:160x120:0.005:cuda apart:640x480:0.005:cuda:live}; do
+for run in ${RUNS:-apart:160x120:0.005:cuda apart:160x120:0.0001:cuda apart:160x120:0.005:cuda:off \
+                   inproc:160x120:0.005:cuda apart:640x480:0.005:cuda}; do
   IFS=: read -r mode size switch device settings <<< "$run"
   d=/tmp/live_${mode}_${size}_${switch}_${device}_${settings:-defaults}
   rm -rf "$d" && mkdir -p "$d"
   stage "$run"
-  if [ "$settings" = live ]; then extra=($LIVE_SETTINGS); else extra=(); fi
+  if [ "$settings" = off ]; then extra=($OFF_SETTINGS); else extra=(); fi
   $mode "$d" "$size" "$switch" "$device" "${extra[@]}"
   grep -E "ERROR|lost|relocalis" "$d/log" | head -4
   sed -n '/\[stack-sampler\]/,$p' "$d/log" | head -50

@@ -35,7 +35,7 @@ class FeatureStart:
 
     def remember(self, obs: Observation) -> None:
         """``obs`` is the last good frame now."""
-        if self.cfg.mode != "off":
+        if self.cfg.mode != "never":
             self._reference = obs, self._latest[1] if self._latest and self._latest[0] is obs else None
 
     def predict(self, obs: Observation, previous: torch.Tensor) -> torch.Tensor | None:
