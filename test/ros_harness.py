@@ -11,8 +11,10 @@ from rclpy.parameter import Parameter
 from gausem_ros.executor import NodeExecutor
 
 # Few iterations, few Gaussians, one keyframe: a frame of 80x60 takes well under a second on a CPU core.
-FAST_SLAM = {"mapping.iterations": 2, "mapping.init_iterations": 3,
-             "mapping.init_samples_fraction": 0.1, "mapping.every": 100, "device": "cpu", "backend": "torch"}
+# a map of 3 initialisation iterations covers little of any view: without coverage_keyframes never, every frame after
+# a gap would be a keyframe mapped in 2 iterations
+FAST_SLAM = {"mapping.iterations": 2, "mapping.init_iterations": 3, "mapping.init_samples_fraction": 0.1,
+             "mapping.every": 100, "mapping.coverage_keyframes": "never", "device": "cpu", "backend": "torch"}
 
 
 def overrides(values: dict) -> list[Parameter]:

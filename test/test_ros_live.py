@@ -66,10 +66,7 @@ def test_a_slow_tracker_skips_to_the_newest_frame_and_accounts_for_every_input()
     given = []  # (stamp, skipped) of each frame given to the core
     source = list(open_source("synthetic", size=(40, 30), max_frames=frames))
     with ros_session(131) as (ctx, executor):
-        # FAST_SLAM's three-iteration map covers little of any view: each frame after a gap would be a coverage
-        # keyframe, mapped in two iterations
-        fast = {**FAST_SLAM, "mapping.coverage_keyframes": "never"}
-        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(fast))
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
         process = tracking.slam.process
 
         def slow(obs, skipped=0):
