@@ -1,8 +1,9 @@
 """Tracking across the frames a live node skips: the sequence's frames with seeded random gaps (``--min-gap`` to
-``--max-gap`` source frames between processed ones, true stamps kept, as a node slower than its camera sees them;
-equal bounds: a node steadily N times slower), run with each variant (``--variants``: comma-separated SLAM parameter
-overrides, "" for the defaults); loop closure and the global refinement off, so the ATE is tracking's. Reports ATE,
-tracking status counts and seconds a frame. Run from the repository root, e.g.
+``--max-gap`` source frames between processed ones, true stamps kept, the frames left out counted as skipped, as a
+node slower than its camera sees and reports them; equal bounds: a node steadily N times slower), run with each
+variant (``--variants``: comma-separated SLAM parameter overrides, "" for the defaults); loop closure and the global
+refinement off, so the ATE is tracking's. Reports ATE, tracking status counts and seconds a frame. Run from the
+repository root, e.g.
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/frame_gaps.py --source tum:../shared/data/tum_fr1_rpy \
         --max-gap 3 --variants tracking.gauss_newton.search=never "" --out benchmarks/results/frame_gaps_tum_fr1_rpy.md
 """
