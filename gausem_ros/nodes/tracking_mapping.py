@@ -43,8 +43,9 @@ shorter than the declared size, a side below ``min_image_size``, size mismatches
 camera_info yet, labels outside the class table), ``tracking_diverged`` (a pose estimate that is not finite: nothing
 is published for it) and ``processing_error`` (any input whose handling raises; the node goes on). The core hears
 of the frames dropped before it (superseded, lost in transport, unmatched, bad input) with the next frame it gets,
-as skipped ones (``GauSemSLAM.process``): its motion model and ``tracking.feature_start`` then treat that frame as
-following a gap, even where a steadily slow node's stamps cannot show one. Frames of more
+as skipped ones (``GauSemSLAM.process``): its motion model, ``tracking.feature_start`` and
+``mapping.coverage_keyframes`` then treat that frame as following a gap, even where a steadily slow node's stamps
+cannot show one. Frames of more
 than ``max_image_pixels`` pixels are downscaled (aspect kept, intrinsics scaled). ``frames_in``, ``frames_processed``,
 ``frames_pending`` and the latency from a synchronised frame's arrival to its pose's publication (``latency_ms.median``
 / ``.p95`` over the last 100 frames) are published with the counts; :meth:`TrackingMappingNode.summary` gives them
