@@ -165,7 +165,10 @@ class RegistrationConfig:
     lambda_sem: float = 1.0
     lambda_feat: float = 0.5
     feature_channels: int = 8  # fine step: Eq. 6's dense features on this many principal directions (0: none)
-    w_depth: float = 0.5  # depth residual weight in the Gauss-Newton fine step (Eq. 6 has none; 0 drops it)
+    # depth residual weight in the Gauss-Newton fine step and the keyframe alignment of intra-submap loops (Eq. 6 has
+    # none; 0 drops it); as tracking's: with 0.5 the colour term biased the loops' relative poses on real frames
+    # (benchmarks/loop_edges.py)
+    w_depth: float = 5.0
     downsample: int = 2  # the fine step renders at the keyframe resolution divided by this
     pyramid_levels: int = 3  # at least this many pyramid levels, and more while the coarsest is wider than ...
     coarsest_width: int = 40  # ... this at the keyframe resolution (this over downsample in the fine step), pixels
