@@ -252,6 +252,7 @@ def test_the_motion_model_counts_the_frames_a_caller_skipped():
         slam.process(pipeline.observation(dataset[12]), skipped=-1)
     result = slam.process(pipeline.observation(dataset[16]), skipped=7)
     assert result.health.status != "lost" and slam.skipped == 0 and slam.frames[-1].skipped == 7
+    assert result.is_keyframe  # after that gap the map covers too little of the view: the mapping made the record
 
 
 def test_the_search_starts_surround_the_start_and_an_unknown_mode_is_rejected():

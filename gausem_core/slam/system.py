@@ -284,10 +284,9 @@ class GauSemSLAM:
             anchor = rigid_product(self.active.anchor, pose)
             closed.append(self._submap_change(self.active, opened=False))
             self._close_active()
-            loss = self._open_submap(obs, frame_id, anchor)
+            loss = self._open_submap(obs, frame_id, anchor, missed)
         else:
-            loss = self._map_keyframe(obs, frame_id, pose)
-        self.frames[-1].skipped = missed
+            loss = self._map_keyframe(obs, frame_id, pose, missed)
         events = self._keyframe_events(closed)
         release_free_heap()  # mapping and loop closure freed many image-sized buffers
         return self._result(tracked, True, loss, decision, relocalised, health, events)
@@ -443,8 +442,9 @@ class GauSemSLAM:
         from gausem_core.slam.persistence import load_session
         return load_session(folder, cfg, device, relocalise)
 
-    def _map_keyframe(self, obs: Observation, frame_id: int, pose: torch.Tensor) -> float | None:
-        """Add a keyframe to the active submap: densify, then BA over the recent keyframes."""
+    def _map_keyframe(self, obs: Observation, frame_id: int, pose: torch.Tensor, skipped: int) -> float | None:
+        """Add a keyframe to the active submap: densify, then BA over the recent keyframes. ``skipped``: the camera
+        frames missed just before it (its record's)."""
         submap = self.active
         kf = Keyframe(frame_id, obs, pose)
         submap.keyframes.append(kf)
@@ -452,18 +452,20 @@ class GauSemSLAM:
         submap.cloud = self.mapper.densify(submap.cloud, obs, pose)
         window = submap.keyframes[-self.cfg.mapping.window:]
         submap.cloud, losses = self.mapper.optimise(submap.cloud, window, self.cfg.mapping.iterations)
-        self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, torch.eye(4, device=pose.device)))
+        self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, torch.eye(4, device=pose.device),
+                                       skipped=skipped))
         return losses[-1] if losses else None
 
-    def _open_submap(self, obs: Observation, frame_id: int, anchor: torch.Tensor) -> float | None:
+    def _open_submap(self, obs: Observation, frame_id: int, anchor: torch.Tensor, skipped: int = 0) -> float | None:
         """A new active submap anchored (world-from-submap) at ``anchor``: its first keyframe is ``obs``, fixed at the
-        identity, and its Gaussians come from semantic sampling and the initial optimisation."""
+        identity, and its Gaussians come from semantic sampling and the initial optimisation. ``skipped``: the camera
+        frames missed just before it (its record's)."""
         eye = torch.eye(4, device=self.device)
         kf = Keyframe(frame_id, obs, eye, fixed=True)
         cloud, losses = self.mapper.optimise(self.mapper.initialise(obs, eye), [kf], self.cfg.mapping.init_iterations)
         submap = Submap(len(self.submaps), anchor, cloud, [kf], SubmapExtent.start(obs, eye, self.num_classes))
         self.submaps.append(submap)
-        self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, eye.clone()))
+        self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, eye.clone(), skipped=skipped))
         return losses[-1] if losses else None
 
     def _close_active(self) -> None:
