@@ -5,8 +5,8 @@ further from the truth than the drift it corrects, closing the loop costs accura
 suite, the keyframe pairs a loop could join are taken from the ground truth: frames on the loop grid (every
 ``loop.keyframe_every``-th), at least ``min_frame_gap`` apart, and for each query frame the earlier one whose view it
 overlaps most (ground-truth view overlap at least ``min_overlap``). Each pair goes through the intra-submap loop's
-steps as the system runs them (``slam.loop_closure``): geometric verification (ORB matches, RANSAC PnP seeded per
-pair; the pairs it turns down are left out) and keyframe alignment (``registration.align_keyframes``, started from
+steps as the system runs them (``slam.loop_closure``): geometric verification (ORB matches, RANSAC PnP; the pairs
+it turns down are left out) and keyframe alignment (``registration.align_keyframes``, started from
 the verified pose), with each variant's ``loop.registration`` settings; then the acceptance test (overlap and
 fitness). Per variant: the accepted pairs and the median and 90th-percentile error of the measured relative pose
 (translation cm, rotation degrees), with the verified PnP pose's for comparison. Writes
@@ -24,7 +24,6 @@ import math
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -65,7 +64,6 @@ def loop_pairs(observations: dict, poses: dict, min_gap: int, min_overlap: float
 def measure(pair: tuple[int, int, float], observations: dict, poses: dict, features: dict, cfg) -> dict | None:
     """The loop steps for one pair under ``cfg`` (a LoopConfig); None when verification turns it down."""
     query, match, overlap = pair
-    cv2.setRNGSeed(0)  # RANSAC's samples: the same for every variant
     verified = verify(features[query], features[match], observations[query], observations[match], cfg.bow,
                       cfg.registration.max_depth_residual)
     if not verified.passed:
