@@ -166,6 +166,29 @@ def test_detector_checks_only_every_sixth_keyframe(backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_detector_checks_a_stored_keyframe_whose_turn_never_came(backend):
+    """After keyframes 0..15 (checks at 5 and 11), 12..15 are unchecked; checking 14 then gives what a check in its
+    turn gave (keyframe 15, stored after it, and the recent ones before it are not searched)."""
+    g = torch.Generator().manual_seed(5)
+    place = _unit(torch.randn(8, generator=g))
+    signatures = [PlaceSignature(kf, 0, _unit(place + 0.01 * torch.randn(8, generator=g)), torch.ones(3))
+                  for kf in range(16)]
+    detector = LoopDetector(check_every=6, exclude_recent=2, descriptor_dim=8, backend=backend, max_candidates=20)
+    in_turn = LoopDetector(check_every=15, exclude_recent=2, descriptor_dim=8, backend=backend, max_candidates=20)
+    for signature in signatures:
+        detector.add_keyframe(signature)
+    expected = [in_turn.add_keyframe(signature) for signature in signatures[:15]][-1]
+    assert detector.unchecked == [12, 13, 14, 15]
+    candidates = detector.check_stored(signatures[14])
+    assert candidates == expected and {c.match_keyframe for c in candidates} == set(range(12))
+    assert detector.unchecked == [12, 13, 15]
+    detector.add_keyframe(PlaceSignature(16, 0, signatures[0].appearance, torch.ones(3)), check=False)
+    assert detector.unchecked == [12, 13, 15]  # a keyframe stored without a check is not awaiting one
+    with pytest.raises(ValueError, match="not stored"):
+        detector.check_stored(PlaceSignature(99, 0, signatures[0].appearance, torch.ones(3)))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_detector_takes_nearby_keyframes_at_every_keyframe(backend):
     """Keyframes the caller names as nearby are candidates on any keyframe, whatever their descriptors; the recent
     window stays excluded, unknown ids are ignored, and on a check keyframe descriptor candidates join them (the

@@ -53,6 +53,22 @@ def test_inter_submap_loop_moves_the_drifted_submap_rigidly():
     assert torch.equal(last.cloud.means, local_means)
 
 
+def test_a_revisit_in_the_last_keyframes_is_closed_at_the_end():
+    """The revisit of frame 0 at the end of the loop falls between the checks (every 7th loop keyframe: frames 30
+    and 345); checking the keyframes whose turn never came, at the end of the run, closes it."""
+    first = make_submap(0, list(range(0, 50, 5)))
+    truth = frame(330)[1]
+    last = make_submap(1, list(range(330, 360, 5)), anchor=perturbation(0.08, 3.0, 1).float() @ truth)
+    closure = _closure(check_every=7)
+    _feed(closure, [first, last])
+    assert closure.records == [] and closure.detector.unchecked == [350, 355]
+    outcome = closure.check_unchecked([first, last])
+    assert outcome is not None and outcome.constraint is not None and outcome.correction.anchors >= 1
+    assert [(r.query_frame, r.match_frame, r.accepted) for r in closure.records] == [(350, 0, True)]
+    assert pose_error(last.anchor, truth)[0] < 0.5 * 0.08
+    assert closure.check_unchecked([first, last]) is None and len(closure.records) == 1  # nothing left to check
+
+
 def test_proximity_finds_the_revisit_the_descriptor_misses():
     """With a descriptor threshold nothing passes and checks that never come, only keyframes near in the (drifted)
     pose estimate are candidates: the revisit is found, registered from the current anchors and closed."""

@@ -2,7 +2,8 @@
 
 Per keyframe: the global descriptor of its semantic image is computed (and kept for SGR); keyframes whose frame index
 is a multiple of ``keyframe_every`` enter the loop database with their landmark score vector over their submap's
-Gaussians, and every ``check_every``-th of them queries it. Place recognition (``loop.place_recognition``) is either
+Gaussians, and every ``check_every``-th of them queries it (at the end of a run, with ``check_at_end``, also the ones
+whose turn never came: :meth:`LoopClosure.check_unchecked`). Place recognition (``loop.place_recognition``) is either
 the paper's: the database holds the global descriptors (DINOv2 of the semantic image when weights are given); or,
 without weights ("auto"), a bag of binary ORB words of the keyframe's own image with a vocabulary learned online
 (:mod:`~gausem_core.slam.loop.words`), whose candidates must pass geometric verification (feature matches + depth ->
@@ -225,6 +226,30 @@ class LoopClosure:
         record = dataclasses.replace(outcome.record, seconds=time.perf_counter() - start)
         self.records[-1] = record
         return LoopOutcome(record, outcome.constraint, correction)
+
+    def check_unchecked(self, submaps: Sequence) -> LoopOutcome | None:
+        """At the end of a run: the loop keyframes stored since the last check (:attr:`LoopDetector.unchecked`, whose
+        turn never came) are checked in order as :meth:`on_keyframe` checks one (:meth:`LoopDetector.check_stored`,
+        :meth:`confirm`, :meth:`register`) until a loop is accepted, which is then corrected (like a check in its turn,
+        one loop; the rest are dropped unchecked). A revisit in a run's last keyframes is closed so. None when no loop
+        was accepted."""
+        places = {p.keyframe_id: p for p in self.stored_places() if p.keyframe_id in self.detector.unchecked}
+        for keyframe_id in list(self.detector.unchecked):
+            start = time.perf_counter()
+            candidates = self.detector.check_stored(places[keyframe_id])
+            self.seconds["detect"] += time.perf_counter() - start
+            candidate = self.confirm(submaps, candidates)
+            if candidate is None:
+                continue
+            start = time.perf_counter()
+            outcome = self.register(submaps, candidate)
+            if outcome.constraint is None:
+                continue
+            correction = self.correct(submaps, outcome.constraint)
+            self.records[-1] = dataclasses.replace(outcome.record, seconds=time.perf_counter() - start)
+            self.detector.unchecked.clear()
+            return LoopOutcome(self.records[-1], outcome.constraint, correction)
+        return None
 
     def describe(self, submaps: Sequence, submap, keyframe: Keyframe) -> PlaceSignature | None:
         """Describe a new keyframe of ``submap``: its semantic colours join the palette and its global descriptor is

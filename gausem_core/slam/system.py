@@ -544,12 +544,18 @@ class GauSemSLAM:
             return Correction(LoopClosure.move_anchors(self.submaps, update.anchors), 0)
         return self.loop_closure.apply(self.submaps, update)
 
-    def finish(self) -> None:
-        """Call after the last frame: the two-stage global refinement when ``refinement.enabled`` (with or
-        without loop closure: they are separate ablations, paper Tab. VIII)."""
+    def finish(self) -> LoopOutcome | None:
+        """Call after the last frame: with ``loop.check_at_end`` (and loops detected here), the loop keyframes whose
+        check never came are checked (:meth:`LoopClosure.check_unchecked`), then the two-stage global refinement when
+        ``refinement.enabled`` (with or without loop closure: they are separate ablations, paper Tab. VIII). Returns
+        the loop closed at the end, if any."""
+        loop = None
+        if self.loop_closure is not None and self.detect_loops and self.cfg.loop.check_at_end:
+            loop = self.loop_closure.check_unchecked(self.submaps)
         if self.cfg.refinement.enabled and self.submaps:
             global_refinement(self.submaps, self.mapper, self.cfg.refinement, self.cfg.loop.registration,
                               self.descriptor, self.cfg.backend, self.device)
+        return loop
 
     def trajectory(self) -> list[tuple[float, torch.Tensor]]:
         """(timestamp, cam_to_world) of every processed frame, with all corrections applied."""

@@ -67,7 +67,8 @@ Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
   :class:`~gausem_core.slam.loop_graphs.LoopGraphs`) and answers on ``gausem/pose_graph``, applied here
   (``GauSemSLAM.apply_pose_graph``). The next frame waits for those answers (``loop_answer_timeout`` s at most, and
   only while loop_detection and pose_graph subscribe; 0: no wait, answers are applied when they arrive), as
-  ``gausem run`` applies them within the keyframe's call: a lock-step replay gives the same loops.
+  ``gausem run`` applies them within the keyframe's call: a lock-step replay gives the same loops, but for the check
+  of the last loop keyframes at the end of a run (``loop.check_at_end``), which only ``core`` makes.
 """
 from __future__ import annotations
 
@@ -559,12 +560,19 @@ class TrackingMappingNode(Node):
         self.pose_graph_updates.append(update)  # applied
 
     def finish(self) -> None:
-        """End of the sequence: the global refinement (``refinement.enabled``), counted in ``seconds``; the
-        corrected path and map are re-published."""
+        """End of the sequence: the core's end of a run (``loop_closure: core``: the loop keyframes whose check never
+        came are checked, ``loop.check_at_end``; then the global refinement, ``refinement.enabled``), counted in
+        ``seconds``; a loop closed then is published, the keyframes, corrected path and map are re-published."""
         start = time.perf_counter()
-        self.slam.finish()
+        loop = self.slam.finish()
         if self._busy:
             self._busy = (self._busy[0], self._busy[1] + time.perf_counter() - start)
+        header = ma.make_header(max(self._last_stamp, 0.0), self.params.map_frame)
+        if loop is not None and loop.constraint is not None:
+            self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(loop.constraint)],
+                                                                   header))
+        if self.slam.submaps:
+            self._publish_keyframes(self.slam.keyframe_states(), header)  # as loop closure and refinement left them
         self._publish_path()
         self._map_dirty = True
 

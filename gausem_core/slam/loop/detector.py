@@ -91,6 +91,7 @@ class LoopDetector:
         self.database = database if database is not None else DescriptorDatabase(descriptor_dim, backend)
         # the stored keyframes in the order stored: id -> (submap id, landmark scores)
         self.keyframes: dict[int, tuple[int, torch.Tensor]] = {}
+        self.unchecked: list[int] = []  # keyframes stored for checking since the last check, whose turn never came
 
     @classmethod
     def from_config(cls, cfg: LoopConfig, descriptor_kind: str, **kwargs) -> "LoopDetector":
@@ -123,14 +124,33 @@ class LoopDetector:
         ranked = self._candidates(place, is_check, nearby) if is_check or nearby else []
         self.database.add(place.keyframe_id, place.appearance)
         self.keyframes[place.keyframe_id] = (place.submap_id, place.landmark_scores.detach().cpu())
+        if is_check:
+            self.unchecked = []
+        elif check:
+            self.unchecked.append(place.keyframe_id)
         return ranked[:self.max_candidates]
 
-    def _candidates(self, place: PlaceSignature, by_descriptor: bool, nearby: set[int]) -> list[LoopCandidate]:
-        """The candidates, closest landmark vector first when there are classes (ties: closest descriptor first)."""
-        searchable = len(self.database) - self.exclude_recent
+    def check_stored(self, place: PlaceSignature) -> list[LoopCandidate]:
+        """The appearance check of a stored keyframe (one of :attr:`unchecked`, e.g. at the end of a run) against the
+        keyframes stored before it, less the ``exclude_recent`` newest of those, as :meth:`add_keyframe` would have
+        made it in its turn; it is no longer unchecked. Raises ValueError for a keyframe not stored."""
+        order = list(self.keyframes)
+        if place.keyframe_id not in self.keyframes:
+            raise ValueError(f"LoopDetector.check_stored: keyframe {place.keyframe_id} is not stored")
+        if place.keyframe_id in self.unchecked:
+            self.unchecked.remove(place.keyframe_id)
+        later = len(order) - order.index(place.keyframe_id)  # itself and the keyframes stored after it
+        return self._candidates(place, True, set(), later)[:self.max_candidates]
+
+    def _candidates(self, place: PlaceSignature, by_descriptor: bool, nearby: set[int],
+                    later: int = 0) -> list[LoopCandidate]:
+        """The candidates among the stored keyframes but the ``later`` newest and the ``exclude_recent`` before those,
+        closest landmark vector first when there are classes (ties: closest descriptor first)."""
+        exclude = later + self.exclude_recent
+        searchable = len(self.database) - exclude
         if searchable <= 0:
             return []
-        ids, distances = self.database.search(place.appearance, k=searchable, exclude_recent=self.exclude_recent)
+        ids, distances = self.database.search(place.appearance, k=searchable, exclude_recent=exclude)
         submap_id, landmark_scores = place.submap_id, place.landmark_scores
         # similarity 1 - distance at least min_relative_similarity of the best one's (DBoW2-style relative score)
         best = 1.0 - float(distances.min()) if len(distances) else 0.0
