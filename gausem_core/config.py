@@ -214,8 +214,9 @@ class LoopConfig:
     place_recognition: str = "auto"
     keyframe_every: int = 5  # d_k: mapping keyframes whose frame index is a multiple of this enter the database
     check_every: int = 6
-    # at the end of a run (``finish``), check the loop keyframes stored since the last check, whose turn never came
-    check_at_end: bool = True
+    # true: at the end of a run (``finish``), check the loop keyframes stored since the last check, whose turn never
+    # came (off: the loop it closed on 7-Scenes cost accuracy, its edge being centimetres off; docs/BENCHMARKS.md)
+    check_at_end: bool = False
     max_descriptor_distance: float = 0.2  # loop candidates: DINOv2 CLS distance below this (paper)
     max_fallback_descriptor_distance: float = 0.35  # ... colour-layout fallback distance below this (its own scale)
     exclude_recent: int = 6

@@ -68,7 +68,7 @@ Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
   (``GauSemSLAM.apply_pose_graph``). The next frame waits for those answers (``loop_answer_timeout`` s at most, and
   only while loop_detection and pose_graph subscribe; 0: no wait, answers are applied when they arrive), as
   ``gausem run`` applies them within the keyframe's call: a lock-step replay gives the same loops, but for the check
-  of the last loop keyframes at the end of a run (``loop.check_at_end``), which only ``core`` makes.
+  of the last loop keyframes at the end of a run (``loop.check_at_end``, off by default), which only ``core`` makes.
 """
 from __future__ import annotations
 
