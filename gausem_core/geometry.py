@@ -109,16 +109,17 @@ def invert_pose(pose: torch.Tensor) -> torch.Tensor:
 
 
 def project_to_se3(pose: torch.Tensor) -> torch.Tensor:
-    """The nearest rigid transform (rotation part projected onto SO(3) by SVD, computed in float64), in pose's dtype.
+    """The nearest rigid transform (rotation part projected onto SO(3) by SVD, computed in float64 on the host), in
+    pose's dtype and on its device.
 
     Chains of float32 pose products drift off SO(3); left alone, inverses by transposition amplify the drift.
     """
-    m = pose.double().clone()
+    m = pose.to("cpu", torch.float64, copy=True)
     u, _, vt = torch.linalg.svd(m[:3, :3])
     fix = torch.ones(3, dtype=m.dtype, device=m.device)
     fix[2] = torch.det(u @ vt)
     m[:3, :3] = u @ torch.diag(fix) @ vt
-    return m.to(pose.dtype)
+    return m.to(pose)
 
 
 def rigid_float64(pose: torch.Tensor) -> torch.Tensor:

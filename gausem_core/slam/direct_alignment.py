@@ -157,20 +157,18 @@ def _normal_equations_compiled(observed: ObservedImages, motion: torch.Tensor, w
 
 def _normal_equations_torch(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                             points: torch.Tensor, ref: torch.Tensor):
+    """The torch implementation: every model point is weighted (invalid ones by zero) rather than selected, so that on
+    a GPU the step is one stream of kernels with a single copy of ``(H, g, cost, count)`` to the host at its end."""
     cam = observed.camera
     p = points @ motion[:3, :3].T + motion[:3, 3]
     z = p[:, 2]
     u, v = cam.fx * p[:, 0] / z + cam.cx, cam.fy * p[:, 1] / z + cam.cy
     inside = (z > 1e-3) & (u > 0.5) & (u < cam.width - 0.5) & (v > 0.5) & (v < cam.height - 0.5)
+    z, u, v = torch.where(inside, z, 1.0), torch.where(inside, u, -1.0), torch.where(inside, v, -1.0)  # finite
     samples = _sample(observed.samples, u, v)
     depth_res = samples[6] - z
     valid = inside & (samples[6] > 0) & (depth_res.abs() < weights.max_depth_residual)
-    kept = valid.nonzero().squeeze(1)
-    if len(kept) < 12:
-        return None
-    p, z, depth_res, ref = p.index_select(0, kept), z.index_select(0, kept), depth_res.index_select(0, kept), \
-        ref.index_select(1, kept)
-    obs, gu, gv = samples.index_select(1, kept).chunk(3)
+    obs, gu, gv = samples.chunk(3)
     # d(u, v, z)/dxi (N, 6) of the projection of p moved by a left increment exp(xi): dp/dxi = [I | -[p]x]
     x, y, inv_z = p[:, 0], p[:, 1], 1 / z
     xn, yn, zero, one = x * inv_z, y * inv_z, torch.zeros_like(z), torch.ones_like(z)
@@ -182,14 +180,18 @@ def _normal_equations_torch(observed: ObservedImages, motion: torch.Tensor, weig
     res = torch.cat([obs[:6] - ref[:6], depth_res[None], obs[7:] - ref[6:]], 0)
     features = observed.feature_channels
     chan = _channel_weight_column(tuple(_channel_weights(weights, features)), p.dtype, p.device)
-    irls = chan / res.abs().clamp_min(weights.huber_delta)  # IRLS weights of the L1 norm
+    irls = chan / res.abs().clamp_min(weights.huber_delta) * valid  # IRLS weights of the L1 norm
     # depth discontinuities: the observed depth's gradient there is no derivative of the surface, leave them out
     slope = (gu[6].abs() * cam.fx + gv[6].abs() * cam.fy) / z
     irls[6] = irls[6] * (slope < weights.max_depth_slope)
     cap = _cost_cap(weights, features)
-    cost = (chan * res.abs()).sum(0).clamp_max(cap).sum() + cap * (len(points) - len(kept))
+    cost = torch.where(valid, (chan * res.abs()).sum(0).clamp_max(cap), cap).sum()
     jw = (jac * irls[..., None]).reshape(-1, 6)
-    return jw.T @ jac.reshape(-1, 6), jw.T @ res.reshape(-1), float(cost / len(points))
+    h, g = jw.T @ jac.reshape(-1, 6), jw.T @ res.reshape(-1)
+    packed = torch.cat([h.reshape(-1), g, cost[None], valid.sum()[None].to(h.dtype)]).to("cpu", torch.float64)
+    if packed[43] < 12:
+        return None
+    return packed[:36].view(6, 6), packed[36:42], float(packed[42]) / len(points)
 
 
 def model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Tensor, torch.Tensor]:
@@ -213,17 +215,20 @@ def alignment_cost(model: ModelView, observed: ObservedImages, motion: torch.Ten
 
 def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                 iterations: int, damping: float = 1e-4) -> tuple[torch.Tensor, float]:
-    """Refine ``motion`` (observed-camera-from-model-camera, 4x4) on one level; returns it and the last mean L1."""
+    """Refine ``motion`` (observed-camera-from-model-camera, 4x4) on one level; returns it and the last mean L1. The
+    normal equations are summed where the images are; the 6x6 solve and the pose update run on the host (on a GPU
+    each would be a handful of kernel launches and a wait)."""
     points, ref = model_samples(model, observed)
+    device, motion = motion.device, motion.detach().cpu()
     cost = float("nan")
     for _ in range(iterations):
-        step = normal_equations(observed, motion, weights, points, ref)
+        step = normal_equations(observed, motion.to(device), weights, points, ref)
         if step is None:
             break
         h, g, cost = step
-        h = h + damping * torch.diag(h.diagonal()) + 1e-9 * torch.eye(6, dtype=h.dtype, device=h.device)
+        h = h + damping * torch.diag(h.diagonal()) + 1e-9 * torch.eye(6, dtype=h.dtype)
         xi = -torch.linalg.solve(h, g).to(motion.dtype)
         motion = se3_exp(xi) @ motion
         if float(xi.norm()) < 1e-6:
             break
-    return motion, cost
+    return motion.to(device), cost
