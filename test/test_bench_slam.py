@@ -236,7 +236,7 @@ def test_missing_open3d_gives_an_install_hint(monkeypatch):
 
 
 def test_gausem_core_does_not_import_open3d():
-    code = ("import sys, gausem_core.cli; gausem_core.cli.build_parser(); "
+    code = ("import sys, gausem_core.cli; gausem_core.cli.build_parser('bench'); "
             "import gausem_bench.slam, gausem_bench.worker, gausem_bench.tables; assert 'open3d' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
@@ -244,7 +244,7 @@ def test_gausem_core_does_not_import_open3d():
 def test_bench_without_a_checkout_says_where_the_harness_lives(tmp_path):
     """An installed library has no benchmarks/gausem_bench: `gausem bench` fails clearly, the other commands work."""
     code = ("import sys, pathlib, gausem_core.tools.bench as bench; bench.BENCHMARKS = pathlib.Path('/nonexistent'); "
-            "from gausem_core.cli import build_parser, main; build_parser().parse_args(['info']); "
+            "from gausem_core.cli import build_parser, main; build_parser('info').parse_args(['info']); "
             "sys.exit(main(['bench', 'slam', '--dry-run']))")
     done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)
     assert done.returncode == 2 and "benchmarks/gausem_bench" in done.stderr and "pip install -e" in done.stderr
