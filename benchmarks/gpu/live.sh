@@ -4,7 +4,8 @@
 #   1. set-up (benchmarks/gpu/env.sh) and gsplat's kernels, built and saved to $OUT when not carried;
 #   2. the tracking node live on the synthetic loop (360 frames, 12 s at 30 Hz), its threads' stacks sampled
 #      (benchmarks/stack_sampler.py). RUNS lists MODE:SIZE:SWITCH_INTERVAL:DEVICE[:off] runs (off: without the
-#      measures for skipped frames, OFF_SETTINGS; they are the defaults). MODE apart: the node in its
+#      measures for skipped frames, OFF_SETTINGS; they are the defaults; SETTINGS: more node parameters for every
+#      run, e.g. SETTINGS="-p mapping.init_iterations:=80"). MODE apart: the node in its
 #      own process and the player in another, as on a robot (processed frames, their gaps and ATE from the node's
 #      trajectory); inproc: `gausem-ros` on a bag of the sequence, all in one process (its report: frames processed
 #      and dropped, latency, ATE);
@@ -81,6 +82,7 @@ for run in ${RUNS:-apart:160x120:0.005:cuda apart:160x120:0.0001:cuda apart:160x
   rm -rf "$d" && mkdir -p "$d"
   stage "$run"
   if [ "$settings" = off ]; then extra=($OFF_SETTINGS); else extra=(); fi
+  extra+=(${SETTINGS:-})
   $mode "$d" "$size" "$switch" "$device" "${extra[@]}"
   grep -E "ERROR|lost|relocalis" "$d/log" | head -4
   sed -n '/\[stack-sampler\]/,$p' "$d/log" | head -50
