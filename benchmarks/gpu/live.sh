@@ -5,7 +5,7 @@
 #   2. the tracking node live on the synthetic loop (360 frames, 12 s at 30 Hz), its threads' stacks sampled
 #      (benchmarks/stack_sampler.py). RUNS lists MODE:SIZE:SWITCH_INTERVAL:DEVICE[:off] runs (off: without the
 #      measures for skipped frames, OFF_SETTINGS; they are the defaults; SETTINGS: more node parameters for every
-#      run, e.g. SETTINGS="-p mapping.init_iterations:=80"). MODE apart: the node in its
+#      run; RATE: the player's speed, default 1). MODE apart: the node in its
 #      own process and the player in another, as on a robot (processed frames, their gaps and ATE from the node's
 #      trajectory); inproc: `gausem-ros` on a bag of the sequence, all in one process (its report: frames processed
 #      and dropped, latency, ATE);
@@ -37,7 +37,7 @@ apart() {  # apart DIR SIZE SWITCH DEVICE [SETTINGS...]
   (sampled "$switch" gausem_ros.nodes.tracking_mapping --ros-args --params-file $PARAMS -p device:="$device" "$@" \
     -p save_on_exit:=true -p output_dir:="$d" > "$d/log" 2>&1) &
   local node=$!
-  timeout 150 python3 -m gausem_ros.player $SEQUENCE --size "$size" --rate 1 --wait-subscribers 120 \
+  timeout 150 python3 -m gausem_ros.player $SEQUENCE --size "$size" --rate ${RATE:-1} --wait-subscribers 120 \
     --gt-out "$d/gt.txt" --ros-args --params-file $PARAMS > "$d/player.log" 2>&1
   tail -2 "$d/player.log"
   sleep 5
@@ -66,7 +66,7 @@ inproc() {  # inproc DIR SIZE SWITCH DEVICE [SETTINGS...]
   local d=$1 size=$2 switch=$3 device=$4 bag=/tmp/bag_$2
   shift 4
   [ -d "$bag" ] || python3 -m gausem_ros.convert $SEQUENCE "$bag" --size "$size" > /dev/null || return
-  (sampled "$switch" gausem_ros.run_all "$bag" --rate 1 --quiet --report "$d/report" --reference $SEQUENCE \
+  (sampled "$switch" gausem_ros.run_all "$bag" --rate ${RATE:-1} --quiet --report "$d/report" --reference $SEQUENCE \
     --ros-args --params-file $PARAMS -p device:="$device" "$@" > "$d/log" 2>&1) &
   local all=$!
   for _ in $(seq 200); do kill -0 $all 2>/dev/null || break; sleep 1; done
