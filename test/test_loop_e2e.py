@@ -135,4 +135,3 @@ def test_loop_closure_lowers_the_ate_of_a_drifting_run(place_recognition, labell
     scores = loop_scores([(r.query_frame, r.match_frame) for r in closed], positions, min_frame_gap=30,
                          tau_loop=1.0)
     assert scores.recall >= 0.8  # issue 5's target: the revisit's ground-truth loops are closed
-
