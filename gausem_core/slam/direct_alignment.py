@@ -189,9 +189,8 @@ def _normal_equations_torch(observed: ObservedImages, motion: torch.Tensor, weig
     jw = (jac * irls[..., None]).reshape(-1, 6)
     h, g = jw.T @ jac.reshape(-1, 6), jw.T @ res.reshape(-1)
     packed = torch.cat([h.reshape(-1), g, cost[None], valid.sum()[None].to(h.dtype)]).to("cpu", torch.float64)
-    if packed[43] < 12:
-        return None
-    return packed[:36].view(6, 6), packed[36:42], float(packed[42]) / len(points)
+    h, g, cost, count = packed[:36].view(6, 6), packed[36:42], float(packed[42]), int(packed[43])
+    return None if count < 12 else (h, g, cost / len(points))
 
 
 def model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Tensor, torch.Tensor]:
