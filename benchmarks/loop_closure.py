@@ -18,7 +18,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from loop_scene import make_submap, perturbation, pose_error  # noqa: E402
-from test_loop_e2e import ate_rmse, drifting_run, integrate_odometry  # noqa: E402
+from test_loop_e2e import ate_rmse, drifting_run, integrate_odometry, timestamps  # noqa: E402
 
 from gausem_core.config import RegistrationConfig  # noqa: E402
 from gausem_core.eval.loops import DEFAULT_PROTOCOL, loop_scores  # noqa: E402
@@ -29,8 +29,7 @@ from gausem_core.slam.registration import (fine_registration, fine_views, is_acc
                                            semantic_guided_registration)
 
 OUT = Path(__file__).resolve().parent / "results"
-PROTOCOL = DEFAULT_PROTOCOL  # in processed frames (every 3rd source frame)
-# processed frames walked again after the loop: 16 ends on a 6-frame interval, the others on whole ones
+# processed frames walked again after the loop
 REVISITS = (16, 20, 24, 40)
 
 
@@ -124,7 +123,8 @@ def e2e(revisit: int, loop: bool) -> dict:
     if loop:
         records = slam.loop_closure.records
         for name, pairs in (("detected", records), ("closed", [r for r in records if r.accepted])):
-            scores = loop_scores([(r.query_frame, r.match_frame) for r in pairs], positions, **PROTOCOL)
+            scores = loop_scores([(r.query_frame, r.match_frame) for r in pairs], positions,
+                                 timestamps=timestamps(len(truth)), **DEFAULT_PROTOCOL)
             row[name] = scores.as_dict()
         row["loops"] = [{"k": r.query_frame, "j": r.match_frame, "intra": r.intra, "accepted": r.accepted,
                          "fitness": round(r.fitness, 3), "seconds": round(r.seconds, 2)} for r in records]
@@ -134,7 +134,7 @@ def e2e(revisit: int, loop: bool) -> dict:
 def main() -> None:
     torch.set_num_threads(1)
     document = {"commit": git_commit(), "threads": torch.get_num_threads(), "load_average": os.getloadavg(),
-                "protocol": PROTOCOL, "sgr": [sgr_timing(2), sgr_timing(1)], "registration": registration_ablation(),
+                "protocol": DEFAULT_PROTOCOL, "sgr": [sgr_timing(2), sgr_timing(1)], "registration": registration_ablation(),
                 "e2e": [e2e(revisit, loop) for revisit in REVISITS for loop in (False, True)] + [e2e(0, True)]}
     OUT.mkdir(exist_ok=True)
     (OUT / "loop_closure.json").write_text(json.dumps(document, indent=2, default=float) + "\n")
@@ -169,7 +169,8 @@ def markdown(doc: dict) -> str:
                      f"{r['median_seconds']:.3f} | {accepted} |")
     p = doc["protocol"]
     lines += ["", "## Drifting synthetic loop (80x60, every 3rd frame, odometry bias 2 mm + 0.08 deg per frame)", "",
-              f"Protocol: intervals of {p['interval']} processed frames, dt_min {p['min_frame_gap']}, "
+              f"Protocol: intervals of {p['interval']} camera frames at {p['frame_rate']:g} Hz (3 processed "
+              f"frames), dt_min {p['min_frame_gap']} camera frames, "
               f"tau_loop {p['tau_loop']} m.", "",
               "P / R / F1 cells: precision, recall, F1 (detections; ground-truth loops hit of all).", "",
               "| revisit frames | loop closure | submaps | ATE m (odometry) | ATE m | detected P / R / F1 | "

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
-from test_loop_e2e import ate_rmse, drifting_run, integrate_odometry, revisit_frames  # noqa: E402
+from test_loop_e2e import ate_rmse, drifting_run, integrate_odometry, revisit_frames, timestamps  # noqa: E402
 
 from gausem_core.config import load_config  # noqa: E402
 from gausem_core.data.tum import TumDataset  # noqa: E402
@@ -47,9 +47,9 @@ SYNTHETIC = [("descriptor", True, 0.0), ("auto", True, 0.0), ("descriptor", Fals
              ("auto", False, 15.0), ("auto", False, 30.0)]
 
 
-def loop_quality(closure, observe, poses: dict[int, np.ndarray], positions: np.ndarray) -> dict:
+def loop_quality(closure, observe, poses: dict[int, np.ndarray], positions: np.ndarray, stamps) -> dict:
     """Protocol scores, overlap-true detections and revisits closed for a finished run's loop closure; ``observe``
-    gives a frame id's observation, ``poses`` its ground-truth cam_to_world."""
+    gives a frame id's observation, ``poses`` its ground-truth cam_to_world; ``stamps`` the frames' timestamps."""
     records = closure.records
     observations = {}
 
@@ -83,7 +83,7 @@ def loop_quality(closure, observe, poses: dict[int, np.ndarray], positions: np.n
                       "inliers": r.inliers, "fitness": round(r.fitness, 3),
                       "true_overlap": round(overlap(r.query_frame, r.match_frame), 3)} for r in records]}
     for name, pairs in (("protocol_detected", records), ("protocol_accepted", accepted)):
-        row[name] = loop_scores([(r.query_frame, r.match_frame) for r in pairs], positions,
+        row[name] = loop_scores([(r.query_frame, r.match_frame) for r in pairs], positions, timestamps=stamps,
                                 **DEFAULT_PROTOCOL).as_dict()
     row["seconds_by_phase"] = dict(closure.seconds)
     return row
@@ -106,7 +106,7 @@ def synthetic(place_recognition: str, labelled: bool, pan: float) -> dict:
     row = {"sequence": f"synthetic loop, revisit panned {pan:g} deg", "labels": labelled, "frames": len(truth),
            "submaps": len(slam.submaps), "ate_rmse_m_without": ate_rmse(integrate_odometry(truth), truth),
            "ate_rmse_m_with": ate_rmse([p for _, p in slam.trajectory()], truth), "seconds": seconds,
-           **loop_quality(slam.loop_closure, observe, poses, positions)}
+           **loop_quality(slam.loop_closure, observe, poses, positions, timestamps(len(truth)))}
     row["loop_fraction_of_run"] = sum(row["seconds_by_phase"].values()) / seconds
     return row
 
@@ -128,7 +128,7 @@ def tum(frames: int, loop: bool) -> dict:
 
         poses = {n: data[n].gt_pose for n in range(len(data))}
         positions = np.stack([p[:3, 3] for p in result.gt_poses])
-        row.update(loop_quality(result.slam.loop_closure, observe, poses, positions))
+        row.update(loop_quality(result.slam.loop_closure, observe, poses, positions, result.timestamps))
         row["loop_fraction_of_run"] = sum(row["seconds_by_phase"].values()) / result.seconds
     return row
 
@@ -159,8 +159,8 @@ def markdown(document: dict) -> str:
     lines = ["# Place recognition and loop closure (issue #23)", "",
              "Command and definitions: the docstring of benchmarks/place_recognition.py. true = ground-truth view "
              f"overlap >= {MIN_OVERLAP} between the loop's keyframes; protocol = the paper's (intervals of "
-             f"{DEFAULT_PROTOCOL['interval']} processed frames, dt_min {DEFAULT_PROTOCOL['min_frame_gap']}, "
-             f"tau_loop {DEFAULT_PROTOCOL['tau_loop']} m), P / R of the accepted loops; revisits closed: runs of "
+             f"{DEFAULT_PROTOCOL['interval']} camera frames at {DEFAULT_PROTOCOL['frame_rate']:g} Hz, dt_min "
+             f"{DEFAULT_PROTOCOL['min_frame_gap']}, tau_loop {DEFAULT_PROTOCOL['tau_loop']} m), P / R of the accepted loops; revisits closed: runs of "
              "keyframes that see an earlier place with >= 0.5 overlap and hold an accepted loop's query keyframe. "
              "Loop closure time: describe (descriptors, ORB) + detect + verify + register + correct, wall clock, one "
              "thread on a shared 2-core machine.", ""]

@@ -196,7 +196,7 @@ def loop_metrics(result: RunResult) -> dict:
     own = [(r.query_frame - first, r.match_frame - first) for r in records if r.match_frame >= first]
     if own and all(p is not None for p in result.gt_poses):
         positions = np.stack([p[:3, 3] for p in result.gt_poses])
-        scores = loop_scores(own, positions, **DEFAULT_PROTOCOL)
+        scores = loop_scores(own, positions, timestamps=result.timestamps, **DEFAULT_PROTOCOL)
         out.update(scores.as_dict(), protocol=DEFAULT_PROTOCOL)
     return out
 

@@ -261,6 +261,25 @@ def test_ground_truth_loops_follow_the_interval_protocol():
     assert ground_truth_loops(track, min_frame_gap=25, tau_loop=0.5) == {(0, 3), (1, 3)}
 
 
+def test_loop_protocol_counts_the_cameras_frames():
+    """A run that processed every 3rd frame of a 30 Hz camera is judged on the camera's intervals, as a run that
+    processed them all; numbered by index, its intervals would span three times the motion."""
+    positions = np.zeros((120, 3))
+    positions[30:90, 0] = 5.0  # away for two seconds, then back where it started
+    positions += np.random.default_rng(0).uniform(-0.05, 0.05, positions.shape)
+    stamps = np.arange(120) / 30.0
+    protocol = {"min_frame_gap": 30, "tau_loop": 0.5, "interval": 10}
+    full = ground_truth_loops(positions, timestamps=stamps, **protocol)
+    returns = {(a, b) for a in range(3) for b in range(9, 12)}
+    assert full == returns | {(a, b) for a in range(3, 9) for b in range(a + 3, 9)}  # and while away
+    assert full == ground_truth_loops(positions, **protocol)  # 30 Hz stamps: numbered as by index
+    assert ground_truth_loops(positions[::3], timestamps=stamps[::3], **protocol) == full
+    assert ground_truth_loops(positions[::3], **protocol) == {(0, 3)}
+    assert loop_scores([(33, 3), (35, 25)], positions[::3], timestamps=stamps[::3], **protocol).precision == 0.5
+    with pytest.raises(ValueError, match="non-decreasing"):
+        loop_scores([], positions[:3], timestamps=[0.0, 0.2, 0.1], **protocol)
+
+
 def test_loop_precision_recall_f1():
     track = loop_track()
     detections = [(35, 2), (33, 15), (25, 5), (36, 4)]  # (0,3) hit, (1,3) hit, (0,2) false, (0,3) again
