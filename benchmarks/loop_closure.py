@@ -169,7 +169,7 @@ def markdown(doc: dict) -> str:
                      f"{r['median_seconds']:.3f} | {accepted} |")
     p = doc["protocol"]
     lines += ["", "## Drifting synthetic loop (80x60, every 3rd frame, odometry bias 2 mm + 0.08 deg per frame)", "",
-              f"Protocol: intervals of {p['interval']} camera frames at {p['frame_rate']:g} Hz (3 processed "
+              f"Protocol: intervals of {p['interval']} camera frames at {p['frame_rate']:g} Hz (3-4 processed "
               f"frames), dt_min {p['min_frame_gap']} camera frames, "
               f"tau_loop {p['tau_loop']} m.", "",
               "P / R / F1 cells: precision, recall, F1 (detections; ground-truth loops hit of all).", "",
