@@ -90,7 +90,7 @@ def main() -> None:
                f"`benchmarks/sensor_noise.py --sequence {args.sequence} --variants {' '.join(args.variants)}"
                + (f" --frames {args.frames}" if args.frames else "")
                + "".join(f" --set {k}={v}" for k, v in overrides.items()) + "`; params/synthetic.yaml, loop "
-               "closure on. Sim(3) scale < 1: the estimate is too small. Open3D baselines not run here.\n\n"
+               "closure on. Sim(3) scale > 1: the estimate is too small. Open3D baselines not run here.\n\n"
                + table(rows) + "\n")
     (results / f"{name}.md").write_text(summary)
     print(summary)
