@@ -134,7 +134,8 @@ def e2e(revisit: int, loop: bool) -> dict:
 def main() -> None:
     torch.set_num_threads(1)
     document = {"commit": git_commit(), "threads": torch.get_num_threads(), "load_average": os.getloadavg(),
-                "protocol": DEFAULT_PROTOCOL, "sgr": [sgr_timing(2), sgr_timing(1)], "registration": registration_ablation(),
+                "protocol": DEFAULT_PROTOCOL, "sgr": [sgr_timing(2), sgr_timing(1)],
+                "registration": registration_ablation(),
                 "e2e": [e2e(revisit, loop) for revisit in REVISITS for loop in (False, True)] + [e2e(0, True)]}
     OUT.mkdir(exist_ok=True)
     (OUT / "loop_closure.json").write_text(json.dumps(document, indent=2, default=float) + "\n")
