@@ -161,7 +161,8 @@ def markdown(document: dict) -> str:
              f"overlap >= {MIN_OVERLAP} between the loop's keyframes; protocol = the paper's (intervals of "
              f"{DEFAULT_PROTOCOL['interval']} camera frames at {DEFAULT_PROTOCOL['frame_rate']:g} Hz, dt_min "
              f"{DEFAULT_PROTOCOL['min_frame_gap']}, tau_loop {DEFAULT_PROTOCOL['tau_loop']} m), P / R of the accepted "
-             "loops; revisits closed: runs of keyframes that see an earlier place with >= 0.5 overlap and hold an accepted loop's query keyframe. "
+             "loops; revisits closed: runs of keyframes that see an earlier place with >= 0.5 overlap and hold an "
+             "accepted loop's query keyframe. "
              "Loop closure time: describe (descriptors, ORB) + detect + verify + register + correct, wall clock, one "
              "thread on a shared 2-core machine.", ""]
     for part, data in document.items():

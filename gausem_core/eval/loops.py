@@ -59,10 +59,16 @@ def ground_truth_loops(gt_positions, *, min_frame_gap: int, tau_loop: float, int
     """Interval index pairs (a, b), a < b, that form ground-truth loops (interval a: camera frames a*interval ..
     a*interval+interval-1)."""
     positions = _check_positions(gt_positions)
+    return _interval_loops(positions, camera_frames(len(positions), timestamps, frame_rate), min_frame_gap, tau_loop,
+                           interval)
+
+
+def _interval_loops(positions: np.ndarray, numbers: np.ndarray, min_frame_gap: int, tau_loop: float,
+                    interval: int) -> set[tuple[int, int]]:
+    """:func:`ground_truth_loops` of checked positions and their camera frame numbers."""
     if interval < 1 or min_frame_gap < 0 or tau_loop <= 0:
         raise ValueError(f"need interval >= 1, min_frame_gap >= 0, tau_loop > 0; got {interval}, "
                          f"{min_frame_gap}, {tau_loop}")
-    numbers = camera_frames(len(positions), timestamps, frame_rate)
     groups = numbers // interval
     loops = set()
     for a in np.unique(groups):
@@ -109,9 +115,9 @@ def loop_scores(detections, gt_positions, *, min_frame_gap: int, tau_loop: float
     """Score detected loop frame pairs ``(k, j)`` (indices into ``gt_positions`` (N, 3) and ``timestamps``) against
     the ground truth."""
     positions = _check_positions(gt_positions)
-    truth = ground_truth_loops(positions, min_frame_gap=min_frame_gap, tau_loop=tau_loop, interval=interval,
-                               timestamps=timestamps, frame_rate=frame_rate)
-    groups = camera_frames(len(positions), timestamps, frame_rate) // interval
+    numbers = camera_frames(len(positions), timestamps, frame_rate)
+    truth = _interval_loops(positions, numbers, min_frame_gap, tau_loop, interval)
+    groups = numbers // interval
     pairs = [(int(k), int(j)) for k, j in detections]
     for k, j in pairs:
         if not (0 <= k < len(positions) and 0 <= j < len(positions)):
