@@ -9,7 +9,7 @@ from __future__ import annotations
 import csv
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -116,7 +116,7 @@ def evaluation_positions(frames: int, eval_every: int) -> list[int]:
 
 def rendered_views(result: RunResult, pipeline: Pipeline, positions: list[int]):
     """Yield (frame, observation, render) per processed-frame position: the final global map rendered at the frame's
-    estimated pose (no gradients)."""
+    estimated pose (no gradients), its colour as the camera records it (times the run's vignetting estimate)."""
     cloud = result.slam.global_cloud().to(pipeline.device)
     for k in positions:
         i = result.dataset_positions[k]
@@ -128,7 +128,7 @@ def rendered_views(result: RunResult, pipeline: Pipeline, positions: list[int]):
         world_to_cam = invert_pose(torch.as_tensor(result.poses[k], dtype=cloud.dtype, device=cloud.device))
         with torch.no_grad():
             out = render(cloud, world_to_cam, obs.camera, backend=pipeline.cfg.backend)
-        yield frame, obs, out
+        yield frame, obs, replace(out, color=result.slam.vignetting.apply(out.color, obs.camera))
 
 
 def evaluate_rendering(result: RunResult, pipeline: Pipeline, eval_every: int,
@@ -266,6 +266,8 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
     if evaluation.rows:
         write_montage(out / "montage.png", evaluation.rows)
     metrics.update(performance_metrics(result, pipeline.device))
+    a = result.slam.vignetting.a
+    metrics["vignetting"] = {"a": a, "corner_gain": math.exp(a)}  # V(r) = exp(a r^2); corner_gain: V at r = 1
     descriptor = result.slam.descriptor
     metrics["semantics"] = {**pipeline.semantics.summary(),
                             "descriptor": descriptor.kind if descriptor is not None else None}

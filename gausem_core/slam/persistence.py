@@ -6,7 +6,7 @@ The folder (format ``gausem-session``, version :data:`VERSION`) is self-containe
   ``detect_loops`` and the state tree: submaps (id, anchor, keyframes with poses, cameras and timestamps, allocation
   extent), frames (id, timestamp, submap, reference keyframe, relative pose, whether tracking was lost), the tracker's
   motion segment, whether the system is lost and how many frames it dropped since the last recorded one, the health
-  monitor's histories, the mapper's random generator and the loop closure's
+  monitor's histories, the vignetting estimate, the mapper's random generator and the loop closure's
   :meth:`~gausem_core.slam.loop_closure.LoopClosure.state_dict`. Every tensor in the tree is a reference
   ``{"$tensor": "FILE:KEY"}`` into one of the tensor files. Written last: a folder without it holds no (complete)
   session. Sessions written before the tracking-loss fields existed load as never lost, with empty health histories.
@@ -134,7 +134,7 @@ def _state_tree(slam: GauSemSLAM, writer: _TensorWriter) -> dict:
     return {"submaps": [_submap_tree(s, writer) for s in slam.submaps],
             **writer.pack({"frames": frames, "segment_start": slam.segment_start, "lost": slam.lost,
                            "dropped": slam.dropped, "skipped": slam.skipped, "health": slam.health.state_dict(),
-                           "feature_start": slam.feature_start.state_dict(),
+                           "feature_start": slam.feature_start.state_dict(), "vignetting": slam.vignetting.a,
                            "mapper_generator": slam.mapper.generator.get_state(), "loop_closure": loop}, STATE_FILE)}
 
 
@@ -223,6 +223,7 @@ def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torc
     if "health" in state:
         slam.health.load_state_dict(state["health"])
     slam.feature_start.load_state_dict(state.get("feature_start"))
+    slam.vignetting.a = state.get("vignetting", slam.vignetting.a)
     slam.mapper.generator.set_state(state["mapper_generator"])
     if slam.loop_closure is not None and state["loop_closure"] is not None:
         slam.loop_closure.load_state_dict(state["loop_closure"])

@@ -24,7 +24,7 @@ from gausem_core.config import SlamConfig, check_gap_mode, gap_mode_applies
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
 from gausem_core.memory import release_free_heap
-from gausem_core.render import prepare_backend
+from gausem_core.render import prepare_backend, render
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
 from gausem_core.slam.depth_filter import filter_observation
@@ -40,6 +40,7 @@ from gausem_core.slam.observation import Observation
 from gausem_core.slam.relocalisation import RelocalisationResult, Start, relocalisation_starts, track_from_starts
 from gausem_core.slam.submap_store import SubmapStore
 from gausem_core.slam.tracker import Tracker, TrackingResult, inspect_pose, repeat_motion
+from gausem_core.slam.vignetting import Vignetting
 
 _IMAGES = ("rgb", "depth", "semantic", "labels")
 MAX_PREDICTION_S = 1.0  # the constant-velocity prediction extrapolates at most this far past the last good frame
@@ -219,6 +220,7 @@ class GauSemSLAM:
         self.tracker = tracker if tracker is not None else Tracker(cfg.tracking, cfg.backend)
         self.feature_start = FeatureStart(cfg.tracking.feature_start)
         self.health = HealthMonitor(cfg.health)
+        self.vignetting = Vignetting(cfg.vignetting)
         self.mapper = Mapper(cfg.mapping, cfg.backend, cfg.seed)
         self.allocation = make_allocation(cfg.submaps)
         self.store = SubmapStore(int(cfg.submaps.memory_budget_mb * 2**20), cfg.submaps.cache_dir or None)
@@ -248,7 +250,7 @@ class GauSemSLAM:
         steadily slower than its camera."""
         if skipped < 0:
             raise ValueError(f"skipped must be >= 0, got {skipped}")
-        obs = filter_observation(obs, self.cfg.depth_filter)
+        obs = filter_observation(self.vignetting.correct(obs), self.cfg.depth_filter)
         frame_id = len(self.frames)
         self.mapper.hurry.clear()
         self.skipped += skipped
@@ -287,6 +289,7 @@ class GauSemSLAM:
             loss = self._open_submap(obs, frame_id, anchor, missed)
         else:
             loss = self._map_keyframe(obs, frame_id, pose, missed)
+        self._calibrate(obs)
         events = self._keyframe_events(closed)
         release_free_heap()  # mapping and loop closure freed many image-sized buffers
         return self._result(tracked, True, loss, decision, relocalised, health, events)
@@ -455,6 +458,16 @@ class GauSemSLAM:
         self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, torch.eye(4, device=pose.device),
                                        skipped=skipped))
         return losses[-1] if losses else None
+
+    def _calibrate(self, obs: Observation) -> None:
+        """Refine the vignetting estimate from the keyframe just mapped (``obs``, corrected) against the active submap's
+        render at its pose (see ``slam.vignetting``)."""
+        if not self.cfg.vignetting.calibrate:
+            return
+        kf = self.active.keyframes[-1]
+        with torch.no_grad():
+            view = render(self.active.cloud, invert_pose(kf.cam_to_world), obs.camera, backend=self.cfg.backend)
+        self.vignetting.update(obs, view.color, view.alpha)
 
     def _open_submap(self, obs: Observation, frame_id: int, anchor: torch.Tensor, skipped: int = 0) -> float | None:
         """A new active submap anchored (world-from-submap) at ``anchor``: its first keyframe is ``obs``, fixed at the
