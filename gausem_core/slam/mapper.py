@@ -12,7 +12,7 @@ from gausem_core.geometry import invert_pose, se3_exp, transform_points
 from gausem_core.render import render
 from gausem_core.slam.adam import AdamSteps, ParameterGroup
 from gausem_core.slam.losses import mapping_loss
-from gausem_core.slam.observation import Observation
+from gausem_core.slam.observation import MAX_COLOR, Observation
 
 
 @dataclass
@@ -118,7 +118,7 @@ class Mapper:
         with torch.no_grad():
             for kf in movable:
                 kf.cam_to_world = invert_pose(se3_exp(twists[id(kf)]) @ invert_pose(kf.cam_to_world.to(params.dtype)))
-            params.colors.clamp_(0, 1)
+            params.colors.clamp_(0, MAX_COLOR)
             params.semantics.clamp_(0, 1)
         return self.prune(params.detach()), torch.stack(losses).tolist() if losses else []
 

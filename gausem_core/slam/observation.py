@@ -8,6 +8,9 @@ import torch
 
 from gausem_core.geometry import PinholeCamera
 
+MAX_COLOR = 2.0  # colours the system maps lie in [0, MAX_COLOR]: a frame's colour in [0, 1] divided by the camera's
+# vignetting (slam.vignetting, corner brightness down to 1 / MAX_COLOR) exceeds 1 in bright, darkened regions
+
 
 @dataclass
 class Observation:

@@ -1,16 +1,19 @@
 """The camera's vignetting, estimated online and divided out of each frame's colour (issue #25).
 
 A lens and sensor darken the image towards its corners; the model here is V(r) = exp(a r^2), r the distance from the
-principal point over the half diagonal (a < 0: darker corners; a Kinect v1's colour camera about -0.3). A map fitted
-to vignetted frames learns a blend of the gains under which its keyframes saw each surface, so surfaces brighten and
-darken as they cross the image and the colour terms of tracking and mapping pull against the motion (measured on the
-synthetic walk through the sensor model: without vignetting its ATE falls from 1.56 to 1.13 cm, docs/BENCHMARKS.md).
+principal point over the half diagonal (a < 0: darker corners; the synthetic sensor model's 75 % corners are about
+a = -0.28). A map fitted to vignetted frames learns a blend of the gains under which its keyframes saw each surface, so
+surfaces brighten and darken as they cross the image and the colour terms of tracking and mapping pull against the
+motion (the synthetic loop through the sensor model: 1.56 cm ATE, 1.13 without its vignetting; docs/BENCHMARKS.md).
 
-Each frame's colour is divided by V before the system uses it. After each keyframe is mapped, the active submap is
-rendered at the keyframe's pose and the slope of log(observed / rendered luminance) over r^2 is fitted on the pixels
-the map covers (a line: its offset absorbs the frame's exposure); that slope is what the current ``a`` leaves
-uncorrected, and ``a`` moves by a damped, clipped share of it. The map is built from the corrected frames, so the
-estimate converges over keyframes rather than in one step, and a single blurred or mis-tracked keyframe moves it little.
+Each frame's colour is divided by V before the system uses it, without clipping: a bright surface seen in a darkened
+corner stays brighter than 1 (the map's colours go up to ``MAX_COLOR``; clipping at 1 cut a fifth of TUM fr1/rpy's
+pixels at a = -0.33 and cost 1 dB of PSNR). After each keyframe is mapped, the active submap is rendered at the
+keyframe's pose and the slope of log(recorded / rendered luminance) over r^2 is fitted on the pixels the map covers and
+the camera did not saturate (a line: its offset absorbs the frame's exposure); that slope less the current ``a`` is
+what the estimate leaves uncorrected, and ``a`` moves by a damped, clipped share of it. The map is built from the
+corrected frames, so the estimate converges over keyframes rather than in one step, and a single blurred or mis-tracked
+keyframe moves it little.
 """
 from __future__ import annotations
 
@@ -21,11 +24,11 @@ import torch
 
 from gausem_core.config import VignettingConfig
 from gausem_core.geometry import PinholeCamera
-from gausem_core.slam.observation import Observation
+from gausem_core.slam.observation import MAX_COLOR, Observation
 
 _MIN_ALPHA = 0.99  # pixels the map covers this fully are compared ...
 _MIN_RENDERED = 0.05  # ... where it renders at least this bright (log of a ratio) ...
-_OBSERVED_RANGE = (0.02, 0.98)  # ... and the frame is neither black nor saturated there
+_OBSERVED_RANGE = (0.02, 0.98)  # ... and the frame is neither black (mean) nor saturated (any channel) there
 
 
 def radius_squared(camera: PinholeCamera, device: torch.device | str = "cpu") -> torch.Tensor:
@@ -37,12 +40,12 @@ def radius_squared(camera: PinholeCamera, device: torch.device | str = "cpu") ->
 
 def radial_slope(observed: torch.Tensor, rendered: torch.Tensor, alpha: torch.Tensor, r2: torch.Tensor,
                  min_pixels: int) -> float | None:
-    """Least-squares slope over ``r2`` of log(observed / rendered luminance), (H, W, 3) colours in [0, 1], on the
-    pixels the render covers (``alpha``) where both are well exposed; None with fewer than ``min_pixels`` of them or
+    """Least-squares slope over ``r2`` of log(observed / rendered luminance), (H, W, 3) colours (``observed`` as the
+    camera recorded it, in [0, 1]), on the pixels the render covers (``alpha``) where both are well exposed; None with fewer than ``min_pixels`` of them or
     without spread in r^2."""
     seen, model = observed.mean(-1), rendered.mean(-1)
     usable = ((alpha > _MIN_ALPHA) & (model > _MIN_RENDERED) & (seen > _OBSERVED_RANGE[0])
-              & (seen < _OBSERVED_RANGE[1]))
+              & (observed.amax(-1) < _OBSERVED_RANGE[1]))
     if int(usable.sum()) < max(min_pixels, 2):
         return None
     x = r2[usable].double()
@@ -76,10 +79,11 @@ class Vignetting:
         return torch.exp(self.a * self._radius_squared(camera, device))[..., None]
 
     def correct(self, obs: Observation) -> Observation:
-        """``obs`` with its colour divided by V (clipped to [0, 1]); ``obs`` itself while a is 0."""
+        """``obs`` with its colour divided by V, not clipped (a bright surface in a darkened corner exceeds 1, up to
+        ``MAX_COLOR``); ``obs`` itself while a is 0."""
         if self.a == 0.0:
             return obs
-        return replace(obs, rgb=(obs.rgb / self.gain(obs.camera, obs.rgb.device)).clamp(0.0, 1.0))
+        return replace(obs, rgb=obs.rgb / self.gain(obs.camera, obs.rgb.device))
 
     def apply(self, color: torch.Tensor, camera: PinholeCamera) -> torch.Tensor:
         """A rendered (H, W, 3) colour as the camera would record it: times V."""
@@ -87,12 +91,18 @@ class Vignetting:
 
     def update(self, corrected: Observation, rendered: torch.Tensor, alpha: torch.Tensor) -> float | None:
         """Move a by ``rate`` times the slope the corrected keyframe ``corrected`` still shows against the map's
-        render of it (``rendered`` colour, ``alpha`` silhouette), the slope clipped to +-``max_slope``; returns the
-        slope (None: too few usable pixels, a unchanged). Nothing while ``calibrate`` is off."""
+        render of it (``rendered`` colour, ``alpha`` silhouette), the slope clipped to +-``max_slope`` and a kept
+        >= -log(MAX_COLOR); returns the slope (None: too few usable pixels, a unchanged). Nothing while
+        ``calibrate`` is off."""
         if not self.cfg.calibrate:
             return None
         r2 = self._radius_squared(corrected.camera, rendered.device)
-        slope = radial_slope(corrected.rgb, rendered, alpha, r2, math.ceil(self.cfg.min_coverage * r2.numel()))
-        if slope is not None:
-            self.a += self.cfg.rate * max(-self.cfg.max_slope, min(self.cfg.max_slope, slope))
+        recorded = self.apply(corrected.rgb, corrected.camera)  # the frame as the camera gave it: its range tells
+        # saturated pixels, whose ratio to the map is meaningless, from bright ones
+        slope = radial_slope(recorded, rendered, alpha, r2, math.ceil(self.cfg.min_coverage * r2.numel()))
+        if slope is None:
+            return None
+        slope -= self.a  # what the recorded frame shows beyond the current estimate
+        step = self.cfg.rate * max(-self.cfg.max_slope, min(self.cfg.max_slope, slope))
+        self.a = max(self.a + step, -math.log(MAX_COLOR))
         return slope

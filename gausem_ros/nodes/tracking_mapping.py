@@ -415,12 +415,14 @@ class TrackingMappingNode(Node):
     def _status(self) -> dict:
         """Diagnostics besides the drop counts: frames in, processed and pending, the last frame's tracking health,
         the latency over the last 100 frames, the last handled frame (lock-step players take it as the answer for a
-        frame that produced no odometry) and the depth and label messages the synchroniser dropped."""
+        frame that produced no odometry), the depth and label messages the synchroniser dropped and the estimated
+        vignetting (brightness in the image corners relative to the centre, ``slam.vignetting``)."""
         sync = self._inputs.synchronizer
         return {"frames_in": sync.received[0] + sync.lost[0], "frames_processed": self.frames_processed,
                 "frames_pending": self._frames_pending(), LAST_FRAME_KEY: self._handled_ns,
                 "tracking.status": self.health.status,
                 **{f"tracking.{name}": value for name, value in self.health.signals().items()},
+                "camera.vignetting_corner_gain": math.exp(self.slam.vignetting.a),
                 **latency_stats(self.latencies[-100:]),
                 **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(sync.dropped.items())
                    if name != sync.names[0]}}
