@@ -34,10 +34,21 @@ def test_the_slope_of_a_planted_falloff_is_measured_whatever_the_exposure():
     alpha = torch.ones(60, 80)
     for a, exposure in ((-0.3, 1.0), (-0.3, 0.7), (0.1, 1.2), (0.0, 0.5)):
         seen = scene * exposure * torch.exp(a * r2)[..., None]
-        assert radial_slope(seen, scene, alpha, r2, 100) == pytest.approx(a, abs=1e-4)
+        assert radial_slope(seen, scene, alpha, r2, 100) == pytest.approx(a, abs=1e-3)
     # only covered, well-exposed pixels count
     assert radial_slope(scene, scene, torch.zeros(60, 80), r2, 100) is None
     assert radial_slope(torch.ones(60, 80, 3), scene, alpha, r2, 100) is None  # saturated
+
+
+def test_a_render_blurred_towards_the_border_does_not_look_like_vignetting():
+    # a map renders blurrier than the frame where it is seen less sharply (the border: lens distortion, rotation blur);
+    # per pixel, log(sharp / blurred) is biased low there, block means are not
+    r2 = radius_squared(CAMERA)
+    sharp = (0.05 + 0.9 * torch.rand(60, 80, 1, generator=torch.Generator().manual_seed(1))).expand(60, 80, 3)
+    blurred = sum(torch.roll(sharp, (i, j), (0, 1)) for i in (-1, 0, 1) for j in (-1, 0, 1)) / 9
+    rendered = torch.where((r2 > 0.3)[..., None], blurred, sharp)
+    seen = sharp * torch.exp(-0.2 * r2)[..., None]
+    assert radial_slope(seen, rendered, torch.ones(60, 80), r2, 100) == pytest.approx(-0.2, abs=0.01)
 
 
 def test_correction_divides_the_falloff_out_and_the_render_gets_it_back():
@@ -58,10 +69,10 @@ def test_updates_move_towards_the_residual_slope_damped_and_clipped():
     r2 = radius_squared(CAMERA)
     model = Vignetting(VignettingConfig(rate=0.5, max_slope=0.1))
     assert model.update(observation(scene * torch.exp(-0.04 * r2)[..., None]), scene, alpha) == pytest.approx(-0.04,
-                                                                                                              abs=1e-4)
-    assert model.a == pytest.approx(-0.02, abs=1e-4)
+                                                                                                              abs=1e-3)
+    assert model.a == pytest.approx(-0.02, abs=1e-3)
     model.update(observation(scene * torch.exp(-0.5 * r2)[..., None]), scene, alpha)
-    assert model.a == pytest.approx(-0.07, abs=1e-4)  # a slope of -0.5 moves a by 0.5 * 0.1 only
+    assert model.a == pytest.approx(-0.07, abs=1e-3)  # a slope of -0.5 moves a by 0.5 * 0.1 only
     fixed = Vignetting(VignettingConfig(calibrate=False, initial=-0.2))
     assert fixed.update(observation(scene), scene, alpha) is None and fixed.a == -0.2
     with pytest.raises(ValueError, match="vignetting.min_coverage"):

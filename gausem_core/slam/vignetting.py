@@ -21,6 +21,7 @@ import math
 from dataclasses import replace
 
 import torch
+import torch.nn.functional as F
 
 from gausem_core.config import VignettingConfig
 from gausem_core.geometry import PinholeCamera
@@ -29,6 +30,7 @@ from gausem_core.slam.observation import MAX_COLOR, Observation
 _MIN_ALPHA = 0.99  # pixels the map covers this fully are compared ...
 _MIN_RENDERED = 0.05  # ... where it renders at least this bright (log of a ratio) ...
 _OBSERVED_RANGE = (0.02, 0.98)  # ... and the frame is neither black (mean) nor saturated (any channel) there
+_BLOCK = 0.05  # the log ratio is taken of block means, blocks this fraction of the image width on a side
 
 
 def radius_squared(camera: PinholeCamera, device: torch.device | str = "cpu") -> torch.Tensor:
@@ -40,21 +42,29 @@ def radius_squared(camera: PinholeCamera, device: torch.device | str = "cpu") ->
 
 def radial_slope(observed: torch.Tensor, rendered: torch.Tensor, alpha: torch.Tensor, r2: torch.Tensor,
                  min_pixels: int) -> float | None:
-    """Least-squares slope over ``r2`` of log(observed / rendered luminance), (H, W, 3) colours (``observed`` as the
-    camera recorded it, in [0, 1]), on the pixels the render covers (``alpha``) where both are well exposed; None with fewer than ``min_pixels`` of them or
-    without spread in r^2."""
+    """Weighted least-squares slope over r^2 (``r2``) of log(observed / rendered luminance), (H, W, 3) colours
+    (``observed`` as the camera recorded it, in [0, 1]), on blocks of ``_BLOCK`` of the width: the means of the pixels
+    the render covers (``alpha``) where both are well exposed, blocks at least half such pixels. Block means, not
+    pixels: a pixel's log ratio is biased low where the render is misaligned or blurred against the frame (Jensen), and
+    that grows towards the image border (lens distortion, motion blur of a rotation). None with fewer than
+    ``min_pixels`` pixels in such blocks or without spread in r^2."""
     seen, model = observed.mean(-1), rendered.mean(-1)
     usable = ((alpha > _MIN_ALPHA) & (model > _MIN_RENDERED) & (seen > _OBSERVED_RANGE[0])
-              & (observed.amax(-1) < _OBSERVED_RANGE[1]))
-    if int(usable.sum()) < max(min_pixels, 2):
+              & (observed.amax(-1) < _OBSERVED_RANGE[1])).double()
+    block = max(1, round(_BLOCK * observed.shape[1]))
+    sums = F.avg_pool2d(torch.stack([usable, usable * seen, usable * model, usable * r2]).double()[:, None],
+                        block).reshape(4, -1)
+    kept = sums[0] >= 0.5
+    weight = sums[0][kept]
+    if float(weight.sum()) * block * block < max(min_pixels, 2) or int(kept.sum()) < 2:
         return None
-    x = r2[usable].double()
-    y = torch.log(seen[usable].double() / model[usable].double())
-    x = x - x.mean()
-    spread = float(x @ x)
+    seen_b, model_b, x = (sums[i][kept] / weight for i in (1, 2, 3))
+    y = torch.log(seen_b / model_b)
+    x = x - (weight * x).sum() / weight.sum()
+    spread = float((weight * x * x).sum())
     if spread <= 1e-12:
         return None
-    return float(x @ (y - y.mean())) / spread
+    return float((weight * x * (y - (weight * y).sum() / weight.sum())).sum()) / spread
 
 
 class Vignetting:
