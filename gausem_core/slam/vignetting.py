@@ -10,10 +10,10 @@ Each frame's colour is divided by V before the system uses it, without clipping:
 corner stays brighter than 1 (the map's colours go up to ``MAX_COLOR``; clipping at 1 cut a fifth of TUM fr1/rpy's
 pixels at a = -0.33 and cost 1 dB of PSNR). After each keyframe is mapped, the active submap is rendered at the
 keyframe's pose and the slope of log(recorded / rendered luminance) over r^2 is fitted on the pixels the map covers and
-the camera did not saturate (a line: its offset absorbs the frame's exposure); that slope less the current ``a`` is
-what the estimate leaves uncorrected, and ``a`` moves by a damped, clipped share of it. The map is built from the
-corrected frames, so the estimate converges over keyframes rather than in one step, and a single blurred or mis-tracked
-keyframe moves it little.
+the camera did not saturate, averaged in blocks (a line: its offset absorbs the frame's exposure); that slope less the
+current ``a`` is what the estimate leaves uncorrected, and ``a`` moves by a damped, clipped share of it. The map is
+built from the corrected frames, so the estimate converges over keyframes rather than in one step, and a single blurred
+or mis-tracked keyframe moves it little.
 """
 from __future__ import annotations
 
