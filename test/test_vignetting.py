@@ -79,10 +79,10 @@ def test_updates_move_towards_the_residual_slope_damped_and_clipped():
         Vignetting(VignettingConfig(min_coverage=2.0))
 
 
-def run(sensor_vignetting: bool, **settings) -> GauSemSLAM:
+def run(sensor_vignetting: bool) -> GauSemSLAM:
     flags = {effect: effect == "vignetting" and sensor_vignetting for effect in DEPTH_EFFECTS + COLOR_EFFECTS}
     data = SyntheticDataset("default", resolution=(80, 60), stride=2, sensor=SensorConfig(**flags))
-    slam = GauSemSLAM(from_flat({**SETTINGS, **settings, "device": "cpu"}), "cpu",
+    slam = GauSemSLAM(from_flat({**SETTINGS, "device": "cpu"}), "cpu",
                       num_classes=len(SYNTHETIC_CLASSES.palette))
     for i in range(FRAMES):
         f = data[i]
