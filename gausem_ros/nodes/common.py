@@ -155,13 +155,16 @@ class NewestFrameQueue:
     """One pending frame: a newer one replaces it (``on_superseded`` is called with the old one). ``put`` may be
     called from an input callback group while a frame is being processed in another: processing runs from a guard
     condition, so a node that falls behind skips to the newest synchronised frame instead of queueing.
-    ``process(item, arrived)`` gets the monotonic time the item was put. While ``ready()`` is false the pending
-    frame waits; call :meth:`wake` when it may have become true."""
+    ``process(item, arrived, superseded)`` gets the monotonic time the item was put and how many items were superseded
+    since the last one it got (counted when the item is taken, so an item superseded while another is being processed
+    counts towards the next one). While ``ready()`` is false the pending frame waits; call :meth:`wake` when it may
+    have become true."""
 
     def __init__(self, node, process: Callable, on_superseded: Callable, callback_group=None,
                  ready: Callable[[], bool] = lambda: True):
         self._process, self._on_superseded, self._ready = process, on_superseded, ready
         self._pending: tuple[object, float] | None = None
+        self._superseded = 0  # items superseded since the last one taken
         self._running = 0
         self._lock = threading.Lock()
         self._guard = node.create_guard_condition(self._run, callback_group=callback_group)
@@ -174,6 +177,7 @@ class NewestFrameQueue:
     def put(self, item) -> None:
         with self._lock:
             old, self._pending = self._pending, (item, time.monotonic())
+            self._superseded += old is not None
             idle = not self._running
         if old is not None:
             self._on_superseded(old[0])
@@ -182,7 +186,7 @@ class NewestFrameQueue:
 
     def clear(self) -> None:
         with self._lock:
-            self._pending = None
+            self._pending, self._superseded = None, 0
 
     def wake(self) -> None:
         """Process the pending frame now if it is waiting for ``ready()``."""
@@ -196,11 +200,12 @@ class NewestFrameQueue:
             if not self._ready():
                 return
             entry, self._pending = self._pending, None
-            self._running += entry is not None
-        if entry is None:
-            return
+            if entry is None:
+                return
+            self._running += 1
+            superseded, self._superseded = self._superseded, 0
         try:
-            self._process(*entry)
+            self._process(*entry, superseded)
         finally:
             with self._lock:
                 self._running -= 1

@@ -192,9 +192,9 @@ class TrackingMappingNode(Node):
         input_group = MutuallyExclusiveCallbackGroup()  # inputs arrive while a frame is processed
         self._inputs = make_synchronizer(self, inputs, self._on_frame, qos, queue_size=p.sync_queue_size,
                                          slop=p.sync_slop, on_drop=self._on_sync_drop, callback_group=input_group)
-        self._queue = NewestFrameQueue(self, self._process, lambda _: self._skip(
+        self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
             "superseded", "a newer synchronised frame arrived before this one was processed"),
-            ready=self._loop_settled)
+            ready=self._loop_settled)  # the superseded frames reach the core through _process's count
         subscribe_camera(self, CameraInfo, "rgb/camera_info", self._on_camera_info, qos, input_group, INPUT_QOS_HINT)
         if self.loop_nodes:
             self._signature_pub = self.create_publisher(PointCloud2, "gausem/place_signatures", EVENT_QOS)
@@ -346,8 +346,10 @@ class TrackingMappingNode(Node):
         return self._busy[1] - self._busy[0] if self._busy else 0.0
 
     @survives_errors
-    def _process(self, msgs: tuple[Image, ...], arrived: float) -> None:
+    def _process(self, msgs: tuple[Image, ...], arrived: float, superseded: int) -> None:
         start = time.perf_counter()
+        with self._skip_lock:  # the frames superseded before this one (counted when the queue handed it over)
+            self._skipped += superseded
         self._handled_ns = ma.time_to_ns(msgs[0].header.stamp)
         self._in_progress = True  # until the frame is counted as processed or dropped
         try:
