@@ -155,16 +155,17 @@ class NewestFrameQueue:
     """One pending frame: a newer one replaces it (``on_superseded`` is called with the old one). ``put`` may be
     called from an input callback group while a frame is being processed in another: processing runs from a guard
     condition, so a node that falls behind skips to the newest synchronised frame instead of queueing.
-    ``process(item, arrived, superseded)`` gets the monotonic time the item was put and how many items were superseded
-    since the last one it got (counted when the item is taken, so an item superseded while another is being processed
-    counts towards the next one). While ``ready()`` is false the pending frame waits; call :meth:`wake` when it may
-    have become true."""
+    ``process(item, arrived, skipped)`` gets the monotonic time the item was put and how many frames were skipped
+    since the last item it got: those superseded here and those the node reported with :meth:`skip` (frames dropped
+    before they were put), counted under one lock as the item is taken, so a frame dropped while another is being
+    processed counts towards the next one. While ``ready()`` is false the pending frame waits; call :meth:`wake`
+    when it may have become true."""
 
     def __init__(self, node, process: Callable, on_superseded: Callable, callback_group=None,
                  ready: Callable[[], bool] = lambda: True):
         self._process, self._on_superseded, self._ready = process, on_superseded, ready
         self._pending: tuple[object, float] | None = None
-        self._superseded = 0  # items superseded since the last one taken
+        self._skipped = 0  # frames superseded or reported skipped since the last item taken
         self._running = 0
         self._lock = threading.Lock()
         self._guard = node.create_guard_condition(self._run, callback_group=callback_group)
@@ -177,16 +178,21 @@ class NewestFrameQueue:
     def put(self, item) -> None:
         with self._lock:
             old, self._pending = self._pending, (item, time.monotonic())
-            self._superseded += old is not None
+            self._skipped += old is not None
             idle = not self._running
         if old is not None:
             self._on_superseded(old[0])
         if idle:  # else _run triggers when done: a guard condition ready in a busy group would spin the executor
             self._guard.trigger()
 
+    def skip(self, count: int = 1) -> None:
+        """Count frames dropped before they reached the queue: the next item taken hears of them."""
+        with self._lock:
+            self._skipped += count
+
     def clear(self) -> None:
         with self._lock:
-            self._pending, self._superseded = None, 0
+            self._pending, self._skipped = None, 0
 
     def wake(self) -> None:
         """Process the pending frame now if it is waiting for ``ready()``."""
@@ -203,9 +209,9 @@ class NewestFrameQueue:
             if entry is None:
                 return
             self._running += 1
-            superseded, self._superseded = self._superseded, 0
+            skipped, self._skipped = self._skipped, 0
         try:
-            self._process(*entry, superseded)
+            self._process(*entry, skipped)
         finally:
             with self._lock:
                 self._running -= 1

@@ -73,7 +73,6 @@ Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
 from __future__ import annotations
 
 import math
-import threading
 import time
 from pathlib import Path
 
@@ -174,8 +173,6 @@ class TrackingMappingNode(Node):
         self.camera = None  # the latest valid rgb/camera_info (PinholeCamera)
         self.latencies: list[float] = []  # seconds from a frame's arrival to its pose's publication
         self._in_progress = False  # a frame is being processed
-        self._skipped = 0  # frames dropped before reaching the core since the last one given to it
-        self._skip_lock = threading.Lock()  # superseded frames are counted from the input callback group
         self._loop_answers = LoopAnswers(
             p.loop_answer_timeout, lambda: self._signature_pub.get_subscription_count() > 0,
             lambda: self._constraint_pub.get_subscription_count() > 0,
@@ -194,7 +191,7 @@ class TrackingMappingNode(Node):
                                          slop=p.sync_slop, on_drop=self._on_sync_drop, callback_group=input_group)
         self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
             "superseded", "a newer synchronised frame arrived before this one was processed"),
-            ready=self._loop_settled)  # the superseded frames reach the core through _process's count
+            ready=self._loop_settled)  # superseded and skipped frames reach the core through _process's count
         subscribe_camera(self, CameraInfo, "rgb/camera_info", self._on_camera_info, qos, input_group, INPUT_QOS_HINT)
         if self.loop_nodes:
             self._signature_pub = self.create_publisher(PointCloud2, "gausem/place_signatures", EVENT_QOS)
@@ -268,8 +265,7 @@ class TrackingMappingNode(Node):
     def _skip(self, reason: str, detail: str) -> None:
         """A frame dropped before it reached the core: counted by reason, and passed on to the core with the next
         frame as a skipped one (its motion model then knows that the camera moved on for longer)."""
-        with self._skip_lock:
-            self._skipped += 1
+        self._queue.skip()
         self.drops.drop(reason, detail)
 
     def _observation(self, rgb_msg: Image, depth_msg: Image, labels_msg: Image | None = None) -> Observation:
@@ -346,28 +342,28 @@ class TrackingMappingNode(Node):
         return self._busy[1] - self._busy[0] if self._busy else 0.0
 
     @survives_errors
-    def _process(self, msgs: tuple[Image, ...], arrived: float, superseded: int) -> None:
+    def _process(self, msgs: tuple[Image, ...], arrived: float, skipped: int) -> None:
+        """One synchronised frame; ``skipped``: the frames dropped since the last one the queue handed over."""
         start = time.perf_counter()
-        with self._skip_lock:  # the frames superseded before this one (counted when the queue handed it over)
-            self._skipped += superseded
         self._handled_ns = ma.time_to_ns(msgs[0].header.stamp)
         self._in_progress = True  # until the frame is counted as processed or dropped
         try:
             obs = self._observation(*msgs)
-        except FrameRejected as err:
+        except Exception as err:
             self._in_progress = False
+            self._queue.skip(skipped)  # passed on with the next frame, as is this one when it is rejected
+            if not isinstance(err, FrameRejected):
+                raise  # counted as a processing_error drop
             self._skip(err.reason, str(err))
             return
         try:
-            self._track_and_publish(obs, msgs[0].header.frame_id, arrived)
+            self._track_and_publish(obs, msgs[0].header.frame_id, arrived, skipped)
         except Exception:
             self._in_progress = False  # counted as a processing_error drop
             raise
         self._busy = (self._busy[0] if self._busy else start, time.perf_counter())
 
-    def _track_and_publish(self, obs: Observation, image_frame: str, arrived: float) -> None:
-        with self._skip_lock:
-            skipped, self._skipped = self._skipped, 0
+    def _track_and_publish(self, obs: Observation, image_frame: str, arrived: float, skipped: int) -> None:
         result = self.slam.process(obs, skipped)
         self._last_stamp = obs.timestamp
         self.health = result.health
