@@ -313,11 +313,9 @@ class VignettingConfig:
     """The camera's radial brightness falloff V(r) = exp(a r^2), divided out of each frame's colour before tracking and
     mapping (``slam.vignetting``); r: distance from the principal point over the half diagonal."""
 
-    calibrate: bool = True  # estimate a online from the map's renders at the keyframes; false: keep ``initial``
-    initial: float = 0.0  # a at start (a known calibration; -0.29: corners at 75 % brightness)
-    rate: float = 0.5  # each keyframe moves a by this share of the radial slope it still shows, ...
-    max_slope: float = 0.1  # ... that slope clipped to +- this (a real frame's slope scatters: blur, rolling shutter)
-    min_coverage: float = 0.025  # a keyframe is used when at least this fraction of its pixels can be compared
+    calibrate: bool = True  # estimate a online from pairs of keyframes; false: keep ``initial``
+    initial: float = 0.0  # a at start, and the estimate's prior (a known calibration; -0.29: corners at 75 %)
+    min_coverage: float = 0.1  # a keyframe pair is used when at least this fraction of the pixels are points both see
 
 
 @dataclass

@@ -1,6 +1,7 @@
 """Online vignetting calibration (slam.vignetting): a planted radial falloff is measured and divided out, none is
 invented on a clean camera, and the estimate lives in the system's state."""
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -11,7 +12,7 @@ from gausem_core.data.sensor import COLOR_EFFECTS, DEPTH_EFFECTS, vignetting
 from gausem_core.geometry import PinholeCamera
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
-from gausem_core.slam.vignetting import Vignetting, radial_slope, radius_squared
+from gausem_core.slam.vignetting import Vignetting, pair_slope, radius_squared, weighted_median
 
 CAMERA = PinholeCamera(80.0, 80.0, 40.0, 30.0, 80, 60)
 SETTINGS = {"loop.enabled": False, "refinement.enabled": False, "mapping.every": 2, "mapping.iterations": 10,
@@ -26,29 +27,74 @@ def texture(seed=0):
 
 
 def observation(rgb):
+    """A frame of ``rgb`` seeing a wall 1 m away."""
     return Observation(rgb, torch.ones(60, 80), torch.zeros(60, 80, 3), torch.zeros(60, 80, dtype=torch.long), CAMERA)
 
 
-def test_the_slope_of_a_planted_falloff_is_measured_whatever_the_exposure():
-    scene, r2 = texture(), radius_squared(CAMERA)
-    alpha = torch.ones(60, 80)
-    for a, exposure in ((-0.3, 1.0), (-0.3, 0.7), (0.1, 1.2), (0.0, 0.5)):
-        seen = scene * exposure * torch.exp(a * r2)[..., None]
-        assert radial_slope(seen, scene, alpha, r2, 100) == pytest.approx(a, abs=1e-3)
-    # only covered, well-exposed pixels count
-    assert radial_slope(scene, scene, torch.zeros(60, 80), r2, 100) is None
-    assert radial_slope(torch.ones(60, 80, 3), scene, alpha, r2, 100) is None  # saturated
+def planar_pair(angle_deg: float, a: float, exposure: float = 1.0, seed: int = 0):
+    """Two views of a textured wall 1 m away, the second panned by ``angle_deg`` (points move between radii) and
+    shifted 5 cm, both recorded through exp(a r^2), the second with ``exposure``: (earlier colour, depth, later colour,
+    depth, later_from_earlier)."""
+    angle = math.radians(angle_deg)
+    later_from_earlier = torch.eye(4)
+    later_from_earlier[[0, 0, 2, 2], [0, 2, 0, 2]] = torch.tensor([math.cos(angle), math.sin(angle), -math.sin(angle),
+                                                                   math.cos(angle)])
+    later_from_earlier[0, 3] = 0.05
+    rotation, shift = later_from_earlier[:3, :3], later_from_earlier[:3, 3]
+
+    def wall(x, y):  # albedo on the plane z = 1 m of the earlier camera
+        return 0.5 + 0.3 * torch.sin(20 * x + 3 * seed) * torch.cos(17 * y)
+
+    rays = CAMERA.pixel_rays()
+    directions, origin = rays @ rotation, -shift @ rotation  # the later pixels' rays in the earlier frame
+    reach = (1 - origin[2]) / directions[..., 2]  # along each ray to z = 1: also the later depth (its rays' z is 1)
+    hit = origin + reach[..., None] * directions
+    gain = torch.exp(a * radius_squared(CAMERA))
+    earlier, later = wall(rays[..., 0], rays[..., 1]) * gain, exposure * wall(hit[..., 0], hit[..., 1]) * gain
+    return (earlier[..., None].expand(60, 80, 3), torch.ones(60, 80), later[..., None].expand(60, 80, 3), reach,
+            later_from_earlier)
 
 
-def test_a_render_blurred_towards_the_border_does_not_look_like_vignetting():
-    # a map renders blurrier than the frame where it is seen less sharply (the border: lens distortion, rotation blur);
-    # per pixel, log(sharp / blurred) is biased low there, block means are not
-    r2 = radius_squared(CAMERA)
-    sharp = (0.05 + 0.9 * torch.rand(60, 80, 1, generator=torch.Generator().manual_seed(1))).expand(60, 80, 3)
-    blurred = sum(torch.roll(sharp, (i, j), (0, 1)) for i in (-1, 0, 1) for j in (-1, 0, 1)) / 9
-    rendered = torch.where((r2 > 0.3)[..., None], blurred, sharp)
-    seen = sharp * torch.exp(-0.2 * r2)[..., None]
-    assert radial_slope(seen, rendered, torch.ones(60, 80), r2, 100) == pytest.approx(-0.2, abs=0.01)
+def test_the_slope_of_a_planted_falloff_is_measured_from_a_pair_whatever_the_exposure():
+    for a, exposure in ((-0.3, 1.0), (-0.3, 0.8), (0.1, 1.1), (0.0, 0.9)):
+        pair = pair_slope(*planar_pair(20, a, exposure), CAMERA, 100)
+        assert pair.slope == pytest.approx(a, abs=0.02) and pair.weight > 0
+    # a larger pan carries points further between radii: more weight
+    assert pair_slope(*planar_pair(10, -0.3), CAMERA, 100).weight > pair_slope(*planar_pair(3, -0.3), CAMERA,
+                                                                                100).weight
+
+
+def test_a_pair_without_common_well_exposed_points_measures_nothing():
+    earlier, depth, later, _, pose = planar_pair(20, -0.3)
+    assert pair_slope(earlier, depth, later, torch.zeros_like(depth), pose, CAMERA, 100) is None  # no depth
+    assert pair_slope(earlier, depth, later, depth + 1, pose, CAMERA, 100) is None  # another surface
+    assert pair_slope(torch.ones_like(earlier), depth, later, depth, pose, CAMERA, 100) is None  # saturated
+    assert pair_slope(earlier, depth, later, depth, torch.eye(4), CAMERA, 100) is None  # no motion: no spread
+    assert pair_slope(earlier, depth, later, depth, pose, CAMERA, 60 * 80 + 1) is None  # too few points
+
+
+def test_the_estimate_is_the_weighted_median_of_the_pairs_and_the_prior():
+    assert weighted_median([0.0, -0.3, -0.2], [1.0, 3.0, 1.0]) == -0.3
+    assert weighted_median([0.0, -0.3, -0.2], [1.0, 1.0, 1.0]) == -0.2
+    model = Vignetting(VignettingConfig())
+    pose = torch.eye(4)
+    keyframes = [planar_pair(20 * i, -0.3, seed=i) for i in range(3)]  # not the same scene: only consecutive pairs
+    earlier, depth, *_ = keyframes[0]
+    assert model.update(observation(earlier), pose, 0) is None and model.a == 0.0  # nothing to pair with yet
+    _, _, later, later_depth, later_from_earlier = planar_pair(20, -0.3)
+    assert model.update(replace(observation(later), depth=later_depth), torch.linalg.inv(later_from_earlier), 0).slope == pytest.approx(-0.3,
+                                                                                                          abs=0.02)
+    assert model.a == pytest.approx(-0.3, abs=0.02)  # the pair outweighs the prior (weight 1)
+    assert model.update(observation(earlier), pose, 1) is None  # another submap: no pair across
+    assert len(model.pairs) == 1
+    fixed = Vignetting(VignettingConfig(calibrate=False, initial=-0.2))
+    assert fixed.update(observation(earlier), pose, 0) is None and fixed.update(observation(later), pose, 0) is None
+    assert fixed.a == -0.2
+    restored = Vignetting(VignettingConfig())
+    restored.load_state_dict(model.state_dict())
+    assert restored.a == model.a and restored.pairs == model.pairs
+    with pytest.raises(ValueError, match="vignetting.min_coverage"):
+        Vignetting(VignettingConfig(min_coverage=2.0))
 
 
 def test_correction_divides_the_falloff_out_and_the_render_gets_it_back():
@@ -62,21 +108,6 @@ def test_correction_divides_the_falloff_out_and_the_render_gets_it_back():
     unit = Vignetting(VignettingConfig())
     obs = observation(scene)
     assert unit.correct(obs) is obs and unit.apply(scene, CAMERA) is scene
-
-
-def test_updates_move_towards_the_residual_slope_damped_and_clipped():
-    scene, alpha = texture(), torch.ones(60, 80)
-    r2 = radius_squared(CAMERA)
-    model = Vignetting(VignettingConfig(rate=0.5, max_slope=0.1))
-    assert model.update(observation(scene * torch.exp(-0.04 * r2)[..., None]), scene, alpha) == pytest.approx(-0.04,
-                                                                                                              abs=1e-3)
-    assert model.a == pytest.approx(-0.02, abs=1e-3)
-    model.update(observation(scene * torch.exp(-0.5 * r2)[..., None]), scene, alpha)
-    assert model.a == pytest.approx(-0.07, abs=1e-3)  # a slope of -0.5 moves a by 0.5 * 0.1 only
-    fixed = Vignetting(VignettingConfig(calibrate=False, initial=-0.2))
-    assert fixed.update(observation(scene), scene, alpha) is None and fixed.a == -0.2
-    with pytest.raises(ValueError, match="vignetting.min_coverage"):
-        Vignetting(VignettingConfig(min_coverage=2.0))
 
 
 def run(sensor_vignetting: bool) -> GauSemSLAM:

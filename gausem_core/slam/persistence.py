@@ -134,7 +134,7 @@ def _state_tree(slam: GauSemSLAM, writer: _TensorWriter) -> dict:
     return {"submaps": [_submap_tree(s, writer) for s in slam.submaps],
             **writer.pack({"frames": frames, "segment_start": slam.segment_start, "lost": slam.lost,
                            "dropped": slam.dropped, "skipped": slam.skipped, "health": slam.health.state_dict(),
-                           "feature_start": slam.feature_start.state_dict(), "vignetting": slam.vignetting.a,
+                           "feature_start": slam.feature_start.state_dict(), "vignetting": slam.vignetting.state_dict(),
                            "mapper_generator": slam.mapper.generator.get_state(), "loop_closure": loop}, STATE_FILE)}
 
 
@@ -223,7 +223,8 @@ def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torc
     if "health" in state:
         slam.health.load_state_dict(state["health"])
     slam.feature_start.load_state_dict(state.get("feature_start"))
-    slam.vignetting.a = state.get("vignetting", slam.vignetting.a)
+    if "vignetting" in state:
+        slam.vignetting.load_state_dict(state["vignetting"])
     slam.mapper.generator.set_state(state["mapper_generator"])
     if slam.loop_closure is not None and state["loop_closure"] is not None:
         slam.loop_closure.load_state_dict(state["loop_closure"])

@@ -24,6 +24,7 @@ from gausem_core.config import SlamConfig, check_gap_mode, gap_mode_applies
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
 from gausem_core.memory import release_free_heap
+from gausem_core.native import kernel_available
 from gausem_core.render import prepare_backend, render
 from gausem_core.semantics.descriptors import make_descriptor
 from gausem_core.slam.allocation import Decision, SubmapExtent, make_allocation
@@ -214,6 +215,8 @@ class GauSemSLAM:
         self.cfg = cfg
         self.device = torch.device(device)
         prepare_backend(cfg.backend, self.device)  # builds or loads the compiled kernels now, not in the first frame
+        if self.device.type == "cpu":
+            kernel_available()  # Gauss-Newton tracking uses them whatever renders (loading: a quarter second)
         torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # the first optimiser imports torch._dynamo (seconds)
         self.num_classes = num_classes
         # the tracking step; another object with Tracker.track's signature may stand in (e.g. a benchmark's oracle)
@@ -257,6 +260,7 @@ class GauSemSLAM:
         if not self.submaps:
             self.skipped = 0
             loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
+            self._calibrate(obs, self.active.keyframes[0].cam_to_world)
             self.feature_start.remember(obs)
             return self._result(None, True, loss, None, events=self._keyframe_events([]))
         motion = self._motion_model(obs.timestamp)
@@ -280,6 +284,7 @@ class GauSemSLAM:
                                            invert_pose(reference.cam_to_world) @ pose, lost, missed))
             self.lost = lost
             return self._result(tracked, False, None, None, relocalised, health)
+        obs = self._calibrate(obs, pose)
         decision = self.allocation.should_start_new(self.active.extent, obs, pose)
         closed = []
         if decision.new:
@@ -289,7 +294,6 @@ class GauSemSLAM:
             loss = self._open_submap(obs, frame_id, anchor, missed)
         else:
             loss = self._map_keyframe(obs, frame_id, pose, missed)
-        self._calibrate(obs)
         events = self._keyframe_events(closed)
         release_free_heap()  # mapping and loop closure freed many image-sized buffers
         return self._result(tracked, True, loss, decision, relocalised, health, events)
@@ -459,15 +463,17 @@ class GauSemSLAM:
                                        skipped=skipped))
         return losses[-1] if losses else None
 
-    def _calibrate(self, obs: Observation) -> None:
-        """Refine the vignetting estimate from the keyframe just mapped (``obs``, corrected) against the active submap's
-        render at its pose (see ``slam.vignetting``)."""
-        if not self.cfg.vignetting.calibrate:
-            return
-        kf = self.active.keyframes[-1]
-        with torch.no_grad():
-            view = render(self.active.cloud, invert_pose(kf.cam_to_world), obs.camera, backend=self.cfg.backend)
-        self.vignetting.update(obs, view.color, view.alpha)
+    def _calibrate(self, obs: Observation, pose: torch.Tensor) -> Observation:
+        """Refine the vignetting estimate with the keyframe ``obs`` at ``pose`` in the active submap, paired with the
+        submap's last keyframe (see ``slam.vignetting``); when the estimate moves, the submap's keyframes are
+        re-corrected to it before mapping goes on. Returns ``obs`` as corrected now."""
+        before = self.vignetting.a
+        self.vignetting.update(obs, pose, self.active.submap_id)
+        if self.vignetting.a == before:
+            return obs
+        for kf in self.active.keyframes:
+            kf.obs = self.vignetting.correct(kf.obs, before)
+        return self.vignetting.correct(obs, before)
 
     def _open_submap(self, obs: Observation, frame_id: int, anchor: torch.Tensor, skipped: int = 0) -> float | None:
         """A new active submap anchored (world-from-submap) at ``anchor``: its first keyframe is ``obs``, fixed at the
