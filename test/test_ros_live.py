@@ -227,15 +227,15 @@ def test_the_launcher_keeps_the_other_nodes_when_one_is_killed_and_respawns_on_r
 def test_gausem_ros_replays_in_real_time_with_sim_time(tmp_path):
     """The README's real-time command: one process, --rate 1, the nodes on sim time."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "ROS_DOMAIN_ID": "134", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
-    cmd = [sys.executable, "-m", "gausem_ros.run_all", "synthetic", "--size", "40x30", "--max-frames", "30",
+    cmd = [sys.executable, "-m", "gausem_ros.run_all", "synthetic", "--size", "40x30", "--max-frames", "60",
            "--rate", "1", "--quiet", "--save", str(tmp_path / "out"), "--ros-args",
            *ros_param_args({**FAST_SLAM, "loop.enabled": False, "use_sim_time": True})]
     result = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=180)
     assert result.returncode == 0, result.stderr[-3000:]
     line = next(line for line in result.stderr.splitlines() if "frames in" in line)
-    assert "frames in 30, processed" in line and "player published 30 frames" in line
+    assert "frames in 60, processed" in line and "player published 60 frames" in line
     processed = int(line.split("processed ")[1].split(",")[0])
-    assert processed >= 5
+    assert processed >= 5  # 8 or 9 of the 60 on the 2-core VM (of 30 frames: 3 to 6, too close to the bound)
     # the frame in progress at Ctrl-C is finished and saved, though its pose may not have gone out any more
     assert len((tmp_path / "out" / "trajectory.txt").read_text().splitlines()) - 1 in (processed, processed + 1)
 

@@ -93,6 +93,9 @@ def test_the_estimate_is_the_weighted_median_of_the_pairs_and_the_prior():
     restored = Vignetting(VignettingConfig())
     restored.load_state_dict(model.state_dict())
     assert restored.a == model.a and restored.pairs == model.pairs
+    moved = torch.linalg.inv(later_from_earlier)  # the restored estimate pairs the next keyframe as the original does
+    later_obs = replace(observation(later), depth=later_depth)
+    assert restored.update(later_obs, moved, 1).slope == model.update(later_obs, moved, 1).slope
     with pytest.raises(ValueError, match="vignetting.min_coverage"):
         Vignetting(VignettingConfig(min_coverage=2.0))
 

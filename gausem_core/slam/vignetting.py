@@ -158,7 +158,7 @@ class Vignetting:
         previous, self._previous = self._previous, (frame_of_reference, recorded, corrected.depth, cam_to_world)
         if previous is None or previous[0] != frame_of_reference:
             return None
-        _, earlier, earlier_depth, earlier_pose = previous
+        earlier, earlier_depth, earlier_pose = (t.to(recorded.device) for t in previous[1:])  # a loaded one: on the CPU
         later_from_earlier = torch.linalg.solve(cam_to_world.double(), earlier_pose.double()).to(recorded.dtype)
         pixels = corrected.depth.numel()
         pair = pair_slope(earlier, earlier_depth, recorded, corrected.depth, later_from_earlier, corrected.camera,
@@ -170,11 +170,16 @@ class Vignetting:
         return pair
 
     def state_dict(self) -> dict:
-        return {"a": self.a, "pairs": [(p.slope, p.weight) for p in self.pairs]}
+        """The estimate, the pairs' measurements and the last keyframe (tensors) that the next one pairs with."""
+        previous = None if self._previous is None else dict(zip(("reference", "recorded", "depth", "pose"),
+                                                                self._previous))
+        return {"a": self.a, "pairs": [(p.slope, p.weight) for p in self.pairs], "previous": previous}
 
     def load_state_dict(self, state: dict | float) -> None:
         """A saved :meth:`state_dict` (a bare float: a session from before pairs were kept; it becomes the estimate)."""
         state = {"a": state, "pairs": []} if isinstance(state, float) else state
         self.a = float(state["a"])
         self.pairs = [PairSlope(s, w) for s, w in state["pairs"]]
-        self._previous = None
+        previous = state.get("previous")
+        self._previous = None if previous is None else tuple(previous[k] for k in ("reference", "recorded", "depth",
+                                                                                     "pose"))
