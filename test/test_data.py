@@ -9,7 +9,7 @@ import torch
 from gausem_core.data import (NYU40_CLASSES, SCANNET20_CLASSES, ClassTable, Frame, ReplicaDataset, ScanNetDataset,
                               SyntheticDataset, TumDataset, open_dataset, resize_frame)
 from gausem_core.data.classes import nyu40_to_scannet20
-from gausem_core.data.tum import associate, nearest_within, register_depth
+from gausem_core.data.tum import Undistortion, associate, nearest_within, read_calibration, register_depth
 from gausem_core.geometry import PinholeCamera
 
 W, H = 8, 6
@@ -323,7 +323,8 @@ def test_class_tables(tmp_path):
 def test_real_tum_fr1_rpy(shared_data):
     ds = TumDataset(shared_data / "tum_fr1_rpy")
     assert len(ds) == 200 and ds.depth_registered
-    assert ds.camera == PinholeCamera(517.3, 516.5, 319.1, 255.8, 640, 480)
+    assert "(fx 517.3 fy 516.5 cx 318.6 cy 255.3, 640x480, lens distortion 0.2624 -0.9531" in ds.description
+    assert ds.camera.fx == pytest.approx(546.75, abs=0.01) and (ds.camera.width, ds.camera.height) == (640, 480)
     f = ds[100]
     valid = f.depth[f.depth > 0]
     assert valid.size > 0.5 * f.depth.size and 0.5 < np.median(valid) < 4.0  # a desk scene at arm's length
@@ -393,6 +394,54 @@ def test_tum_intrinsics_from_camera_yaml_then_published_values(tmp_path):
     (root / "camera.yaml").write_text("fx: 300\n")
     with pytest.raises(ValueError, match="camera.yaml: expected the keys fx, fy, cx, cy"):
         TumDataset(root)
+
+
+def test_lens_distortion_is_read_from_calib_txt_camera_yaml_or_the_published_values(tmp_path):
+    calib = tmp_path / "calib.txt"
+    calib.write_text("517.3 516.5 318.6 255.3 5000 640 480\ndistortion 0.26 -0.95 -0.005 0.003 1.16\n")
+    assert read_calibration(calib).distortion == (0.26, -0.95, -0.005, 0.003, 1.16)
+    calib.write_text("517.3 516.5 318.6 255.3\n# distortion k1 k2 p1 p2 k3 (images are NOT undistorted): 0.2 -0.9 0 0\n")
+    assert read_calibration(calib).distortion == (0.2, -0.9, 0.0, 0.0)  # a comment as the shared TUM folder has it
+    calib.write_text("517.3 516.5 318.6 255.3\ndistortion 0.2 0.1\n")
+    with pytest.raises(ValueError, match="calib.txt:2: distortion needs k1 k2 p1 p2"):
+        read_calibration(calib)
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg2_desk")
+    (root / "camera.yaml").write_text("fx: 8.0\nfy: 8.0\ncx: 3.5\ncy: 2.5\nk1: 0.1\n")
+    ds = TumDataset(root)
+    assert ds.undistortion is not None and "lens distortion 0.1 0 0 0 0; undistorted at load into" in ds.description
+    (root / "camera.yaml").unlink()
+    assert "its published distortion not applied to 8x6 images" in TumDataset(root).description
+    full = tmp_path / "rgbd_dataset_freiburg2_xyz"  # the size the published values describe
+    write_png(full / "rgb" / "1.0.png", np.full((480, 640, 3), 100, np.uint8))
+    write_png(full / "depth" / "1.0.png", np.full((480, 640), 5000, np.uint16))
+    (full / "rgb.txt").write_text("1.0 rgb/1.0.png\n")
+    (full / "depth.txt").write_text("1.0 depth/1.0.png\n")
+    ds = TumDataset(full)
+    assert "lens distortion 0.2312 -0.7849 -0.0033 -0.0001 0.9172; undistorted at load" in ds.description
+    depth = ds[0].depth
+    assert (depth == 1.0).all() and ds.camera.fx > 520.9  # every pixel has a source: a longer focal length
+    fr3 = make_tum(tmp_path / "rgbd_dataset_freiburg3_office")
+    assert TumDataset(fr3).undistortion is None  # fr3's images are undistorted already
+
+
+def test_undistortion_samples_where_the_lens_put_each_point():
+    camera = PinholeCamera(40.0, 40.0, 32.0, 24.0, 64, 48)
+    k1 = 0.2
+    v, u = np.mgrid[0:48, 0:64].astype(np.float64)
+    color = np.stack([u * 3, v * 4, np.zeros_like(u)], -1).astype(np.uint8)  # channels encode the source pixel
+    depth = np.full((48, 64), 2.0, np.float32)
+    undistortion = Undistortion(camera, (k1, 0.0, 0.0, 0.0))
+    out, out_depth = undistortion.color(color), undistortion.nearest(depth)
+    pinhole = undistortion.camera  # every pixel of it sees through the lens: a longer focal length
+    assert pinhole.fx > camera.fx and (pinhole.width, pinhole.height) == (64, 48) and (out_depth == 2.0).all()
+    x = (u + 0.5 - pinhole.cx) / pinhole.fx  # each output pixel's ray (pixel centres at integer + 0.5)
+    y = (v + 0.5 - pinhole.cy) / pinhole.fy
+    scale = 1 + k1 * (x * x + y * y)
+    source_u, source_v = 40.0 * x * scale + 31.5, 40.0 * y * scale + 23.5  # where the lens put it (OpenCV pixels)
+    assert source_u.min() > -0.5 and source_u.max() < 63.5 and source_v.min() > -0.5 and source_v.max() < 47.5
+    inside = (source_u >= 0) & (source_u <= 63) & (source_v >= 0) & (source_v <= 47)
+    assert np.abs(out[..., 0][inside] - 3 * source_u[inside]).max() < 1.6  # bilinear, then rounded to uint8
+    assert np.abs(out[..., 1][inside] - 4 * source_v[inside]).max() < 2.1
 
 
 def test_tum_unnamed_camera_warns_that_freiburg1_is_assumed(tmp_path):

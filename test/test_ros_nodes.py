@@ -183,6 +183,14 @@ def test_bad_input_is_dropped_and_reported_and_the_node_keeps_running():
         uncalibrated.k = np.zeros(9)
         info_pub.publish(uncalibrated)  # dropped: the valid camera_info before it stays in use
         assert spin_until(executor, lambda: tracking.drops.rejected["bad_camera_info"] == 1, 5.0)
+        assert tracking.lens_distortion == []
+        distorted = ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam"))
+        distorted.d = [0.26, -0.95, 0.0, 0.0, 1.16]  # unrectified images: used, and said so
+        info_pub.publish(distorted)
+        assert spin_until(executor, lambda: tracking.lens_distortion == [0.26, -0.95, 0.0, 0.0, 1.16], 5.0)
+        assert tracking._status()["camera.unrectified"] is True
+        info_pub.publish(ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam")))
+        assert spin_until(executor, lambda: not tracking.lens_distortion, 5.0)
         send(_frame_messages(1.1, rgb_encoding="mono16"), dropped("bad_encoding"))
         send(_frame_messages(1.2, size=(20, 30)), dropped("size_mismatch"))  # all three differ from camera_info
         send(_frame_messages(1.21, depth=np.full((30, 20), 2.0)), dropped("size_mismatch", 2))  # rgb vs depth

@@ -2,8 +2,12 @@
 labels and class table.
 
 Intrinsics come from ``calib.txt``, else ``camera.yaml`` (keys ``fx fy cx cy`` and optional ``width height
-depth_scale``), else the published TUM values of the camera the folder name names (fr1/fr2/fr3; freiburg1 when it
-names none). Labels (16-bit class ids, ``<rgb stem>.png``) come from ``labels/``, ``semantic/`` or ``label/``, the class
+depth_scale`` and lens distortion ``k1 k2 p1 p2 k3``), else the published TUM values of the camera the folder name
+names (fr1/fr2/fr3, distortion included for 640x480 images; freiburg1's intrinsics, without distortion, when it names
+none). Frames of a camera with lens distortion (OpenCV's radial-tangential model; TUM's fr1 and fr2 images are not
+undistorted) are undistorted at load into the pinhole camera of the same intrinsics: colour bilinearly, depth and
+labels by nearest pixel (depth the driver registered to the distorted colour image; depth re-projected with a depth
+calibration lands in the pinhole camera already), pixels with no source left without depth or label. Labels (16-bit class ids, ``<rgb stem>.png``) come from ``labels/``, ``semantic/`` or ``label/``, the class
 table from ``classes.txt``, ``classes.json`` or ``palette.txt`` (:func:`gausem_core.data.classes.load_class_table`);
 labels without a table get generic classes up to their largest id. What was found or assumed is logged once, at
 construction (``description``), with a warning when something was assumed.
@@ -11,8 +15,9 @@ construction (``description``), with a warning when something was assumed.
 Intrinsics in files (TUM, ScanNet, Replica) use the OpenCV convention, pixel centres at integer coordinates; GauSem's
 :class:`PinholeCamera` puts them at integer + 0.5, so readers add 0.5 to cx and cy (writers subtract it).
 
-``calib.txt``: the first numeric line is ``fx fy cx cy [depth_scale [width height]]``. Optional keyed lines describe
-depth that is not registered to colour: ``depth_registered 0``, ``depth_intrinsics fx fy cx cy [width height]`` and
+``calib.txt``: the first numeric line is ``fx fy cx cy [depth_scale [width height]]``. An optional keyed line
+``distortion k1 k2 p1 p2 [k3]`` gives the colour camera's lens distortion (a comment ``# distortion ...`` ending in those
+numbers, as in the shared TUM folder, counts too). Optional keyed lines describe depth that is not registered to colour: ``depth_registered 0``, ``depth_intrinsics fx fy cx cy [width height]`` and
 ``depth_to_color`` followed by 12 or 16 numbers (the rigid transform from depth-camera to colour-camera coordinates).
 With both of the latter, depth is re-projected into the colour camera (:func:`register_depth`). A comment that says
 "not registered" (as in the shared 7-Scenes folder) also means ``depth_registered 0``. Without a depth calibration,
@@ -27,6 +32,7 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 import yaml
@@ -43,6 +49,9 @@ LABEL_DIRS = ("labels", "semantic", "label")  # looked for in this order
 # Published TUM colour-camera intrinsics (fx, fy, cx, cy; OpenCV convention) at 640x480.
 TUM_INTRINSICS = {"freiburg1": (517.3, 516.5, 318.6, 255.3), "freiburg2": (520.9, 521.0, 325.1, 249.7),
                   "freiburg3": (535.4, 539.2, 320.1, 247.6)}
+# ... and their lens distortion (k1 k2 p1 p2 k3; freiburg3's images are undistorted already)
+TUM_DISTORTION = {"freiburg1": (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+                  "freiburg2": (0.2312, -0.7849, -0.0033, -0.0001, 0.9172), "freiburg3": (0.0, 0.0, 0.0, 0.0, 0.0)}
 
 
 def camera_from_opencv(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> PinholeCamera:
@@ -120,6 +129,14 @@ class TumCalibration:
     depth_registered: bool | None = None
     depth_intrinsics: tuple[float, ...] | None = None  # fx fy cx cy [width height], OpenCV convention
     depth_to_color: np.ndarray | None = None
+    distortion: tuple[float, ...] | None = None  # k1 k2 p1 p2 [k3] of the colour camera
+
+
+def _distortion(path: Path, number: int, words: list[str]) -> tuple[float, ...]:
+    values = _numbers(path, number, words)
+    if len(values) not in (4, 5):
+        raise ValueError(f"{path}:{number}: distortion needs k1 k2 p1 p2 [k3]")
+    return tuple(values)
 
 
 def _numbers(path: Path, number: int, words: list[str]) -> list[float]:
@@ -139,12 +156,17 @@ def read_calibration(path: Path) -> TumCalibration:
         if words[0].startswith("#"):
             if re.search(r"not\s+registered", line, re.IGNORECASE):
                 found.setdefault("depth_registered", False)
+            stated = re.match(r"#\s*distortion\b.*?((?:\s+[-+0-9.eE]+){4,5})\s*$", line)
+            if stated:
+                found.setdefault("distortion", _distortion(path, number, stated.group(1).split()))
             continue
         key = words[0]
         if key == "depth_registered":
             if words[1:] not in (["0"], ["1"]):
                 raise ValueError(f"{path}:{number}: depth_registered must be 0 or 1")
             found["depth_registered"] = words[1] == "1"
+        elif key == "distortion":
+            found["distortion"] = _distortion(path, number, words[1:])
         elif key == "depth_intrinsics":
             values = _numbers(path, number, words[1:])
             if len(values) not in (4, 6):
@@ -170,7 +192,8 @@ def read_calibration(path: Path) -> TumCalibration:
 
 
 def read_camera_yaml(path: Path) -> TumCalibration:
-    """Parse a ``camera.yaml``: ``fx fy cx cy`` (OpenCV convention) and optional ``width height depth_scale``."""
+    """Parse a ``camera.yaml``: ``fx fy cx cy`` (OpenCV convention) and optional ``width height depth_scale`` and
+    ``k1 k2 p1 p2 k3`` (missing ones 0)."""
     doc = yaml.safe_load(path.read_text())
     if not isinstance(doc, dict) or not all(k in doc for k in ("fx", "fy", "cx", "cy")):
         raise ValueError(f"{path}: expected the keys fx, fy, cx, cy (and optionally width, height, depth_scale)")
@@ -178,9 +201,11 @@ def read_camera_yaml(path: Path) -> TumCalibration:
         intrinsics = tuple(float(doc[k]) for k in ("fx", "fy", "cx", "cy"))
         size = (int(doc["width"]), int(doc["height"])) if "width" in doc and "height" in doc else None
         depth_scale = float(doc["depth_scale"]) if "depth_scale" in doc else None
+        distortion = (tuple(float(doc.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3"))
+                      if any(k in doc for k in ("k1", "k2", "p1", "p2", "k3")) else None)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path}: {err}") from None
-    return TumCalibration(intrinsics, depth_scale, size)
+    return TumCalibration(intrinsics, depth_scale, size, distortion=distortion)
 
 
 def register_depth(depth: np.ndarray, depth_camera: PinholeCamera, color_camera: PinholeCamera,
@@ -202,6 +227,26 @@ def register_depth(depth: np.ndarray, depth_camera: PinholeCamera, color_camera:
     return out.reshape(color_camera.height, color_camera.width)
 
 
+class Undistortion:
+    """Remaps images of a camera with lens distortion (OpenCV's k1 k2 p1 p2 [k3]) into a pinhole :attr:`camera`: the
+    largest one whose every pixel the distorted image covers (OpenCV's optimal new camera matrix, alpha 0; TUM fr1:
+    focal length 5.7 % longer), so no border without depth or colour is left."""
+
+    def __init__(self, camera: PinholeCamera, distortion: tuple[float, ...]):
+        matrix = np.array([[camera.fx, 0, camera.cx - 0.5], [0, camera.fy, camera.cy - 0.5], [0, 0, 1]])
+        coefficients, self.size = np.asarray(distortion, np.float64), (camera.width, camera.height)
+        pinhole, _ = cv2.getOptimalNewCameraMatrix(matrix, coefficients, self.size, 0.0)
+        self.camera = camera_from_opencv(pinhole[0, 0], pinhole[1, 1], pinhole[0, 2], pinhole[1, 2], *self.size)
+        self._maps = cv2.initUndistortRectifyMap(matrix, coefficients, None, pinhole, self.size, cv2.CV_32FC1)
+
+    def color(self, image: np.ndarray) -> np.ndarray:
+        return cv2.remap(image, *self._maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def nearest(self, image: np.ndarray) -> np.ndarray:
+        """Depth or labels, by nearest pixel (no blend across a depth edge or a class border)."""
+        return cv2.remap(image, *self._maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
 class TumDataset(Dataset):
     """A TUM RGB-D folder (also what :func:`write_tum_folder` writes, with ``labels/`` and ``classes.txt``).
 
@@ -221,7 +266,12 @@ class TumDataset(Dataset):
         calib, calib_source = self._calibration()
         self.depth_scale = float(depth_scale or calib.depth_scale or TUM_DEPTH_SCALE)
         self.stamps, self.rgb_files, self.depth_files = self._associated_files(max_time_difference)
-        self.camera, intrinsics_source = (camera, "given") if camera else self._camera(calib, calib_source)
+        self.camera, distortion, intrinsics_source = ((camera, None, "given") if camera else
+                                                      self._camera(calib, calib_source))
+        self.undistortion = Undistortion(self.camera, distortion) if distortion and any(distortion) else None
+        calibrated = self.camera
+        if self.undistortion is not None:
+            self.camera = self.undistortion.camera
         self._depth_calibration = None
         registered = calib.depth_registered if depth_registered is None else depth_registered
         self.depth_registered = registered is not False
@@ -236,9 +286,14 @@ class TumDataset(Dataset):
         self.gt_poses = self._ground_truth(max_time_difference)
         self.labels_dir = next((self.root / d for d in LABEL_DIRS if (self.root / d).is_dir()), None)
         self.class_table, classes_source = self._classes()
-        c = self.camera
-        self.description = (f"{self.name}: intrinsics {intrinsics_source} (fx {c.fx:.1f} fy {c.fy:.1f} "
-                            f"cx {c.cx - 0.5:.1f} cy {c.cy - 0.5:.1f}, {c.width}x{c.height}), depth scale "
+        def intrinsics(c: PinholeCamera) -> str:
+            return f"fx {c.fx:.1f} fy {c.fy:.1f} cx {c.cx - 0.5:.1f} cy {c.cy - 0.5:.1f}"
+
+        undistorted = "" if self.undistortion is None else (
+            f", lens distortion {' '.join(f'{k:g}' for k in distortion)}; undistorted at load into the pinhole "
+            f"{intrinsics(self.camera)}")
+        self.description = (f"{self.name}: intrinsics {intrinsics_source} ({intrinsics(calibrated)}, "
+                            f"{calibrated.width}x{calibrated.height}{undistorted}), depth scale "
                             f"{self.depth_scale:g}; labels {classes_source}")
         if "assumed" in self.description:
             warnings.warn(self.description, stacklevel=2)
@@ -283,19 +338,22 @@ class TumDataset(Dataset):
             require_file(self.root / name)
         return np.array(stamps), [self.root / n for n in rgb], [self.root / n for n in depth]
 
-    def _camera(self, calib: TumCalibration, source: str | None) -> tuple[PinholeCamera, str]:
-        """The colour camera and where its intrinsics came from."""
+    def _camera(self, calib: TumCalibration, source: str | None) -> tuple[PinholeCamera, tuple | None, str]:
+        """The colour camera, its lens distortion (None: none stated) and where they came from."""
         if calib.intrinsics is not None:
-            intrinsics = calib.intrinsics
+            intrinsics, distortion = calib.intrinsics, calib.distortion
         else:
             match = re.search(r"(?:freiburg|fr)([123])", self.root.name.lower())
             camera = f"freiburg{match.group(1) if match else 1}"
-            intrinsics = TUM_INTRINSICS[camera]
+            intrinsics, distortion = TUM_INTRINSICS[camera], TUM_DISTORTION[camera] if match else None
             source = (f"published TUM {camera} values (named by the folder)" if match else
                       "published TUM freiburg1 values, assumed (no calib.txt or camera.yaml, no fr1/fr2/fr3 in the "
                       "folder name)")
         width, height = calib.size or read_rgb(self.rgb_files[0]).shape[1::-1]
-        return camera_from_opencv(*intrinsics, width, height), source
+        if calib.intrinsics is None and distortion and (width, height) != (640, 480):
+            distortion = None  # the published values describe the 640x480 images
+            source += f", its published distortion not applied to {width}x{height} images"
+        return camera_from_opencv(*intrinsics, width, height), distortion, source
 
     def _ground_truth(self, max_difference: float) -> list[np.ndarray | None]:
         path = self.root / "groundtruth.txt"
@@ -311,6 +369,13 @@ class TumDataset(Dataset):
     def _load(self, index: int) -> Frame:
         rgb = read_rgb(self.rgb_files[index])
         depth = read_depth(self.depth_files[index], self.depth_scale)
+        if self.undistortion is not None:
+            if rgb.shape[1::-1] != self.undistortion.size:
+                raise ValueError(f"{self.rgb_files[index]}: size {rgb.shape[1::-1]} differs from the calibration's "
+                                 f"{self.undistortion.size}, which the lens distortion refers to")
+            rgb = self.undistortion.color(rgb)
+            if self._depth_calibration is None:  # registered to the distorted colour image by the driver
+                depth = self.undistortion.nearest(depth)
         if self._depth_calibration is not None:
             depth_camera, depth_to_color = self._depth_calibration
             if depth.shape != (depth_camera.height, depth_camera.width):
@@ -319,5 +384,6 @@ class TumDataset(Dataset):
             depth = register_depth(depth, depth_camera, self.camera, depth_to_color)
         labels = None
         if self.labels_dir is not None:
-            labels = read_uint16(self.labels_dir / (self.rgb_files[index].stem + ".png")).astype(np.int64)
+            labels = read_uint16(self.labels_dir / (self.rgb_files[index].stem + ".png"))
+            labels = (labels if self.undistortion is None else self.undistortion.nearest(labels)).astype(np.int64)
         return Frame(index, float(self.stamps[index]), rgb, depth, labels, self.camera, self.gt_poses[index])

@@ -171,6 +171,7 @@ class TrackingMappingNode(Node):
         self.loop_candidates: list[ma.LoopCandidateRecord] = []
         self.pose_graph_updates: list[ma.PoseGraphUpdate] = []
         self.camera = None  # the latest valid rgb/camera_info (PinholeCamera)
+        self.lens_distortion: list[float] = []  # its D where any is non-zero: images not rectified (warned once)
         self.latencies: list[float] = []  # seconds from a frame's arrival to its pose's publication
         self._in_progress = False  # a frame is being processed
         self._loop_answers = LoopAnswers(
@@ -246,6 +247,14 @@ class TrackingMappingNode(Node):
             self.camera = ma.camera_info_to_camera(msg)
         except ValueError as err:
             self.drops.drop("bad_camera_info", str(err), frame=False)
+            return
+        distortion = [float(d) for d in msg.d] if any(msg.d) else []
+        if distortion and distortion != self.lens_distortion:
+            self.get_logger().warning(
+                f"rgb/camera_info states lens distortion ({msg.distortion_model} {distortion}), which GauSem does not "
+                "undo: it takes the images as a pinhole camera's. Give it rectified images and their camera_info "
+                "(image_proc's image_rect); datasets are undistorted by their readers")
+        self.lens_distortion = distortion
 
     def _on_frame(self, *msgs: Image) -> None:
         self._queue.put(msgs)
@@ -414,13 +423,15 @@ class TrackingMappingNode(Node):
         """Diagnostics besides the drop counts: frames in, processed and pending, the last frame's tracking health,
         the latency over the last 100 frames, the last handled frame (lock-step players take it as the answer for a
         frame that produced no odometry), the depth and label messages the synchroniser dropped and the estimated
-        vignetting (brightness in the image corners relative to the centre, ``slam.vignetting``)."""
+        vignetting (brightness in the image corners relative to the centre, ``slam.vignetting``) and whether the
+        camera_info states a lens distortion that nothing undid (``camera.unrectified``)."""
         sync = self._inputs.synchronizer
         return {"frames_in": sync.received[0] + sync.lost[0], "frames_processed": self.frames_processed,
                 "frames_pending": self._frames_pending(), LAST_FRAME_KEY: self._handled_ns,
                 "tracking.status": self.health.status,
                 **{f"tracking.{name}": value for name, value in self.health.signals().items()},
                 "camera.vignetting_corner_gain": math.exp(self.slam.vignetting.a),
+                "camera.unrectified": bool(self.lens_distortion),
                 **latency_stats(self.latencies[-100:]),
                 **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(sync.dropped.items())
                    if name != sync.names[0]}}
