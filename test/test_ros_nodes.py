@@ -183,14 +183,20 @@ def test_bad_input_is_dropped_and_reported_and_the_node_keeps_running():
         uncalibrated.k = np.zeros(9)
         info_pub.publish(uncalibrated)  # dropped: the valid camera_info before it stays in use
         assert spin_until(executor, lambda: tracking.drops.rejected["bad_camera_info"] == 1, 5.0)
-        assert tracking.lens_distortion == []
+        assert tracking.lens_distortion == () and tracking.camera == camera
         distorted = ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam"))
-        distorted.d = [0.26, -0.95, 0.0, 0.0, 1.16]  # unrectified images: used, and said so
+        distorted.d = [0.1, 0.0, 0.0, 0.0, 0.0]  # frames are undistorted into a longer-focal pinhole
         info_pub.publish(distorted)
-        assert spin_until(executor, lambda: tracking.lens_distortion == [0.26, -0.95, 0.0, 0.0, 1.16], 5.0)
-        assert tracking._status()["camera.unrectified"] is True
+        assert spin_until(executor, lambda: tracking.lens_distortion == (0.1, 0.0, 0.0, 0.0, 0.0), 5.0)
+        assert tracking.camera.fx > camera.fx and tracking._status()["camera.undistorted"] is True
+        obs = tracking._observation(*_frame_messages(1.05))  # what the core would get: the undistorted frame
+        assert obs.camera == tracking.camera and bool((obs.depth > 0).all())
+        distorted.d = [0.1, 0.2]  # a model it cannot undo: rejected, the one before stays
+        info_pub.publish(distorted)
+        assert spin_until(executor, lambda: tracking.drops.rejected["bad_camera_info"] == 2, 5.0)
+        assert tracking.lens_distortion == (0.1, 0.0, 0.0, 0.0, 0.0)
         info_pub.publish(ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam")))
-        assert spin_until(executor, lambda: not tracking.lens_distortion, 5.0)
+        assert spin_until(executor, lambda: tracking.camera == camera, 5.0)
         send(_frame_messages(1.1, rgb_encoding="mono16"), dropped("bad_encoding"))
         send(_frame_messages(1.2, size=(20, 30)), dropped("size_mismatch"))  # all three differ from camera_info
         send(_frame_messages(1.21, depth=np.full((30, 20), 2.0)), dropped("size_mismatch", 2))  # rgb vs depth
@@ -215,7 +221,7 @@ def test_bad_input_is_dropped_and_reported_and_the_node_keeps_running():
                 "stale_stamp": 2, "tracking_diverged": 1}
     assert {k: int(v) for k, v in report.items() if k.startswith("dropped.")} == {
         f"dropped.{k}": v for k, v in expected.items()}
-    assert report["rejected.bad_camera_info"] == "1"
+    assert report["rejected.bad_camera_info"] == "2"
     assert report["sync.depth.backwards"] == report["sync.labels.backwards"] == "2"
     assert int(report["frames_in"]) == 15 == 3 + sum(expected.values()) and report["frames_pending"] == "0"
     assert [ma.header_seconds(o.header) for o in recorder.messages["gausem/odometry"]] == [1.4, 1.5, 1.7]

@@ -32,7 +32,6 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 import yaml
@@ -40,6 +39,7 @@ import yaml
 from gausem_core.data.classes import ClassTable, find_class_table, generic_table
 from gausem_core.data.frame import Dataset, Frame
 from gausem_core.data.images import read_depth, read_rgb, read_uint16, require_file
+from gausem_core.data.undistortion import Undistortion
 from gausem_core.geometry import PinholeCamera, quaternion_to_matrix
 
 log = logging.getLogger(__name__)
@@ -225,26 +225,6 @@ def register_depth(depth: np.ndarray, depth_camera: PinholeCamera, color_camera:
     out = np.zeros(color_camera.height * color_camera.width, np.float32)
     out[flat[first]] = z[first]
     return out.reshape(color_camera.height, color_camera.width)
-
-
-class Undistortion:
-    """Remaps images of a camera with lens distortion (OpenCV's k1 k2 p1 p2 [k3]) into a pinhole :attr:`camera`: the
-    largest one whose every pixel the distorted image covers (OpenCV's optimal new camera matrix, alpha 0; TUM fr1:
-    focal length 5.7 % longer), so no border without depth or colour is left."""
-
-    def __init__(self, camera: PinholeCamera, distortion: tuple[float, ...]):
-        matrix = np.array([[camera.fx, 0, camera.cx - 0.5], [0, camera.fy, camera.cy - 0.5], [0, 0, 1]])
-        coefficients, self.size = np.asarray(distortion, np.float64), (camera.width, camera.height)
-        pinhole, _ = cv2.getOptimalNewCameraMatrix(matrix, coefficients, self.size, 0.0)
-        self.camera = camera_from_opencv(pinhole[0, 0], pinhole[1, 1], pinhole[0, 2], pinhole[1, 2], *self.size)
-        self._maps = cv2.initUndistortRectifyMap(matrix, coefficients, None, pinhole, self.size, cv2.CV_32FC1)
-
-    def color(self, image: np.ndarray) -> np.ndarray:
-        return cv2.remap(image, *self._maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-
-    def nearest(self, image: np.ndarray) -> np.ndarray:
-        """Depth or labels, by nearest pixel (no blend across a depth edge or a class border)."""
-        return cv2.remap(image, *self._maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
 class TumDataset(Dataset):

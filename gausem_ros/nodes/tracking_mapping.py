@@ -1,8 +1,8 @@
 """The tracking-and-mapping node: owns :class:`GauSemSLAM` (and so the Gaussian map).
 
 Subscribes (relative names, remappable): ``rgb/image`` (rgb8/bgr8/rgba8/bgra8), ``depth/image`` (16UC1 mm or 32FC1 m),
-``rgb/camera_info``, ``semantic/labels`` (mono8/mono16 class ids; not with ``use_labels: false``), approximately
-synchronised; with ``loop_closure: nodes``, ``gausem/loop_candidates`` and ``gausem/pose_graph`` (records,
+``rgb/camera_info`` (a lens distortion it states is undone: ``gausem_core.data.undistortion``), ``semantic/labels``
+(mono8/mono16 class ids; not with ``use_labels: false``), approximately synchronised; with ``loop_closure: nodes``, ``gausem/loop_candidates`` and ``gausem/pose_graph`` (records,
 ``msg_adapters.records``).
 Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_frame``, stamped like the rgb image),
 ``gausem/path`` (latched, re-published after every frame and every correction), TF ``map_frame`` -> camera frame,
@@ -88,7 +88,8 @@ from std_srvs.srv import Trigger
 import msg_adapters as ma
 from gausem_core.config import SlamConfig
 from gausem_core.data.frame import Frame, resize_frame
-from gausem_core.geometry import rigid_float64
+from gausem_core.data.undistortion import Undistortion
+from gausem_core.geometry import PinholeCamera, rigid_float64
 from gausem_core.io.ply import write_gaussian_ply
 from gausem_core.io.trajectory import Trajectory, write_tum_trajectory
 from gausem_core.pipeline import resolve_device
@@ -170,8 +171,10 @@ class TrackingMappingNode(Node):
         self._handled_ns = -1  # stamp of the last synchronised frame handled (processed or dropped)
         self.loop_candidates: list[ma.LoopCandidateRecord] = []
         self.pose_graph_updates: list[ma.PoseGraphUpdate] = []
-        self.camera = None  # the latest valid rgb/camera_info (PinholeCamera)
-        self.lens_distortion: list[float] = []  # its D where any is non-zero: images not rectified (warned once)
+        # the latest valid rgb/camera_info: (the pinhole camera the frames are given in, the Undistortion that takes
+        # them there or None), replaced whole so that a frame never pairs one camera_info's camera with another's
+        self._camera: tuple[PinholeCamera, Undistortion | None] | None = None
+        self.lens_distortion: tuple[float, ...] = ()  # its D (empty: none stated)
         self.latencies: list[float] = []  # seconds from a frame's arrival to its pose's publication
         self._in_progress = False  # a frame is being processed
         self._loop_answers = LoopAnswers(
@@ -243,18 +246,32 @@ class TrackingMappingNode(Node):
     # --- inputs -------------------------------------------------------------------------------------------------
     @survives_errors(frame=False)
     def _on_camera_info(self, msg: CameraInfo) -> None:
+        """The camera, and for one whose camera_info states a lens distortion (non-zero D, OpenCV's plumb_bob or
+        rational_polynomial coefficients) the undistortion every frame then goes through (said once per calibration);
+        the frames are then a pinhole camera's whose every pixel the lens covers."""
         try:
-            self.camera = ma.camera_info_to_camera(msg)
+            camera = ma.camera_info_to_camera(msg)
+            distortion = tuple(float(d) for d in msg.d) if any(msg.d) else ()
+            if distortion and len(distortion) not in (4, 5, 8):
+                raise ValueError(f"CameraInfo distortion {msg.distortion_model!r} has {len(distortion)} coefficients; "
+                                 "GauSem undoes OpenCV's 4, 5 or 8 (plumb_bob, rational_polynomial)")
         except ValueError as err:
             self.drops.drop("bad_camera_info", str(err), frame=False)
             return
-        distortion = [float(d) for d in msg.d] if any(msg.d) else []
-        if distortion and distortion != self.lens_distortion:
-            self.get_logger().warning(
-                f"rgb/camera_info states lens distortion ({msg.distortion_model} {distortion}), which GauSem does not "
-                "undo: it takes the images as a pinhole camera's. Give it rectified images and their camera_info "
-                "(image_proc's image_rect); datasets are undistorted by their readers")
-        self.lens_distortion = distortion
+        if self._camera is not None and (self._camera[0], self.lens_distortion) == (camera, distortion):
+            return
+        undistortion = Undistortion(camera, distortion) if distortion else None
+        if undistortion is not None:
+            c = undistortion.camera
+            self.get_logger().info(f"rgb/camera_info states lens distortion {msg.distortion_model} {list(distortion)}: "
+                                   f"frames are undistorted into the pinhole fx {c.fx:.1f} fy {c.fy:.1f} "
+                                   f"cx {c.cx - 0.5:.1f} cy {c.cy - 0.5:.1f}")
+        self._camera, self.lens_distortion = (camera, undistortion), distortion
+
+    @property
+    def camera(self) -> PinholeCamera | None:
+        """The pinhole camera the frames are processed in (after any undistortion); None before a camera_info."""
+        return None if self._camera is None else (self._camera[1].camera if self._camera[1] else self._camera[0])
 
     def _on_frame(self, *msgs: Image) -> None:
         self._queue.put(msgs)
@@ -284,11 +301,11 @@ class TrackingMappingNode(Node):
         if stamp <= self._last_stamp:
             raise FrameRejected("stale_stamp", f"frame stamped {stamp:.6f} s is not after the last processed "
                                                f"frame ({self._last_stamp:.6f} s)")
-        if self.camera is None:
+        if self._camera is None:
             raise FrameRejected("no_camera_info", "no valid rgb/camera_info received yet; waiting for it")
+        camera, undistortion = self._camera
         self._check_min_size(rgb_msg, depth_msg, labels_msg)
         rgb, depth, labels = self._decode(rgb_msg, depth_msg, labels_msg)
-        camera = self.camera
         sizes = {"rgb": rgb.shape[:2], "depth": depth.shape, "labels": labels.shape,
                  "camera_info": (camera.height, camera.width)}
         if len(set(sizes.values())) > 1:
@@ -297,6 +314,9 @@ class TrackingMappingNode(Node):
         if labels.size and (labels.min() < 0 or labels.max() >= len(self.palette)):
             raise FrameRejected("bad_labels", f"labels span [{labels.min()}, {labels.max()}], outside the class "
                                               f"table's ids 0..{len(self.palette) - 1} (parameter classes)")
+        if undistortion is not None:
+            rgb, depth, labels, camera = (undistortion.color(rgb), undistortion.nearest(depth),
+                                          undistortion.labels(labels), undistortion.camera)
         valid = float((depth > 0).mean()) if depth.size else 0.0
         if valid < self.params.min_valid_depth:
             raise FrameRejected("invalid_depth", f"only {100 * valid:.1f} % of the depth pixels are valid (finite, "
@@ -424,14 +444,14 @@ class TrackingMappingNode(Node):
         the latency over the last 100 frames, the last handled frame (lock-step players take it as the answer for a
         frame that produced no odometry), the depth and label messages the synchroniser dropped and the estimated
         vignetting (brightness in the image corners relative to the centre, ``slam.vignetting``) and whether the
-        camera_info states a lens distortion that nothing undid (``camera.unrectified``)."""
+        frames are undistorted (``camera.undistorted``: the camera_info states a lens distortion)."""
         sync = self._inputs.synchronizer
         return {"frames_in": sync.received[0] + sync.lost[0], "frames_processed": self.frames_processed,
                 "frames_pending": self._frames_pending(), LAST_FRAME_KEY: self._handled_ns,
                 "tracking.status": self.health.status,
                 **{f"tracking.{name}": value for name, value in self.health.signals().items()},
                 "camera.vignetting_corner_gain": math.exp(self.slam.vignetting.a),
-                "camera.unrectified": bool(self.lens_distortion),
+                "camera.undistorted": bool(self.lens_distortion),
                 **latency_stats(self.latencies[-100:]),
                 **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(sync.dropped.items())
                    if name != sync.names[0]}}
