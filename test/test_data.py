@@ -400,7 +400,8 @@ def test_lens_distortion_is_read_from_calib_txt_camera_yaml_or_the_published_val
     calib = tmp_path / "calib.txt"
     calib.write_text("517.3 516.5 318.6 255.3 5000 640 480\ndistortion 0.26 -0.95 -0.005 0.003 1.16\n")
     assert read_calibration(calib).distortion == (0.26, -0.95, -0.005, 0.003, 1.16)
-    calib.write_text("517.3 516.5 318.6 255.3\n# distortion k1 k2 p1 p2 k3 (images are NOT undistorted): 0.2 -0.9 0 0\n")
+    calib.write_text("517.3 516.5 318.6 255.3\n"
+                     "# distortion k1 k2 p1 p2 k3 (images are NOT undistorted): 0.2 -0.9 0 0\n")
     assert read_calibration(calib).distortion == (0.2, -0.9, 0.0, 0.0)  # a comment as the shared TUM folder has it
     calib.write_text("517.3 516.5 318.6 255.3\ndistortion 0.2 0.1\n")
     with pytest.raises(ValueError, match="calib.txt:2: distortion needs k1 k2 p1 p2"):

@@ -78,12 +78,10 @@ def test_the_estimate_is_the_weighted_median_of_the_pairs_and_the_prior():
     assert weighted_median([0.0, -0.3, -0.2], [1.0, 1.0, 1.0]) == -0.2
     model = Vignetting(VignettingConfig())
     pose = torch.eye(4)
-    keyframes = [planar_pair(20 * i, -0.3, seed=i) for i in range(3)]  # not the same scene: only consecutive pairs
-    earlier, depth, *_ = keyframes[0]
+    earlier, _, later, later_depth, later_from_earlier = planar_pair(20, -0.3)
+    later_obs, moved = replace(observation(later), depth=later_depth), torch.linalg.inv(later_from_earlier)
     assert model.update(observation(earlier), pose, 0) is None and model.a == 0.0  # nothing to pair with yet
-    _, _, later, later_depth, later_from_earlier = planar_pair(20, -0.3)
-    assert model.update(replace(observation(later), depth=later_depth), torch.linalg.inv(later_from_earlier), 0).slope == pytest.approx(-0.3,
-                                                                                                          abs=0.02)
+    assert model.update(later_obs, moved, 0).slope == pytest.approx(-0.3, abs=0.02)
     assert model.a == pytest.approx(-0.3, abs=0.02)  # the pair outweighs the prior (weight 1)
     assert model.update(observation(earlier), pose, 1) is None  # another submap: no pair across
     assert len(model.pairs) == 1
@@ -93,8 +91,7 @@ def test_the_estimate_is_the_weighted_median_of_the_pairs_and_the_prior():
     restored = Vignetting(VignettingConfig())
     restored.load_state_dict(model.state_dict())
     assert restored.a == model.a and restored.pairs == model.pairs
-    moved = torch.linalg.inv(later_from_earlier)  # the restored estimate pairs the next keyframe as the original does
-    later_obs = replace(observation(later), depth=later_depth)
+    # the restored estimate pairs the next keyframe as the original does
     assert restored.update(later_obs, moved, 1).slope == model.update(later_obs, moved, 1).slope
     with pytest.raises(ValueError, match="vignetting.min_coverage"):
         Vignetting(VignettingConfig(min_coverage=2.0))

@@ -5,9 +5,11 @@ Intrinsics come from ``calib.txt``, else ``camera.yaml`` (keys ``fx fy cx cy`` a
 depth_scale`` and lens distortion ``k1 k2 p1 p2 k3``), else the published TUM values of the camera the folder name
 names (fr1/fr2/fr3, distortion included for 640x480 images; freiburg1's intrinsics, without distortion, when it names
 none). Frames of a camera with lens distortion (OpenCV's radial-tangential model; TUM's fr1 and fr2 images are not
-undistorted) are undistorted at load into the pinhole camera of the same intrinsics: colour bilinearly, depth and
-labels by nearest pixel (depth the driver registered to the distorted colour image; depth re-projected with a depth
-calibration lands in the pinhole camera already), pixels with no source left without depth or label. Labels (16-bit class ids, ``<rgb stem>.png``) come from ``labels/``, ``semantic/`` or ``label/``, the class
+undistorted) are undistorted at load (:class:`~gausem_core.data.undistortion.Undistortion`) into the largest pinhole
+camera the lens covers, which becomes the dataset's ``camera``: colour bilinearly, depth and labels by nearest pixel
+(depth the driver registered to the distorted colour image; depth re-projected with a depth calibration lands in
+that pinhole camera already).
+Labels (16-bit class ids, ``<rgb stem>.png``) come from ``labels/``, ``semantic/`` or ``label/``, the class
 table from ``classes.txt``, ``classes.json`` or ``palette.txt`` (:func:`gausem_core.data.classes.load_class_table`);
 labels without a table get generic classes up to their largest id. What was found or assumed is logged once, at
 construction (``description``), with a warning when something was assumed.
@@ -16,8 +18,9 @@ Intrinsics in files (TUM, ScanNet, Replica) use the OpenCV convention, pixel cen
 :class:`PinholeCamera` puts them at integer + 0.5, so readers add 0.5 to cx and cy (writers subtract it).
 
 ``calib.txt``: the first numeric line is ``fx fy cx cy [depth_scale [width height]]``. An optional keyed line
-``distortion k1 k2 p1 p2 [k3]`` gives the colour camera's lens distortion (a comment ``# distortion ...`` ending in those
-numbers, as in the shared TUM folder, counts too). Optional keyed lines describe depth that is not registered to colour: ``depth_registered 0``, ``depth_intrinsics fx fy cx cy [width height]`` and
+``distortion k1 k2 p1 p2 [k3]`` gives the colour camera's lens distortion (a comment ``# distortion ...`` ending in
+those numbers, as in the shared TUM folder, counts too). Optional keyed lines describe depth that is not registered to
+colour: ``depth_registered 0``, ``depth_intrinsics fx fy cx cy [width height]`` and
 ``depth_to_color`` followed by 12 or 16 numbers (the rigid transform from depth-camera to colour-camera coordinates).
 With both of the latter, depth is re-projected into the colour camera (:func:`register_depth`). A comment that says
 "not registered" (as in the shared 7-Scenes folder) also means ``depth_registered 0``. Without a depth calibration,

@@ -10,14 +10,14 @@ Each frame's colour is divided by V before the system uses it, without clipping:
 corner stays brighter than 1 (the map's colours go up to ``MAX_COLOR``; clipping at 1 cut a fifth of TUM fr1/rpy's
 pixels at a = -0.33 and cost 1 dB of PSNR).
 
-The estimate comes from the images alone, as in online photometric calibration (Bergmann et al., 2017): a surface point
-two keyframes both see, at radii r1 and r2, was recorded with brightness ratio I2 / I1 = e V(r2) / V(r1), e the change of
-exposure between them, so log(I2 / I1) = log e + a (r2^2 - r1^2). Each new keyframe is paired with the one before it in
-the same submap (its depth and the two tracked poses give the correspondences); the slope of that line over the
-pair's points, averaged in blocks, is one measurement of ``a`` weighted by the spread of r2^2 - r1^2 (a rotation that
-carries points from the centre to a corner tells much, a pure forward motion little), and ``a`` is the weighted median
-of all measurements so far, with ``initial`` as a prior of weight one: no feedback through the map, which is built
-from the corrected frames, and one blurred or mis-tracked pair moves it little.
+The estimate comes from the images alone, as in online photometric calibration (Bergmann et al., 2017): a surface
+point two keyframes both see, at radii r1 and r2, was recorded with brightness ratio I2 / I1 = e V(r2) / V(r1), e the
+change of exposure between them, so log(I2 / I1) = log e + a (r2^2 - r1^2). Each new keyframe is paired with the one
+before it in the same submap (its depth and the two tracked poses give the correspondences); the slope of that line
+over the pair's points, averaged in blocks, is one measurement of ``a`` weighted by the spread of r2^2 - r1^2 (a
+rotation that carries points from the centre to a corner tells much, a pure forward motion little), and ``a`` is the
+weighted median of all measurements so far, with ``initial`` as a prior of weight one: no feedback through the map,
+which is built from the corrected frames, and one blurred or mis-tracked pair moves it little.
 """
 from __future__ import annotations
 
@@ -148,7 +148,8 @@ class Vignetting:
         """A rendered (H, W, 3) colour as the camera would record it: times V."""
         return color if self.a == 0.0 else color * self.gain(camera, color.device)
 
-    def update(self, corrected: Observation, cam_to_world: torch.Tensor, frame_of_reference: object) -> PairSlope | None:
+    def update(self, corrected: Observation, cam_to_world: torch.Tensor,
+               frame_of_reference: object) -> PairSlope | None:
         """Pair a keyframe (``corrected`` by the current estimate; ``cam_to_world`` in ``frame_of_reference``, e.g. its
         submap) with the last one in the same frame of reference, and re-estimate a from all pairs so far; returns
         the pair's measurement (None: no pair, or too few points both see). Nothing while ``calibrate`` is off."""

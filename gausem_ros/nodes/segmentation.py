@@ -57,8 +57,8 @@ class SegmentationNode(Node):
                          MutuallyExclusiveCallbackGroup(), INPUT_QOS_HINT)  # images arrive while segmenting
 
     @survives_errors
-    def _segment(self, msg: Image, arrived: float, superseded: int) -> None:
-        del arrived, superseded  # counted as drops by the queue's callback
+    def _segment(self, msg: Image, arrived: float, skipped: int) -> None:
+        del arrived, skipped  # superseded images are counted as drops by the queue's callback
         try:
             rgb = ma.image_to_rgb(msg)
         except ma.ImageEncodingError as err:

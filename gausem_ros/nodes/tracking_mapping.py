@@ -2,8 +2,8 @@
 
 Subscribes (relative names, remappable): ``rgb/image`` (rgb8/bgr8/rgba8/bgra8), ``depth/image`` (16UC1 mm or 32FC1 m),
 ``rgb/camera_info`` (a lens distortion it states is undone: ``gausem_core.data.undistortion``), ``semantic/labels``
-(mono8/mono16 class ids; not with ``use_labels: false``), approximately synchronised; with ``loop_closure: nodes``, ``gausem/loop_candidates`` and ``gausem/pose_graph`` (records,
-``msg_adapters.records``).
+(mono8/mono16 class ids; not with ``use_labels: false``), approximately synchronised; with ``loop_closure: nodes``,
+``gausem/loop_candidates`` and ``gausem/pose_graph`` (records, ``msg_adapters.records``).
 Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_frame``, stamped like the rgb image),
 ``gausem/path`` (latched, re-published after every frame and every correction), TF ``map_frame`` -> camera frame,
 ``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/keyframes``
