@@ -187,6 +187,11 @@ class PinholeCamera:
                               torch.arange(self.width, dtype=dtype, device=device), indexing="ij")
         return torch.stack([(u + 0.5 - self.cx) / self.fx, (v + 0.5 - self.cy) / self.fy, torch.ones_like(u)], -1)
 
+    def radius_squared(self, u, v):
+        """Squared distance of pixel coordinates ``u``, ``v`` (arrays or tensors) from the principal point, over the
+        squared half diagonal of the image (the radius of vignetting models: 1 in the corners of a centred camera)."""
+        return ((u - self.cx) ** 2 + (v - self.cy) ** 2) / ((self.width / 2) ** 2 + (self.height / 2) ** 2)
+
     def backproject(self, depth: torch.Tensor) -> torch.Tensor:
         """Depth (H, W) in metres -> camera-frame points (H, W, 3)."""
         return self.pixel_rays(depth.dtype, depth.device) * depth[..., None]

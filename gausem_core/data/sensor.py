@@ -126,8 +126,7 @@ def quantise_disparity(depth: np.ndarray, cfg: SensorConfig) -> np.ndarray:
 def vignetting(camera: PinholeCamera, corner: float) -> np.ndarray:
     """(H, W) relative brightness 1 - (1 - corner) r^2, r = distance from the principal point / half diagonal."""
     v, u = np.mgrid[0:camera.height, 0:camera.width] + 0.5
-    r2 = ((u - camera.cx) ** 2 + (v - camera.cy) ** 2) / ((camera.width / 2) ** 2 + (camera.height / 2) ** 2)
-    return 1.0 - (1.0 - corner) * r2
+    return 1.0 - (1.0 - corner) * camera.radius_squared(u, v)
 
 
 class SensorModel:

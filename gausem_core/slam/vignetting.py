@@ -43,11 +43,7 @@ def radius_squared(camera: PinholeCamera, device: torch.device | str = "cpu") ->
     """(H, W) squared distance of each pixel centre from the principal point, over the squared half diagonal."""
     v = torch.arange(camera.height, dtype=torch.float32, device=device)[:, None] + 0.5
     u = torch.arange(camera.width, dtype=torch.float32, device=device)[None, :] + 0.5
-    return _normalised_r2(camera, u, v)
-
-
-def _normalised_r2(camera: PinholeCamera, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    return ((u - camera.cx) ** 2 + (v - camera.cy) ** 2) / ((camera.width / 2) ** 2 + (camera.height / 2) ** 2)
+    return camera.radius_squared(u, v)
 
 
 @dataclass(frozen=True)
@@ -83,7 +79,7 @@ def pair_slope(earlier: torch.Tensor, earlier_depth: torch.Tensor, later: torch.
         return (color.mean(-1) > _EXPOSED[0]) & (color.amax(-1) < _EXPOSED[1])
 
     usable = (inside & same & exposed(earlier) & exposed(later_color)).double()
-    r2_later = _normalised_r2(camera, uv[..., 0], uv[..., 1])
+    r2_later = camera.radius_squared(uv[..., 0], uv[..., 1])
     planes = torch.stack([usable, earlier.mean(-1), later_color.mean(-1), radius_squared(camera, earlier.device),
                           r2_later]).double()
     planes[1:] *= usable
