@@ -320,8 +320,12 @@ class GauSemSLAM:
         return TrackingResult(local, relocalised.tracking_loss, relocalised.iterations), relocalised
 
     def _track(self, obs: Observation, motion: MotionPrediction) -> TrackingResult:
-        search = gap_mode_applies(self.cfg.tracking.gauss_newton.search, motion.gap)
-        featured = self.feature_start.predict(obs, motion.previous) if self.feature_start.wanted(motion.gap) else None
+        """Track from the motion model's prediction; where the motion since the last good frame is unknown (frames were
+        missed, or there is no motion model yet: a segment's second frame) the gap measures apply
+        (``gauss_newton.search``, ``feature_start``)."""
+        unknown = motion.gap or motion.predicted is None
+        search = gap_mode_applies(self.cfg.tracking.gauss_newton.search, unknown)
+        featured = self.feature_start.predict(obs, motion.previous) if self.feature_start.wanted(unknown) else None
         alternatives = [] if featured is None else [featured]
         if motion.predicted is None:
             return self.tracker.track(self.active.cloud, obs, motion.previous, alternatives, search=search)
