@@ -47,7 +47,9 @@ class RunResult:
     first_frame: int = 0  # the system's frame id of the first frame here, the next ones' counting on by one (dropped
     # frames get none); a resumed run's loaded session holds the ids before it
     tracked_poses: np.ndarray | None = None  # (N, 4, 4) each frame's pose as tracked, before later corrections moved it
-    # (what a live subscriber got on gausem/odometry; what the frame's health judged)
+    # (what a live subscriber got on gausem/odometry; what the frame's health judged, except at corrected_frames)
+    corrected_frames: list[int] = field(default_factory=list)  # frames whose loop closure corrected the map: their
+    # tracked pose above is already the corrected one
 
     @property
     def fps(self) -> float:
@@ -81,7 +83,7 @@ class Pipeline:
         skipped ones."""
         slam = slam or GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
         first = len(slam.frames)
-        gt, ids, dataset_positions, stats, health, tracked = [], [], [], [], [], []
+        gt, ids, dataset_positions, stats, health, tracked, corrected = [], [], [], [], [], [], []
         start = time.perf_counter()
         bar = tqdm(range(len(self.dataset)), desc="gausem", unit="frame", disable=not self.progress)
         stride, last_index = getattr(self.dataset, "stride", 1), None
@@ -98,6 +100,8 @@ class Pipeline:
                 continue
             gt.append(frame.gt_pose)
             tracked.append(result.cam_to_world.detach().cpu().double().numpy())
+            if result.events.loop is not None and result.events.loop.correction:  # it moved anchors or keyframes
+                corrected.append(frame.index)
             ids.append(frame.index)
             dataset_positions.append(i)
             stats.append({"frame": frame.index, "tracking_loss": result.tracking_loss,
@@ -112,4 +116,4 @@ class Pipeline:
         trajectory = slam.trajectory()[first:]
         poses = np.stack([p.detach().cpu().double().numpy() for _, p in trajectory])
         return RunResult(slam, [t for t, _ in trajectory], poses, gt, ids, dataset_positions, seconds, stats,
-                         health, first, np.stack(tracked) if tracked else np.zeros((0, 4, 4)))
+                         health, first, np.stack(tracked) if tracked else np.zeros((0, 4, 4)), corrected)

@@ -135,3 +135,33 @@ def test_a_run_keeps_the_poses_as_tracked_apart_from_the_refined_ones():
     np.testing.assert_allclose(result.tracked_poses[0], result.poses[0])  # the fixed first keyframe
     np.testing.assert_allclose(result.tracked_poses[1], result.poses[1])  # tracked from it, not moved
     assert not np.allclose(result.tracked_poses[2], result.poses[2])  # a keyframe moved by the refinement
+
+
+def test_a_run_names_the_frames_whose_loop_correction_moved_the_map():
+    """``RunResult.corrected_frames``: a frame whose loop closure corrected the map is recorded at the corrected pose,
+    so its step from the frame before is no tracking error (benchmarks/health.py leaves it out); a correction that
+    moved nothing does not count."""
+    import dataclasses
+
+    from gausem_core.config import load_config
+    from gausem_core.data import open_dataset
+    from gausem_core.pipeline import Pipeline
+    from gausem_core.slam.events import Correction
+    from gausem_core.slam.loop_closure import LoopOutcome, LoopRecord
+    from gausem_core.slam.system import GauSemSLAM
+
+    cfg = load_config(None, {"loop.enabled": False, "refinement.enabled": False, "device": "cpu", "backend": "torch",
+                             "mapping.init_iterations": 5, "mapping.iterations": 3})
+    pipeline = Pipeline(open_dataset("synthetic", size=(40, 30), max_frames=4), cfg, progress=False)
+    slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
+    process, corrections = slam.process, {2: Correction(1, 3), 3: Correction(0, 0)}
+
+    def reporting(obs, skipped=0):
+        result = process(obs, skipped)
+        if result.frame_id in corrections:
+            record = LoopRecord(result.frame_id, 0, 1, 0, False, True, 0.9, 0.1)
+            loop = LoopOutcome(record, correction=corrections[result.frame_id])
+            result = dataclasses.replace(result, events=dataclasses.replace(result.events, loop=loop))
+        return result
+    slam.process = reporting
+    assert pipeline.run(slam=slam).corrected_frames == [2]
