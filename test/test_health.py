@@ -168,7 +168,9 @@ def test_a_swapped_in_frame_is_lost_leaves_the_map_alone_and_the_next_is_relocal
     assert keyframes_after == keyframes and cloud.keys() == cloud_after.keys()
     assert all(torch.equal(cloud[k], cloud_after[k]) for k in cloud)  # the map is untouched by the lost frame
     relocalised = results[SLOT + 1].relocalisation
-    assert relocalised is not None and relocalised.accepted and relocalised.start == "features"  # tried first
+    assert relocalised is not None and relocalised.accepted
+    # the features' and the motion model's starts reach the same pose (the frame after the lost one); either wins
+    assert relocalised.start in ("features", "constant velocity")
     recovered = results[SLOT + 1].health  # the signals find it fine, but it was not tracked from the frame before
     assert recovered.status == "degraded" and recovered.reasons == ("relocalised",)
     assert recovered.residual_z == relocalised.health.residual_z and recovered.inlier_fraction > 0.9
