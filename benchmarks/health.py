@@ -71,9 +71,9 @@ def markdown(results: list[dict], command: str, skipped: list[str]) -> str:
     lines = ["# Tracking health: does the status predict per-frame pose error?", "",
              f"Written by `{command}` on {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%dT%H:%M}Z, commit "
              f"{commit}, {os.cpu_count()} CPU cores, device cpu. Error: relative pose error frame i-1 to i against "
-             "ground truth, of the poses as tracked (what the status judged; frames at which loop closure corrected the "
-             "map left out, as their step is the correction) or of the final ones (moved later by loop closure and the "
-             "global refinement); flagged: degraded or lost; false-flag rate: flagged frames among "
+             "ground truth, of the poses as tracked (what the status judged; frames at which loop closure "
+             "corrected the map left out, as their step is the correction) or of the final ones (moved later by loop "
+             "closure and the global refinement); flagged: degraded or lost; false-flag rate: flagged frames among "
              "those outside the 5 % worst. Median and worst RPE below: poses as tracked.", ""]
     lines += [f"Skipped: {s}" for s in skipped] + ([""] if skipped else [])
     lines += ["| Sequence | Frames | ok / degraded / lost | Poses, error ranked by | Worst 1 % flagged | Worst 5 % flagged "

@@ -6,7 +6,8 @@ computes the ATE RMSE (SE(3)-aligned) of every pair and, assuming the trajectori
 own error s_i from d_ij^2 = s_i^2 + s_j^2 (least squares over the pairs; exact for three). Errors shared by the
 methods (the same depth, the same sensor) look like the reference's, so read the reference's share as an upper bound.
 
-    .venv/bin/python benchmarks/reference_error.py out/bench/paper_b/7scenes_redkitchen/{gausem,open3d_slam}/trajectory.txt \
+    .venv/bin/python benchmarks/reference_error.py \
+        out/bench/paper_b/7scenes_redkitchen/{gausem,open3d_slam}/trajectory.txt \
         --reference out/bench/paper_b/7scenes_redkitchen/gausem/trajectory_gt.txt
 """
 from __future__ import annotations
