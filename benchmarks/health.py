@@ -46,10 +46,8 @@ def evaluate(name: str, spec: str, dataset) -> dict:
               for poses, estimate in (("tracked", result.tracked_poses), ("final", result.poses))}
     # a frame whose loop closure corrected the map was recorded at the corrected pose: its step from the frame before
     # is the correction, not tracking, so it is left out of the tracked poses' ranking
-    kept = {"tracked": np.array([f not in result.corrected_frames for f in result.frame_ids]),
-            "final": np.ones(len(result.frame_ids), bool)}
-    for keep in kept.values():
-        keep[0] = False
+    after_first = np.arange(len(result.frame_ids)) > 0
+    kept = {"tracked": after_first & ~np.isin(result.frame_ids, result.corrected_frames), "final": after_first}
     ranked = {f"{poses}, {by}": flag_scores(error[kept[poses]], flagged[kept[poses]])
               for poses, (translation, rotation) in errors.items()
               for by, error in (("translation", translation), ("rotation", rotation))}
