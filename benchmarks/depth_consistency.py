@@ -71,7 +71,8 @@ def poses_at(trajectory: Trajectory, stamps: np.ndarray) -> list[np.ndarray | No
 def compare(dataset, trajectories: dict[str, Trajectory], reference: str, gaps: list[int], every: int,
             max_distance: float = 0.05, min_overlap: float = 0.05) -> list[dict]:
     """Per frame pair (i, i + gap), i every ``every`` frames: each trajectory's median point-to-plane distance (m),
-    None where it matched nothing. Pairs where the reference matches under ``min_overlap`` of the pixels are left out."""
+    None where it matched nothing. Pairs where the reference matches under ``min_overlap`` of the pixels are left
+    out."""
     frames = list(dataset)
     stamps = np.array([f.timestamp for f in frames])
     poses = {name: poses_at(t, stamps) for name, t in trajectories.items()}
