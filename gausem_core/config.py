@@ -62,6 +62,7 @@ class FeatureStartConfig:
     match_ratio: float = 0.8  # nearest / second-nearest Hamming distance below this
     max_reprojection_error: float = 3.0  # RANSAC PnP inlier bound, in pixels of the (upscaled) ORB image
     min_inliers: int = 15  # fewer PnP inliers: no start
+    depth_noise: float = 0.01  # metres at 1 m (growing with z²): the frame's depth refines the PnP pose; 0: off
 
 
 @dataclass
@@ -202,6 +203,7 @@ class BowConfig:
     min_inliers: int = 20  # a verified candidate has at least this many PnP inliers ...
     min_overlap: float = 0.2  # ... and under their pose this fraction of the match keyframe's depth lands in the
     min_fitness: float = 0.7  # query's view, agreeing in depth (registration.max_depth_residual) on this fraction
+    depth_noise: float = 0.01  # metres at 1 m (growing with z²): the query's depth refines the PnP pose; 0: off
 
 
 @dataclass

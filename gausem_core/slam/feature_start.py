@@ -48,7 +48,7 @@ class FeatureStart:
         self._latest = obs, current
         cfg = self.cfg
         found = feature_pose(current, features, obs.camera, cfg.match_ratio, cfg.max_reprojection_error,
-                             cfg.min_inliers)
+                             cfg.min_inliers, cfg.depth_noise)
         if found.query_from_match is None:
             return None
         return project_to_se3(previous.double() @ invert_pose(found.query_from_match).to(previous.device)).to(previous)

@@ -19,12 +19,13 @@ import numpy as np
 import torch
 
 from gausem_core.config import BowConfig
-from gausem_core.geometry import invert_pose
+from gausem_core.geometry import invert_pose, se3_exp, skew
 from gausem_core.slam.loop.words import OrbFeatures
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.registration import warp_agreement
 
 _RANSAC_ITERATIONS = 1000  # at most; with 30 % inliers, samples of 4 find a clean one 999 times in 1000
+_HUBER_DELTA = 1.5  # pixels, or depth standard deviations: larger residuals count linearly in refine_with_depth
 
 
 @dataclass(frozen=True)
@@ -64,9 +65,10 @@ class FeaturePose:
 
 
 def feature_pose(query: OrbFeatures, match: OrbFeatures, camera, match_ratio: float, max_reprojection_error: float,
-                 min_inliers: int) -> FeaturePose:
+                 min_inliers: int, depth_noise: float = 0.0) -> FeaturePose:
     """The query camera's pose relative to the match camera from ORB matches whose match-image point has depth:
-    RANSAC PnP (AP3P samples), then Levenberg-Marquardt on the inliers, twice."""
+    RANSAC PnP (AP3P samples), then Levenberg-Marquardt on the inliers, twice; with ``depth_noise`` > 0 the inliers'
+    depth in the query image joins the last refinement (:func:`refine_with_depth`)."""
     pairs = match_features(query, match, match_ratio)
     if len(pairs):
         pairs = pairs[np.isfinite(match.points[pairs[:, 1], 2])]
@@ -88,16 +90,56 @@ def feature_pose(query: OrbFeatures, match: OrbFeatures, camera, match_ratio: fl
                                                      translation)
         projected = cv2.projectPoints(points, rotation, translation, intrinsics, None)[0].reshape(-1, 2)
         inliers = np.flatnonzero(np.linalg.norm(projected - pixels, axis=1) < bound)
-    query_from_match = torch.eye(4, dtype=torch.float64)
-    query_from_match[:3, :3] = torch.from_numpy(cv2.Rodrigues(rotation)[0])
-    query_from_match[:3, 3] = torch.from_numpy(translation.reshape(3))
-    return FeaturePose(len(pairs), len(inliers), query_from_match if len(inliers) >= min_inliers else None)
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = cv2.Rodrigues(rotation)[0], translation.reshape(3)
+    if depth_noise > 0 and len(inliers) >= min_inliers:
+        depths = query.points[pairs[inliers, 0], 2].astype(np.float64)
+        pose = refine_with_depth(points[inliers], pixels[inliers], depths, intrinsics, pose, depth_noise)
+        inliers = np.flatnonzero(np.linalg.norm(_project(points, pose, intrinsics) - pixels, axis=1) < bound)
+    query_from_match = torch.from_numpy(pose) if len(inliers) >= min_inliers else None
+    return FeaturePose(len(pairs), len(inliers), query_from_match)
+
+
+def _project(points: np.ndarray, pose: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+    camera_points = points @ pose[:3, :3].T + pose[:3, 3]
+    return camera_points[:, :2] / camera_points[:, 2:] * intrinsics[[0, 1], [0, 1]] + intrinsics[:2, 2]
+
+
+def refine_with_depth(points: np.ndarray, pixels: np.ndarray, depths: np.ndarray, intrinsics: np.ndarray,
+                      query_from_match: np.ndarray, depth_noise: float, iterations: int = 10) -> np.ndarray:
+    """Gauss-Newton over matches' reprojection errors (pixels) and, where the query image has depth (``depths``, NaN
+    where not), their depth errors over the sensor's noise ``depth_noise`` z² (metres), with Huber weights.
+
+    Reprojection alone can trade a small turn for a sideways shift: on the synthetic loop's frames 0 and 1 at
+    160x120 the PnP pose, 0.7 degrees and 2.2 cm off, reprojects the matches as well as the truth (median 0.37
+    against 0.34 px); the query's depth pins the translation. Returns the refined ``query_from_match`` (4x4)."""
+    pose = query_from_match.copy()
+    fx, fy = intrinsics[0, 0], intrinsics[1, 1]
+    has_depth = np.isfinite(depths)
+    sigma = depth_noise * depths[has_depth] ** 2
+    eye = np.broadcast_to(np.eye(3), (len(points), 3, 3))
+    for _ in range(iterations):
+        x, y, z = (points @ pose[:3, :3].T + pose[:3, 3]).T
+        moved = np.concatenate([eye, -skew(torch.from_numpy(np.stack([x, y, z], 1))).numpy()], 2)  # d(points)/d(twist)
+        d_pixel = np.zeros((len(points), 2, 3))
+        d_pixel[:, 0, 0], d_pixel[:, 0, 2] = fx / z, -fx * x / z ** 2
+        d_pixel[:, 1, 1], d_pixel[:, 1, 2] = fy / z, -fy * y / z ** 2
+        jacobian = np.concatenate([(d_pixel @ moved).reshape(-1, 6), moved[has_depth, 2] / sigma[:, None]])
+        residual = np.concatenate([(_project(points, pose, intrinsics) - pixels).reshape(-1),
+                                   (z[has_depth] - depths[has_depth]) / sigma])
+        weight = np.minimum(1.0, _HUBER_DELTA / np.maximum(np.abs(residual), 1e-12))
+        step = np.linalg.solve(jacobian.T @ (weight[:, None] * jacobian), -jacobian.T @ (weight * residual))
+        pose = se3_exp(torch.from_numpy(step)).numpy() @ pose
+        if np.abs(step).max() < 1e-9:
+            break
+    return pose
 
 
 def verify(query: OrbFeatures, match: OrbFeatures, query_obs: Observation, match_obs: Observation,
            cfg: BowConfig, max_depth_residual: float) -> Verification:
     """Check that the query keyframe sees the match keyframe's place (see the module docstring)."""
-    found = feature_pose(query, match, query_obs.camera, cfg.match_ratio, cfg.max_reprojection_error, cfg.min_inliers)
+    found = feature_pose(query, match, query_obs.camera, cfg.match_ratio, cfg.max_reprojection_error, cfg.min_inliers,
+                         cfg.depth_noise)
     if found.query_from_match is None:
         return Verification(False, found.matches, found.inliers, 0.0, 0.0, None)
     with torch.no_grad():
