@@ -181,3 +181,18 @@ def test_semantic_palette_learns_what_a_unique_sort_of_all_pixels_learns():
             found = found[torch.cdist(found, expected).min(1).values > 1e-4]
         expected = torch.cat([expected, found])
     assert torch.equal(palette.colors, expected) and len(palette) == 12
+
+
+def test_a_loop_implying_a_jump_beyond_the_odometry_bound_is_implausible():
+    """A measured relative pose may differ from the current estimate by ``max_correction_sigmas`` odometry sigmas
+    (random-walk growth over the keyframes between the loop's two)."""
+    closure = _closure(odometry_sigma_translation=0.01, odometry_sigma_rotation=0.01, max_correction_sigmas=4.0)
+    current = torch.eye(4, dtype=torch.float64)
+    shifted = current.clone()
+    shifted[0, 3] = 0.05  # 5 cm: beyond 4 x 1 cm over one keyframe, within 4 x 1 cm x sqrt(4) over four
+    assert closure._plausible(current, current, 1)
+    assert not closure._plausible(current, shifted, 1)
+    assert closure._plausible(current, shifted, 4)
+    turned = current.clone()
+    turned[:3, :3] = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    assert not closure._plausible(current, turned, 4)  # 90 degrees against 4 x 0.01 x 2 rad
