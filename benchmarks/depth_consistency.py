@@ -18,6 +18,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from gausem_core.data import open_dataset
 from gausem_core.data.tum import nearest_within
@@ -32,9 +33,8 @@ def surface(depth: np.ndarray, camera: PinholeCamera, max_step: float = 0.05) ->
     Normals come from central differences; a pixel whose neighbours lack depth or jump by more than ``max_step`` of
     its depth (an occluding edge) gets a zero normal.
     """
-    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
     z = depth.astype(np.float64)
-    points = np.stack([(u + 0.5 - camera.cx) / camera.fx * z, (v + 0.5 - camera.cy) / camera.fy * z, z], -1)
+    points = camera.backproject(torch.from_numpy(z)).numpy()
     normals = np.zeros_like(points)
     centre = z[1:-1, 1:-1]
     neighbours = np.stack([z[1:-1, 2:], z[1:-1, :-2], z[2:, 1:-1], z[:-2, 1:-1]])
