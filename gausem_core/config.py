@@ -321,6 +321,24 @@ class VignettingConfig:
 
 
 @dataclass
+class WorkerConfig:
+    """Where the back end runs (``slam.worker``): ``sync`` maps each keyframe before the next frame is tracked
+    (deterministic; offline runs and benchmarks), ``async`` on a mapping thread beside the tracker (live use)."""
+
+    mode: str = "sync"  # "sync" or "async"
+    queue_size: int = 2  # keyframes waiting for the worker; a newer one supersedes the newest waiting beyond this
+    min_iteration_fraction: float = 0.25  # while a newer keyframe waits, an optimisation stops after this fraction
+    tracker_threads: int = 0  # async: torch intra-op threads of the tracker (0: half the cores, rounded up) ...
+    threads: int = 0  # ... and of the worker (0: half the cores)
+    publish_every: int = 20  # async: a new submap's first optimisation publishes its Gaussians every this many steps
+    first_opacity: float = 0.9  # async: a new submap's Gaussians start this opaque, so that the first publication
+    # is trackable (at 0.5 the map reaches the tracker's 0.99 silhouette only after some 40-80 steps)
+
+
+WORKER_MODES = ("sync", "async")
+
+
+@dataclass
 class SlamConfig:
     backend: str = "auto"  # renderer back-end: "auto", "torch", "cpu" or "gsplat"
     device: str = "auto"  # "auto" (CUDA when available), "cpu" or "cuda"
@@ -335,6 +353,7 @@ class SlamConfig:
     health: HealthConfig = field(default_factory=HealthConfig)
     depth_filter: DepthFilterConfig = field(default_factory=DepthFilterConfig)
     vignetting: VignettingConfig = field(default_factory=VignettingConfig)
+    worker: WorkerConfig = field(default_factory=WorkerConfig)
 
 
 @dataclass

@@ -26,7 +26,7 @@ from gausem_core.io.montage import MontageRow, write_montage
 from gausem_core.io.plots import write_trajectory_plot
 from gausem_core.io.ply import write_gaussian_ply
 from gausem_core.io.trajectory import Trajectory, write_tum_trajectory
-from gausem_core.pipeline import Pipeline, RunResult, peak_rss_mb
+from gausem_core.pipeline import Pipeline, RunResult, peak_rss_mb, percentile
 from gausem_core.render import render
 from gausem_core.slam.health import SIGNALS, STATUSES
 from gausem_core.slam.system import GauSemSLAM
@@ -167,6 +167,14 @@ def performance_metrics(result: RunResult, device: torch.device) -> dict:
            "seconds_per_frame": result.seconds / frames if frames else math.nan,
            "num_gaussians": sum(len(s.cloud) for s in slam.submaps), "num_submaps": len(slam.submaps),
            "num_keyframes": sum(len(s.keyframes) for s in slam.submaps), "peak_rss_mb": peak_rss_mb()}
+    if result.frame_seconds:
+        out["frame_ms_median"] = 1e3 * percentile(result.frame_seconds, 0.5)
+        out["frame_ms_p95"] = 1e3 * percentile(result.frame_seconds, 0.95)
+    out["worker"] = {"mode": slam.cfg.worker.mode, **(slam.worker.stats.summary() if slam.worker is not None else {}),
+                     "map_age_frames_median": percentile(result.map_ages, 0.5),
+                     "map_age_frames_p95": percentile(result.map_ages, 0.95)}
+    if result.live is not None:
+        out["live"] = result.live
     if device.type == "cuda":
         out["gpu_peak_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
     return out

@@ -506,22 +506,26 @@ class LoopClosure:
 
     def apply(self, submaps: Sequence, update: PoseGraphUpdate) -> Correction:
         """Move the map to a pose-graph answer: anchors (:meth:`move_anchors`), then keyframes grouped by their
-        submap (:meth:`move_keyframes`, which re-maps each). Unknown ids are ignored."""
-        anchors = self.move_anchors(submaps, update.anchors)
+        submap (:meth:`move_keyframes`), all under the mapper's lock so that a tracker in another thread sees the map
+        before or after, never between; then the submaps whose keyframes moved beyond the loop edges' sigma floors are
+        re-mapped (:meth:`remap`). Unknown ids are ignored."""
         by_id = {s.submap_id: s for s in submaps}
         owner = {kf.frame_id: s.submap_id for s in submaps for kf in s.keyframes}
         grouped: dict[int, dict[int, object]] = {}
         for frame_id, pose in update.keyframes.items():
             if frame_id in owner:
                 grouped.setdefault(owner[frame_id], {})[frame_id] = pose
-        keyframes = sum(self.move_keyframes(by_id[s], poses) for s, poses in grouped.items())
-        return Correction(anchors, keyframes, tuple(sorted(grouped)))
+        with self.mapper.lock:
+            anchors = self.move_anchors(submaps, update.anchors)
+            moved = {s: self.move_keyframes(by_id[s], poses) for s, poses in grouped.items()}
+        for s, (_, displaced) in moved.items():
+            self.remap(by_id[s], displaced)
+        return Correction(anchors, sum(count for count, _ in moved.values()), tuple(sorted(grouped)))
 
-    def move_keyframes(self, submap, poses: dict[int, object]) -> int:
-        """Set the poses (submap frame, by frame id) of ``submap``'s non-fixed keyframes, then re-map the submap with
-        the poses held for ``remap_iterations_per_keyframe`` iterations per keyframe that moved by more than the loop
-        edges' standard-deviation floors (``registration.sigma_translation`` / ``sigma_rotation``): a correction
-        within the measurement's own uncertainty leaves the map as it is. Returns how many moved."""
+    def move_keyframes(self, submap, poses: dict[int, object]) -> tuple[int, int]:
+        """Set the poses (submap frame, by frame id) of ``submap``'s non-fixed keyframes. Returns how many moved and
+        how many of them moved by more than the loop edges' standard-deviation floors (``registration.sigma_translation``
+        / ``sigma_rotation``)."""
         moved, displaced = 0, 0
         reg = self.cfg.registration
         for kf in submap.keyframes:
@@ -533,13 +537,19 @@ class LoopClosure:
                               or float(se3_log(change)[3:].norm()) > reg.sigma_rotation)
                 kf.cam_to_world = pose
                 moved += 1
-        if displaced:
-            keyframes = [Keyframe(kf.frame_id, submap.observation(kf, self.device), kf.cam_to_world.to(self.device),
-                                  True) for kf in submap.keyframes]
-            iterations = self.cfg.remap_iterations_per_keyframe * displaced
-            submap.cloud, _ = self.mapper.optimise(submap.load_cloud(self.device), keyframes, iterations,
-                                                   optimise_poses=False)
-        return moved
+        return moved, displaced
+
+    def remap(self, submap, displaced: int) -> None:
+        """Re-map ``submap`` with its keyframe poses held, ``remap_iterations_per_keyframe`` iterations per
+        ``displaced`` keyframe (none for 0: a correction within the measurement's own uncertainty leaves the map as it
+        is)."""
+        if not displaced:
+            return
+        keyframes = [Keyframe(kf.frame_id, submap.observation(kf, self.device), kf.cam_to_world.to(self.device),
+                              True) for kf in submap.keyframes]
+        iterations = self.cfg.remap_iterations_per_keyframe * displaced
+        submap.cloud, _ = self.mapper.optimise(submap.load_cloud(self.device), keyframes, iterations,
+                                               optimise_poses=False)
 
     @staticmethod
     def move_anchors(submaps: Sequence, poses: dict[int, object]) -> int:

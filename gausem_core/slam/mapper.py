@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -66,13 +67,19 @@ class Mapper:
         self.cfg = cfg
         self.backend = backend
         self.generator = torch.Generator().manual_seed(seed)
+        self.lock = threading.RLock()  # held while keyframe poses change (GauSemSLAM shares it with its tracker)
         self.hurry = threading.Event()  # set: optimisations stop at their next iteration (GauSemSLAM.interrupt)
+        self.pressure = threading.Event()  # set (by the mapping worker): a newer keyframe waits, so optimisations
+        self.min_iteration_fraction = 1.0  # stop after this fraction of their iterations (1: never cut short)
+        self.shortened = 0  # optimisations cut short under pressure
 
-    def initialise(self, obs: Observation, cam_to_world: torch.Tensor) -> GaussianCloud:
-        """A new submap's Gaussians from one frame by semantic sampling, before any optimisation."""
+    def initialise(self, obs: Observation, cam_to_world: torch.Tensor, opacity: float | None = None) -> GaussianCloud:
+        """A new submap's Gaussians from one frame by semantic sampling, before any optimisation (``opacity``:
+        default ``init_opacity``)."""
         n_total = int(self.cfg.init_samples_fraction * obs.depth.numel())
         pixels = semantic_sample(obs.labels, obs.valid_depth, n_total, self.cfg.sampling_gamma, self.generator)
-        return gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity, self.cfg.init_radius_scale)
+        return gaussians_from_pixels(obs, cam_to_world, pixels, opacity or self.cfg.init_opacity,
+                                     self.cfg.init_radius_scale)
 
     def densify(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor) -> GaussianCloud:
         """Add Gaussians where the map is transparent (silhouette < tau_sil) or a new surface lies in front of it."""
@@ -88,10 +95,13 @@ class Mapper:
         return GaussianCloud.cat([cloud, grown])
 
     def optimise(self, cloud: GaussianCloud, keyframes: list[Keyframe], iterations: int,
-                 optimise_poses: bool | None = None) -> tuple[GaussianCloud, list[float]]:
+                 optimise_poses: bool | None = None, publish: Callable[[GaussianCloud], None] | None = None,
+                 publish_every: int = 0) -> tuple[GaussianCloud, list[float]]:
         """Joint optimisation of Gaussians (and non-fixed keyframe poses) over keyframes sampled each iteration.
 
         Keyframe poses are updated in place. Returns the optimised cloud (pruned) and the loss per iteration.
+        ``publish`` gets a finished copy of the Gaussians every ``publish_every`` iterations (a map to track against
+        while the optimisation goes on).
         """
         cfg = self.cfg
         if optimise_poses is None:
@@ -104,8 +114,11 @@ class Mapper:
             groups.append(ParameterGroup(list(twists.values()), cfg.lr_pose))
         adam = AdamSteps(groups)
         losses = []
-        for _ in range(iterations):
+        for iteration in range(iterations):
             if self.hurry.is_set():
+                break
+            if self.pressure.is_set() and iteration >= self.min_iteration_fraction * iterations:
+                self.shortened += 1
                 break
             kf = keyframes[int(torch.randint(len(keyframes), (1,), generator=self.generator))]
             w2c = invert_pose(kf.cam_to_world.to(params.dtype))
@@ -115,12 +128,22 @@ class Mapper:
             loss = mapping_loss(out, kf.obs, cfg.w_color, cfg.w_depth, cfg.w_semantic, cfg.ssim_lambda)
             adam.step(loss)
             losses.append(loss.detach())
+            if publish is not None and publish_every > 0 and (iteration + 1) % publish_every == 0:
+                publish(self._finished(params.detach().clone()))
         with torch.no_grad():
-            for kf in movable:
-                kf.cam_to_world = invert_pose(se3_exp(twists[id(kf)]) @ invert_pose(kf.cam_to_world.to(params.dtype)))
-            params.colors.clamp_(0, MAX_COLOR)
-            params.semantics.clamp_(0, 1)
-        return self.prune(params.detach()), torch.stack(losses).tolist() if losses else []
+            poses = [invert_pose(se3_exp(twists[id(kf)]) @ invert_pose(kf.cam_to_world.to(params.dtype)))
+                     for kf in movable]
+            with self.lock:  # the tracker reads the poses in one piece
+                for kf, pose in zip(movable, poses):
+                    kf.cam_to_world = pose
+        return self._finished(params.detach()), torch.stack(losses).tolist() if losses else []
+
+    def _finished(self, cloud: GaussianCloud) -> GaussianCloud:
+        """Optimised Gaussians as the map keeps them: colours clamped (in place), then pruned."""
+        with torch.no_grad():
+            cloud.colors.clamp_(0, MAX_COLOR)
+            cloud.semantics.clamp_(0, 1)
+        return self.prune(cloud)
 
     def prune(self, cloud: GaussianCloud) -> GaussianCloud:
         """Drop transparent and huge Gaussians."""

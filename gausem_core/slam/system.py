@@ -13,14 +13,16 @@ the compute device. A closed submap's tensors go to a :class:`SubmapStore` (CPU 
 """
 from __future__ import annotations
 
+import threading
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import NamedTuple
 
 import torch
 
-from gausem_core.config import SlamConfig, check_gap_mode, gap_mode_applies
+from gausem_core.config import WORKER_MODES, SlamConfig, check_gap_mode, gap_mode_applies
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, invert_pose, project_to_se3
 from gausem_core.memory import release_free_heap
@@ -42,6 +44,7 @@ from gausem_core.slam.relocalisation import RelocalisationResult, Start, relocal
 from gausem_core.slam.submap_store import SubmapStore
 from gausem_core.slam.tracker import Tracker, TrackingResult, inspect_pose, repeat_motion
 from gausem_core.slam.vignetting import Vignetting
+from gausem_core.slam.worker import Job, MappingWorker, split_threads
 
 _IMAGES = ("rgb", "depth", "semantic", "labels")
 MAX_PREDICTION_S = 1.0  # the constant-velocity prediction extrapolates at most this far past the last good frame
@@ -61,6 +64,12 @@ class MotionPrediction(NamedTuple):
 def _float64(pose: torch.Tensor) -> torch.Tensor:
     """A stored pose as it is, in float64 on the CPU (events; see :mod:`~gausem_core.slam.events`)."""
     return pose.detach().cpu().double()
+
+
+def _shut_down(worker: MappingWorker, store: SubmapStore) -> None:
+    """Stop the mapping worker, then drop the stored submaps (:meth:`GauSemSLAM.close`)."""
+    worker.stop()
+    store.close()
 
 
 def rigid_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -92,8 +101,11 @@ class Submap:
     """
 
     def __init__(self, submap_id: int, anchor: torch.Tensor, cloud: GaussianCloud,
-                 keyframes: list[Keyframe] | None = None, extent: SubmapExtent | None = None):
+                 keyframes: list[Keyframe] | None = None, extent: SubmapExtent | None = None, trackable: bool = True):
         self.submap_id = submap_id
+        self.trackable = threading.Event()  # its Gaussians are fit to track against (a new one's: once published)
+        if trackable:
+            self.trackable.set()
         self.anchor = anchor
         self.keyframes = list(keyframes or [])
         self.extent = extent  # what allocation needs while the submap is active
@@ -182,6 +194,9 @@ class FrameResult:
     relocalisation: RelocalisationResult | None = None  # when the frame was relocalised (the system was lost)
     health: TrackingHealth | None = None  # ok / degraded / lost and its signals (``slam.health``)
     events: FrameEvents = field(default_factory=FrameEvents)  # keyframe, submaps closed/opened, loop outcome
+    mapped: tuple[FrameEvents, ...] = ()  # ``worker.mode: async``: the events of the keyframes the mapping worker
+    # finished since the previous frame (a keyframe's own ``events`` come so, later; sync: always empty)
+    map_age: int = 0  # frames between the newest keyframe in the map the frame was tracked against and the frame
 
 
 class GauSemSLAM:
@@ -204,6 +219,13 @@ class GauSemSLAM:
     are relocalised, the constant-velocity prediction from the last good frames first among the starts, until a
     placement passes the health monitor (:meth:`relocalise`). That frame is degraded (reason ``relocalised``: it was
     not tracked from the frame before) and tracking goes on from it, the motion model skipping the lost frames.
+
+    ``worker.mode`` (``slam.worker``): ``sync`` maps each keyframe (allocation, submaps, loop closure) inside the
+    :meth:`process` call that tracked it; ``async`` hands it to a mapping thread and returns after tracking. The tracker
+    then tracks against the Gaussians the worker last published (a new map's, placed from the first frame's depth at
+    once, optimised in the worker), and a keyframe's events reach the caller with a later frame
+    (``FrameResult.mapped``, or :meth:`take_mapped` after :meth:`finish`). Map corrections (keyframe poses, anchors)
+    happen under :attr:`lock`, which the tracker holds while it reads the poses behind its motion model.
     """
 
     def __init__(self, cfg: SlamConfig, device: torch.device | str = "cpu", num_classes: int = 1,
@@ -212,6 +234,8 @@ class GauSemSLAM:
             raise ValueError("submaps.boundary_window must be >= 1 and submaps.boundary_iterations >= 0, got "
                              f"{cfg.submaps.boundary_window} and {cfg.submaps.boundary_iterations}")
         check_gap_mode("mapping.coverage_keyframes", cfg.mapping.coverage_keyframes)
+        if cfg.worker.mode not in WORKER_MODES:
+            raise ValueError(f"worker.mode must be one of {WORKER_MODES}, got {cfg.worker.mode!r}")
         self.cfg = cfg
         self.device = torch.device(device)
         prepare_backend(cfg.backend, self.device)  # builds or loads the compiled kernels now, not in the first frame
@@ -240,6 +264,39 @@ class GauSemSLAM:
                                           device=self.device) if cfg.loop.enabled or cfg.refinement.enabled else None
         self.loop_closure = LoopClosure(cfg.loop, self.mapper, self.descriptor, cfg.backend,
                                         self.device) if cfg.loop.enabled else None
+        self.lock = self.mapper.lock  # held while the map's poses change and while the tracker reads them
+        self.worker = self._start_worker(cfg) if cfg.worker.mode == "async" else None
+        self._mapped: list[FrameEvents] = []  # async: finished keyframes' events not yet handed out
+
+    def _start_worker(self, cfg: SlamConfig) -> MappingWorker:
+        """The mapping thread of ``worker.mode: async``; the calling (tracking) thread keeps its share of the
+        cores."""
+        tracker_threads, worker_threads = split_threads(cfg.worker.tracker_threads, cfg.worker.threads)
+        torch.set_num_threads(tracker_threads)
+        self.mapper.min_iteration_fraction = cfg.worker.min_iteration_fraction
+        worker = MappingWorker(lambda: len(self.frames), cfg.worker.queue_size, worker_threads, self.mapper.pressure)
+        self._close.detach()
+        self._close = weakref.finalize(self, _shut_down, worker, self.store)
+        return worker
+
+    @property
+    def asynchronous(self) -> bool:
+        """Whether keyframes are mapped on the mapping thread (``worker.mode: async``)."""
+        return self.worker is not None
+
+    def take_mapped(self) -> tuple[FrameEvents, ...]:
+        """``worker.mode: async``: the events of the keyframes mapped since the last call (or frame), in order."""
+        if self.worker is not None:
+            self._mapped.extend(self.worker.take_events())
+        events, self._mapped = tuple(self._mapped), []
+        return events
+
+    def drain(self) -> None:
+        """Wait until the mapping worker has mapped every keyframe given to it (nothing to wait for in sync mode);
+        their events stay for :meth:`take_mapped`."""
+        if self.worker is not None:
+            self.worker.drain()
+            self._mapped.extend(self.worker.take_events())
 
     @property
     def active(self) -> Submap:
@@ -248,55 +305,113 @@ class GauSemSLAM:
     def process(self, obs: Observation, skipped: int = 0) -> FrameResult:
         """Track the frame against the active submap (while :attr:`lost`: relocalise it, or drop it when that
         fails); at a keyframe, start a new submap when the allocation policy says so, else map the keyframe into the
-        active one. ``skipped``: the camera's frames since the previous call that the caller did not pass on (a live
-        node that fell behind, dropped inputs); the motion model counts them, as its stamps alone miss a node that is
-        steadily slower than its camera."""
+        active one (``worker.mode: async``: on the mapping thread, after this call returns). ``skipped``: the camera's
+        frames since the previous call that the caller did not pass on (a live node that fell behind, dropped inputs);
+        the motion model counts them, as its stamps alone miss a node that is steadily slower than its camera."""
         if skipped < 0:
             raise ValueError(f"skipped must be >= 0, got {skipped}")
+        if self.worker is not None:
+            self.worker.raise_error()
         obs = filter_observation(self.vignetting.correct(obs), self.cfg.depth_filter)
         frame_id = len(self.frames)
         self.mapper.hurry.clear()
         self.skipped += skipped
         if not self.submaps:
             self.skipped = 0
-            loss = self._open_submap(obs, frame_id, torch.eye(4, device=self.device))
-            self._calibrate(obs, self.active.keyframes[0].cam_to_world)
-            self.feature_start.remember(obs)
-            return self._result(None, True, loss, None, events=self._keyframe_events([]))
-        motion = self._motion_model(obs.timestamp)
-        tracked, relocalised = self._place(obs, motion)
+            return self._first_frame(obs, frame_id)
+        self._tracked_submap()  # async: waits for the map's first Gaussians (not under the lock the worker needs)
+        with self.lock:  # the map the frame is tracked against, and the poses behind the motion model, in one piece
+            submap = self._tracked_submap()
+            cloud = submap.cloud
+            motion = self._motion_model(obs.timestamp)
+        map_age = frame_id - submap.keyframes[-1].frame_id
+        tracked, relocalised = self._place(obs, motion, submap, cloud)
         if tracked is None:  # lost and not relocalised: the frame is dropped
             self.dropped += 1
             judged = relocalised.health or TrackingHealth("lost")
             return FrameResult(frame_id, relocalised.cam_to_world, False, relocalised.tracking_loss,
-                               relocalised.iterations, None, self.active.num_gaussians, self.active.submap_id, None,
+                               relocalised.iterations, None, submap.num_gaussians, submap.submap_id, None,
                                relocalised, replace(judged, status="lost",
-                                                    reasons=(*judged.reasons, "relocalisation_failed")))
-        health = self._assess(obs, tracked, relocalised, motion)
+                                                    reasons=(*judged.reasons, "relocalisation_failed")),
+                               mapped=self.take_mapped(), map_age=map_age)
+        health = self._assess(obs, tracked, relocalised, motion, cloud)
         missed, self.dropped, self.skipped = self.dropped + self.skipped, 0, 0
         pose = tracked.cam_to_world.detach()
         lost = health.status == "lost"
         if not lost:
             self.feature_start.remember(obs)
-        if lost or not self._is_keyframe(frame_id, health, motion.gap or relocalised is not None):
-            reference = self.active.keyframes[-1]
-            self.frames.append(FrameRecord(frame_id, obs.timestamp, self.active, reference,
-                                           invert_pose(reference.cam_to_world) @ pose, lost, missed))
+        keyframe = not lost and self._is_keyframe(frame_id, health, motion.gap or relocalised is not None)
+        if not keyframe or self.worker is not None:
+            reference = submap.keyframes[-1]
+            record = FrameRecord(frame_id, obs.timestamp, submap, reference,
+                                 invert_pose(reference.cam_to_world) @ pose, lost, missed)
+            with self.lock:
+                self.frames.append(record)
             self.lost = lost
-            return self._result(tracked, False, None, None, relocalised, health)
+            if keyframe:  # async: mapped on the worker, which re-anchors the record at the keyframe
+                self.worker.submit(Job(frame_id, "keyframe", partial(self._keyframe_job, obs, record)))
+            return replace(self._result(tracked, keyframe, None, None, relocalised, health),
+                           mapped=self.take_mapped(), map_age=map_age)
+        events, loss, decision = self._map(obs, frame_id, pose, missed)
+        return replace(self._result(tracked, True, loss, decision, relocalised, health, events), map_age=map_age)
+
+    def _first_frame(self, obs: Observation, frame_id: int) -> FrameResult:
+        """The map's first frame, which defines the world frame: a submap from its depth (semantic sampling), then
+        optimised (async: on the worker, the unoptimised Gaussians trackable at once)."""
+        submap = self._place_submap(obs, frame_id, torch.eye(4, device=self.device))
+        self.feature_start.remember(obs)
+        if self.worker is not None:
+            self.worker.submit(Job(frame_id, "open", partial(self._first_job, submap, obs)))
+            return self._result(None, True, None, None)
+        loss = self._optimise_first(submap)
+        self._calibrate(obs, submap.keyframes[0].cam_to_world)
+        return self._result(None, True, loss, None, events=self._keyframe_events([]))
+
+    def _tracked_submap(self) -> Submap:
+        """The submap frames are tracked against: the newest one whose Gaussians are trackable (async: a new submap
+        once its first optimisation published them; the map's first one is waited for)."""
+        submap = next((s for s in reversed(self.submaps) if s.trackable.is_set()), None)
+        if submap is None:
+            submap = self.submaps[0]
+            while not submap.trackable.wait(0.1):
+                self.worker.raise_error()
+        return submap
+
+    def _first_job(self, submap: Submap, obs: Observation) -> FrameEvents:
+        """The worker's half of :meth:`_first_frame`."""
+        self._optimise_first(submap)
+        self._calibrate(obs, submap.keyframes[0].cam_to_world)
+        return self._keyframe_events([])
+
+    def _keyframe_job(self, obs: Observation, record: FrameRecord) -> FrameEvents:
+        """The worker's mapping of a keyframe the tracker recorded as ``record``: at its current pose (corrections
+        since carried it along) in the active submap."""
+        with self.lock:  # (projected onto SE(3): re-expressed poses must not drift off it, chained keyframe on keyframe)
+            pose = rigid_product(invert_pose(self.active.anchor), record.cam_to_world)
+        events, _, _ = self._map(obs, record.frame_id, pose, record.skipped, record)
+        return events
+
+    def _map(self, obs: Observation, frame_id: int, pose: torch.Tensor, missed: int,
+             record: FrameRecord | None = None) -> tuple[FrameEvents, float | None, Decision]:
+        """A keyframe at ``pose`` in the active submap: vignetting calibration, the allocation decision, then a new
+        submap (the active one closed) or the keyframe mapped into the active one, then loop closure. ``record``: the
+        frame's record to re-anchor at the keyframe (async), else a new one is appended. Returns the keyframe's events,
+        the last mapping loss and the allocation decision."""
         obs = self._calibrate(obs, pose)
         decision = self.allocation.should_start_new(self.active.extent, obs, pose)
         closed = []
         if decision.new:
-            anchor = rigid_product(self.active.anchor, pose)
-            closed.append(self._submap_change(self.active, opened=False))
-            self._close_active()
-            loss = self._open_submap(obs, frame_id, anchor, missed)
+            old = self.active
+            closed.append(self._submap_change(old, opened=False))
+            self._boundary_adjust(old)
+            submap = self._place_submap(obs, frame_id, rigid_product(old.anchor, pose), missed, record)
+            loss = self._optimise_first(submap)
+            old.offload(self.store)  # after: the tracker tracks against it until the new one is trackable
         else:
-            loss = self._map_keyframe(obs, frame_id, pose, missed)
+            loss = self._map_keyframe(obs, frame_id, pose, missed, record)
         events = self._keyframe_events(closed)
         release_free_heap()  # mapping and loop closure freed many image-sized buffers
-        return self._result(tracked, True, loss, decision, relocalised, health, events)
+        return events, loss, decision
 
     def _is_keyframe(self, frame_id: int, health: TrackingHealth, gap: bool) -> bool:
         """Every ``mapping.every``-th frame is mapped, and (``mapping.coverage_keyframes``; ``gap``: camera frames
@@ -306,20 +421,21 @@ class GauSemSLAM:
         return frame_id % cfg.every == 0 or (gap_mode_applies(cfg.coverage_keyframes, gap)
                                              and health.coverage < cfg.min_coverage)
 
-    def _place(self, obs: Observation,
-               motion: MotionPrediction) -> tuple[TrackingResult | None, RelocalisationResult | None]:
-        """The frame's pose in the active submap: tracked, or relocalised while :attr:`lost` (None when that
-        fails)."""
+    def _place(self, obs: Observation, motion: MotionPrediction, submap: Submap,
+               cloud: GaussianCloud) -> tuple[TrackingResult | None, RelocalisationResult | None]:
+        """The frame's pose in ``submap`` (the active one, its Gaussians ``cloud`` as published): tracked, or
+        relocalised while :attr:`lost` (None when that fails)."""
         if not self.lost:
-            return self._track(obs, motion), None
+            return self._track(obs, motion, cloud), None
         relocalised = self.relocalise(obs)
         if not relocalised.accepted:
             return None, relocalised
         self.lost = False
-        local = invert_pose(self.active.anchor) @ relocalised.cam_to_world
+        with self.lock:
+            local = invert_pose(submap.anchor) @ relocalised.cam_to_world
         return TrackingResult(local, relocalised.tracking_loss, relocalised.iterations), relocalised
 
-    def _track(self, obs: Observation, motion: MotionPrediction) -> TrackingResult:
+    def _track(self, obs: Observation, motion: MotionPrediction, cloud: GaussianCloud) -> TrackingResult:
         """Track from the motion model's prediction; where the motion since the last good frame is unknown (frames were
         missed, or there is no motion model yet: a segment's second frame) the gap measures apply
         (``gauss_newton.search``, ``feature_start``)."""
@@ -328,9 +444,8 @@ class GauSemSLAM:
         featured = self.feature_start.predict(obs, motion.previous) if self.feature_start.wanted(unknown) else None
         alternatives = [] if featured is None else [featured]
         if motion.predicted is None:
-            return self.tracker.track(self.active.cloud, obs, motion.previous, alternatives, search=search)
-        return self.tracker.track(self.active.cloud, obs, motion.predicted, [motion.previous, *alternatives],
-                                  search=search)
+            return self.tracker.track(cloud, obs, motion.previous, alternatives, search=search)
+        return self.tracker.track(cloud, obs, motion.predicted, [motion.previous, *alternatives], search=search)
 
     def _motion_model(self, timestamp: float) -> MotionPrediction:
         """For a frame stamped ``timestamp``: the last good (not lost) frame's pose in the active submap, the
@@ -371,15 +486,14 @@ class GauSemSLAM:
         return None
 
     def _assess(self, obs: Observation, tracked: TrackingResult, relocalised: RelocalisationResult | None,
-                motion: MotionPrediction) -> TrackingHealth:
-        """The health of a frame tracked to ``tracked`` in the active submap (before it is recorded), its pose jump
+                motion: MotionPrediction, cloud: GaussianCloud) -> TrackingHealth:
+        """The health of a frame tracked to ``tracked`` against ``cloud`` (before it is recorded), its pose jump
         judged against ``motion``. A relocalised frame was judged by relocalisation (against the submap that placed
         it): after a restart ok, and a new motion history starts; after a tracking loss as the health monitor judged
         it, degraded at least (``relocalised``)."""
         if relocalised is not None:
             return self._relocalised_health(obs, relocalised)
-        view, hessian = inspect_pose(self.active.cloud, obs, tracked.cam_to_world, self.cfg.tracking,
-                                     self.cfg.backend)
+        view, hessian = inspect_pose(cloud, obs, tracked.cam_to_world, self.cfg.tracking, self.cfg.backend)
         image = image_signals(view, obs, hessian, self.cfg.health)
         return self.health.assess(tracked.loss, image, tracked.cam_to_world, motion.previous,
                                   motion.previous if motion.predicted is None else motion.predicted, motion.steps)
@@ -418,9 +532,10 @@ class GauSemSLAM:
                   if self.loop_closure is not None else [])
         local = invert_pose(last.submap.anchor) @ last.cam_to_world
         starts = relocalisation_starts(self.submaps, (last.submap, local), ranked, cfg.candidates)
-        predicted = self._motion_model(obs.timestamp).predicted
+        with self.lock:
+            predicted = self._motion_model(obs.timestamp).predicted
         if predicted is not None:
-            starts.insert(0, Start(self.active, predicted, "constant velocity"))
+            starts.insert(0, Start(self._tracked_submap(), predicted, "constant velocity"))
         featured = self.feature_start.predict(obs, local) if self.feature_start.wanted(gap=True) else None
         if featured is not None:
             starts.insert(0, Start(last.submap, featured, "features"))
@@ -443,6 +558,7 @@ class GauSemSLAM:
     def save(self, folder) -> None:
         """Write the whole state into ``folder`` (see :func:`gausem_core.slam.persistence.save_session`)."""
         from gausem_core.slam.persistence import save_session
+        self.drain()
         save_session(self, folder)
 
     @staticmethod
@@ -453,19 +569,37 @@ class GauSemSLAM:
         from gausem_core.slam.persistence import load_session
         return load_session(folder, cfg, device, relocalise)
 
-    def _map_keyframe(self, obs: Observation, frame_id: int, pose: torch.Tensor, skipped: int) -> float | None:
+    def _map_keyframe(self, obs: Observation, frame_id: int, pose: torch.Tensor, skipped: int,
+                      record: FrameRecord | None = None) -> float | None:
         """Add a keyframe to the active submap: densify, then BA over the recent keyframes. ``skipped``: the camera
-        frames missed just before it (its record's)."""
+        frames missed just before it (its record's); ``record``: see :meth:`_map`."""
         submap = self.active
         kf = Keyframe(frame_id, obs, pose)
-        submap.keyframes.append(kf)
+        with self.lock:
+            submap.keyframes.append(kf)
+            self._anchor_record(FrameRecord(frame_id, obs.timestamp, submap, kf, torch.eye(4, device=pose.device),
+                                            skipped=skipped), record)
         submap.extent.add(obs, pose)
         submap.cloud = self.mapper.densify(submap.cloud, obs, pose)
         window = submap.keyframes[-self.cfg.mapping.window:]
         submap.cloud, losses = self.mapper.optimise(submap.cloud, window, self.cfg.mapping.iterations)
-        self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, torch.eye(4, device=pose.device),
-                                       skipped=skipped))
         return losses[-1] if losses else None
+
+    def _anchor_record(self, anchored: FrameRecord, record: FrameRecord | None) -> None:
+        """Append ``anchored`` (a keyframe's record at its keyframe), or make the tracker's ``record`` of that frame
+        so (async), the frames tracked after it re-expressed relative to it (their poses unchanged: later corrections
+        carry them with their nearest keyframe); under :attr:`lock`."""
+        if record is None:
+            self.frames.append(anchored)
+            return
+        for later in reversed(self.frames):  # the frames tracked since follow the keyframe from now on
+            if later is record:
+                break
+            if later.reference.frame_id < record.frame_id:
+                base = anchored.submap.anchor @ anchored.reference.cam_to_world
+                later.submap, later.reference, later.relative = (anchored.submap, anchored.reference,
+                                                                 rigid_product(invert_pose(base), later.cam_to_world))
+        record.submap, record.reference, record.relative = anchored.submap, anchored.reference, anchored.relative
 
     def _calibrate(self, obs: Observation, pose: torch.Tensor) -> Observation:
         """Refine the vignetting estimate with the keyframe ``obs`` at ``pose`` in the active submap, paired with the
@@ -479,24 +613,38 @@ class GauSemSLAM:
             kf.obs = self.vignetting.correct(kf.obs, before)
         return self.vignetting.correct(obs, before)
 
-    def _open_submap(self, obs: Observation, frame_id: int, anchor: torch.Tensor, skipped: int = 0) -> float | None:
+    def _place_submap(self, obs: Observation, frame_id: int, anchor: torch.Tensor, skipped: int = 0,
+                      record: FrameRecord | None = None) -> Submap:
         """A new active submap anchored (world-from-submap) at ``anchor``: its first keyframe is ``obs``, fixed at the
-        identity, and its Gaussians come from semantic sampling and the initial optimisation. ``skipped``: the camera
-        frames missed just before it (its record's)."""
+        identity, and its Gaussians come from semantic sampling of its depth, usable for tracking at once (before
+        :meth:`_optimise_first`). ``skipped``, ``record``: see :meth:`_map`."""
         eye = torch.eye(4, device=self.device)
         kf = Keyframe(frame_id, obs, eye, fixed=True)
-        cloud, losses = self.mapper.optimise(self.mapper.initialise(obs, eye), [kf], self.cfg.mapping.init_iterations)
-        submap = Submap(len(self.submaps), anchor, cloud, [kf], SubmapExtent.start(obs, eye, self.num_classes))
-        self.submaps.append(submap)
-        self.frames.append(FrameRecord(frame_id, obs.timestamp, submap, kf, eye.clone(), skipped=skipped))
+        opacity = self.cfg.worker.first_opacity if self.worker is not None else None
+        submap = Submap(len(self.submaps), anchor, self.mapper.initialise(obs, eye, opacity), [kf],
+                        SubmapExtent.start(obs, eye, self.num_classes), trackable=self.worker is None)
+        with self.lock:
+            self.submaps.append(submap)
+            self._anchor_record(FrameRecord(frame_id, obs.timestamp, submap, kf, eye.clone(), skipped=skipped), record)
+        return submap
+
+    def _optimise_first(self, submap: Submap) -> float | None:
+        """The initial optimisation of a new submap's Gaussians over its first keyframe; the last loss. Async: the
+        Gaussians are published every ``worker.publish_every`` steps, the first publication making them trackable."""
+        def publish(cloud: GaussianCloud) -> None:
+            submap.cloud = cloud
+            submap.trackable.set()
+
+        every = self.cfg.worker.publish_every if self.worker is not None else 0
+        cloud, losses = self.mapper.optimise(submap.cloud, submap.keyframes[:1], self.cfg.mapping.init_iterations,
+                                             publish=publish, publish_every=every)
+        publish(cloud)
         return losses[-1] if losses else None
 
-    def _close_active(self) -> None:
-        """Boundary local BA over the active submap's last keyframes, then move it to the store."""
-        submap = self.active
+    def _boundary_adjust(self, submap: Submap) -> None:
+        """Boundary local BA over a submap's last keyframes, before it is closed (offloaded)."""
         window = submap.keyframes[-self.cfg.submaps.boundary_window:]
         submap.cloud, _ = self.mapper.optimise(submap.cloud, window, self.cfg.submaps.boundary_iterations)
-        submap.offload(self.store)
 
     def _result(self, tracked: TrackingResult | None, is_keyframe: bool, mapping_loss: float | None,
                 allocation: Decision | None, relocalised: RelocalisationResult | None = None,
@@ -509,8 +657,8 @@ class GauSemSLAM:
                            health or TrackingHealth("ok"), events or FrameEvents())
 
     def _local_pose(self, index: int) -> torch.Tensor:
-        """A recent frame's pose in the active submap's frame."""
-        return invert_pose(self.active.anchor) @ self.frames[index].cam_to_world
+        """A recent frame's pose in the frame of the submap tracked against (the active one in sync mode)."""
+        return invert_pose(self._tracked_submap().anchor) @ self.frames[index].cam_to_world
 
     def _keyframe_events(self, closed: list[SubmapChange]) -> FrameEvents:
         """The events of a frame that made the newest keyframe (``closed``: the submap it closed, if any), after loop
@@ -555,12 +703,14 @@ class GauSemSLAM:
         keyframes or several query keyframes."""
         if self.loop_closure is None:
             raise ValueError("loop closure is disabled (loop.enabled: false)")
+        self.drain()  # async: registration reads, and a re-map writes, the submaps the worker maps
         candidate = self.loop_closure.confirm(self.submaps, candidates)
         return None if candidate is None else self.loop_closure.register(self.submaps, candidate)
 
     def apply_pose_graph(self, update: PoseGraphUpdate) -> Correction:
         """Move the map to a pose graph's answer: anchors (world-from-submap), then keyframe poses (submap frame),
         each submap whose keyframes moved re-mapped with them held. Unknown ids are ignored."""
+        self.drain()
         if self.loop_closure is None:
             if update.keyframes:
                 raise ValueError("loop closure is disabled (loop.enabled: false): keyframes cannot be re-mapped")
@@ -571,7 +721,9 @@ class GauSemSLAM:
         """Call after the last frame: with ``loop.check_at_end`` (and loops detected here), the loop keyframes whose
         check never came are checked (:meth:`LoopClosure.check_unchecked`), then the two-stage global refinement when
         ``refinement.enabled`` (with or without loop closure: they are separate ablations, paper Tab. VIII). Returns
-        the loop closed at the end, if any."""
+        the loop closed at the end, if any. Async: the worker maps the keyframes still queued first (their events
+        then wait for :meth:`take_mapped`)."""
+        self.drain()
         loop = None
         if self.loop_closure is not None and self.detect_loops and self.cfg.loop.check_at_end:
             loop = self.loop_closure.check_unchecked(self.submaps)

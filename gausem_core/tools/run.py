@@ -46,6 +46,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                              "the first frame is relocalised against its map")
     parser.add_argument("--save-session", type=Path, metavar="FOLDER",
                         help="save the session into FOLDER after the last frame (before the global refinement)")
+    parser.add_argument("--realtime", type=float, metavar="RATE",
+                        help="play the frames as a live camera at RATE times their recorded pace (1: as recorded), "
+                             "processing the newest each time and skipping the rest; the mapping runs on its own "
+                             "thread (worker.mode async) unless --set worker.mode=sync")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -69,6 +73,12 @@ def session_config(folder: Path, overrides: dict) -> SlamConfig:
     return from_flat(overrides, from_flat(read_document(folder)["config"]))
 
 
+def live_defaults(args: argparse.Namespace) -> dict:
+    """The ``--set`` overrides, with ``worker.mode: async`` first under ``--realtime`` (a live run's default)."""
+    live = {"worker.mode": "async"} if getattr(args, "realtime", None) is not None else {}
+    return {**live, **dict(args.overrides)}
+
+
 def run_pipeline(args: argparse.Namespace, out: Path) -> dict:
     """Open the dataset, run the pipeline, write the outputs; returns the metrics."""
     from gausem_core.data import open_dataset
@@ -80,9 +90,9 @@ def run_pipeline(args: argparse.Namespace, out: Path) -> dict:
         raise ValueError("--resume goes on with the session's parameters; --params cannot change them (--set can)")
     if args.resume is None:
         params = args.params or default_params_file(args.dataset)
-        cfg = load_config(params, dict(args.overrides))
+        cfg = load_config(params, live_defaults(args))
     else:
-        params, cfg = None, session_config(args.resume, dict(args.overrides))
+        params, cfg = None, session_config(args.resume, live_defaults(args))
     dataset = open_dataset(args.dataset, size=args.size, stride=args.stride, max_frames=args.frames,
                            start=args.start)
     if getattr(dataset, "description", None):
@@ -91,7 +101,7 @@ def run_pipeline(args: argparse.Namespace, out: Path) -> dict:
     if pipeline.semantics.notice:
         print(pipeline.semantics.notice)
     slam = GauSemSLAM.load(args.resume, pipeline.device, cfg) if args.resume else None
-    result = pipeline.run(slam, args.save_session)
+    result = pipeline.run(slam, args.save_session, getattr(args, "realtime", None))
     return write_outputs(result, dataset, cfg, out, eval_every=args.eval_every, params_file=params)
 
 

@@ -1,0 +1,242 @@
+"""The mapping worker (``worker.mode: async``): its queue on its own, then GauSemSLAM tracking while the worker maps,
+opens submaps and closes a loop."""
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gausem_core.config import from_flat, load_config
+from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
+from gausem_core.geometry import invert_pose
+from gausem_core.live import LiveCamera
+from gausem_core.slam.observation import Observation
+from gausem_core.slam.system import GauSemSLAM
+from gausem_core.slam.tracker import TrackingResult
+from gausem_core.slam.worker import Job, MappingWorker, split_threads
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def wait_until_running(worker: MappingWorker) -> None:
+    for _ in range(1000):
+        if worker.depth == 0 and not worker.idle:
+            return
+        threading.Event().wait(0.01)
+    raise AssertionError("the worker never took the job")
+
+
+class Gate:
+    """Jobs that block until released, recording the order they ran in."""
+
+    def __init__(self):
+        self.ran, self.release = [], threading.Event()
+
+    def job(self, frame: int, kind: str = "keyframe") -> Job:
+        def run():
+            self.release.wait(10)
+            self.ran.append(frame)
+            return frame
+        return Job(frame, kind, run)
+
+
+def test_a_full_queue_supersedes_the_newest_waiting_keyframe_and_counts_it():
+    gate, frames = Gate(), [0]
+    worker = MappingWorker(lambda: frames[0], queue_size=2)
+    worker.submit(gate.job(0, "open"))
+    wait_until_running(worker)  # blocked in the job
+    assert worker.submit(gate.job(1)) is None and worker.submit(gate.job(2)) is None
+    assert worker.pressure.is_set()  # newer keyframes wait behind the running one
+    superseded = worker.submit(gate.job(3))
+    assert superseded is not None and superseded.frame == 2
+    assert worker.depth == 2
+    frames[0] = 10
+    gate.release.set()
+    assert worker.drain(10)
+    assert gate.ran == [0, 1, 3] and worker.take_events() == [0, 1, 3] and worker.take_events() == []
+    assert worker.stats.submitted == 4 and worker.stats.superseded == 1 and worker.stats.mapped == 3
+    assert worker.stats.lag_frames == [9, 8, 6]  # frames the tracker had processed past each keyframe
+    assert not worker.pressure.is_set()
+    worker.stop()
+
+
+def test_a_map_opening_job_is_never_superseded():
+    gate = Gate()
+    worker = MappingWorker(lambda: 0, queue_size=1)
+    worker.submit(gate.job(0))
+    wait_until_running(worker)
+    worker.submit(gate.job(1, "open"))
+    assert worker.submit(gate.job(2)) is None  # the waiting job opens a map: the new one queues behind it
+    gate.release.set()
+    worker.drain(10)
+    assert gate.ran == [0, 1, 2]
+    worker.stop()
+
+
+def test_a_job_error_reaches_the_caller_once():
+    def fail():
+        raise ValueError("bad keyframe")
+    worker = MappingWorker(lambda: 0)
+    worker.submit(Job(0, "keyframe", fail))
+    with pytest.raises(RuntimeError, match="bad keyframe"):
+        worker.drain(10)
+    worker.drain(10)  # raised once; the worker goes on
+    worker.submit(Job(1, "keyframe", lambda: "ok"))
+    worker.drain(10)
+    assert worker.take_events() == ["ok"]
+    worker.stop()
+
+
+def test_threads_split_the_cores_and_keep_what_is_given():
+    tracker, worker = split_threads(0, 0)
+    assert tracker >= 1 and worker >= 1
+    assert split_threads(3, 2) == (3, 2)
+
+
+def test_queue_size_is_checked():
+    with pytest.raises(ValueError, match="queue_size"):
+        MappingWorker(lambda: 0, queue_size=0)
+
+
+class Frames:
+    """A dataset of the first ``count`` frames, stamped ``interval`` seconds apart."""
+
+    def __init__(self, data, count: int, interval: float):
+        self.frames = [data[i] for i in range(count)]
+        for n, frame in enumerate(self.frames):
+            frame.timestamp = n * interval
+
+    def __len__(self):
+        return len(self.frames)
+
+    def __getitem__(self, i):
+        return self.frames[i]
+
+
+def test_the_live_camera_hands_out_the_newest_frame_and_counts_the_superseded():
+    camera = LiveCamera(Frames(SyntheticDataset("default", resolution=(20, 15)), 12, 0.01), rate=1.0)
+    camera.start()
+    taken = []
+    while (item := camera.take()) is not None:
+        taken.append(item)
+        threading.Event().wait(0.035)  # a consumer slower than the camera
+    camera.stop()
+    positions = [t.position for t in taken]
+    assert positions == sorted(positions) and positions[0] == 0 and positions[-1] == 11
+    assert camera.released == 12 and len(taken) < 12
+    assert camera.superseded == 12 - len(taken) == sum(t.superseded for t in taken)
+    with pytest.raises(ValueError, match="positive rate"):
+        LiveCamera([], 0)
+
+
+CHEAP = {"backend": "torch", "device": "cpu", "mapping.every": 2, "mapping.iterations": 5,
+         "mapping.init_iterations": 20, "mapping.init_samples_fraction": 0.5, "submaps.policy": "motion",
+         "submaps.motion_translation": 0.15, "submaps.boundary_iterations": 5, "loop.enabled": False,
+         "refinement.enabled": False, "worker.mode": "async", "worker.publish_every": 5,
+         "tracking.feature_start.mode": "never"}
+
+
+def test_async_tracks_every_frame_while_the_worker_opens_submaps():
+    """The real tracker on the synthetic walk's first 20 frames (80x60, params/synthetic.yaml made cheaper): the map's
+    first Gaussians are published after ``publish_every`` steps and tracked against at once; new submaps are opened
+    on the worker; every keyframe's events come back once, in order (with later frames or after finish); the
+    trajectory is within a few centimetres of the truth, as the same run in sync."""
+    data = SyntheticDataset("default", resolution=(80, 60))
+    frames = [data[i] for i in range(20)]
+    first = torch.tensor(frames[0].gt_pose)
+    truth = [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]
+    errors = {}
+    for mode in ("sync", "async"):
+        cfg = load_config(REPO / "params" / "synthetic.yaml", {
+            "device": "cpu", "worker.mode": mode, "worker.publish_every": 10, "mapping.init_iterations": 60,
+            "mapping.iterations": 10, "submaps.policy": "motion", "submaps.motion_translation": 0.1,
+            "loop.enabled": False, "refinement.enabled": False})
+        slam = GauSemSLAM(cfg, "cpu", len(SYNTHETIC_CLASSES))
+        results = [slam.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera,
+                                                        SYNTHETIC_CLASSES.palette, f.timestamp)) for f in frames]
+        assert slam.asynchronous == (mode == "async")
+        slam.finish()
+        events = [e for r in results for e in (r.events, *r.mapped) if e.keyframe is not None] + \
+            list(slam.take_mapped())
+        keyframes = [r.frame_id for r in results if r.is_keyframe]
+        assert [e.keyframe.frame_id for e in events] == keyframes  # each keyframe's events once, in order
+        assert all(r.health.status != "lost" for r in results)
+        assert len(slam.submaps) >= 3 and sum(c.opened for e in events for c in e.submaps) == len(slam.submaps)
+        estimate = [pose for _, pose in slam.trajectory()]
+        errors[mode] = max(float((e[:3, 3] - t[:3, 3]).norm()) for e, t in zip(estimate, truth))
+        if mode == "async":
+            stats = slam.worker.stats
+            assert stats.mapped == len(keyframes) and stats.superseded == 0
+        slam.close()
+    assert errors["async"] < 0.05 and errors["sync"] < 0.05, errors  # metres, worst frame
+
+
+class InitOdometry:
+    """Drifting odometry relative to the start the system gives (the last frame's pose in the frame of the submap
+    it tracks against), so that it works whatever submap the worker has published."""
+
+    def __init__(self, truth, bias):
+        self.truth, self.bias, self.n = truth, bias, 0
+
+    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False) -> TrackingResult:
+        self.n += 1
+        step = invert_pose(self.truth[self.n - 1]) @ self.truth[self.n] @ self.bias
+        from test_loop_e2e import rigid
+
+        return TrackingResult(rigid(init_cam_to_world @ step), 0.0, 0)
+
+
+@pytest.mark.slow
+def test_async_closes_a_loop_while_frames_keep_coming():
+    """test_loop_e2e's drifting walk around the loop and back, tracked by the test's odometry in async mode with a
+    queue deep enough to keep every keyframe: the worker opens submaps and closes the revisit while the tracker has
+    gone on; the correction reaches the later frames (ATE at most half the drift's), and the loop's events arrive
+    with a frame, not only at the end."""
+    from test_loop_e2e import BIAS, CONFIG, RATE, ate_rmse, integrate_odometry, revisit_frames
+
+    _, frames = revisit_frames()
+    first = torch.tensor(frames[0].gt_pose)
+    truth = [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]
+    cfg = from_flat({**CONFIG, "worker.mode": "async", "worker.queue_size": 1000, "tracking.constant_velocity": False,
+                     "tracking.feature_start.mode": "never", "worker.publish_every": 5,
+                     # the odometry is given: a map still being optimised must not have it judged lost
+                     "health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0})
+    slam = GauSemSLAM(cfg, "cpu", len(SYNTHETIC_CLASSES))
+    slam.tracker = InitOdometry(truth, BIAS)
+    results = []
+    for n, f in enumerate(frames):
+        results.append(slam.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera,
+                                                            SYNTHETIC_CLASSES.palette, n / RATE)))
+        if n % 4 == 3:
+            threading.Event().wait(0.5)  # a camera's pace: the worker maps while frames go on arriving
+    during = [e for r in results for e in r.mapped]
+    slam.finish()
+    assert slam.loop_closure.loops, "no loop closed"
+    assert any(e.loop is not None and e.loop.correction for e in during) or slam.worker.stats.lag_frames[-1] > 0
+    assert max(slam.worker.stats.lag_frames) >= 1  # the tracker went on while keyframes were mapped
+    assert len(slam.submaps) >= 2
+    estimate = [pose for _, pose in slam.trajectory()]
+    assert ate_rmse(estimate, truth) <= 0.5 * ate_rmse(integrate_odometry(truth), truth)
+    slam.close()
+
+
+def test_sync_and_async_reject_an_unknown_mode():
+    with pytest.raises(ValueError, match="worker.mode"):
+        GauSemSLAM(from_flat({**CHEAP, "worker.mode": "threads"}), "cpu", 1)
+
+
+def test_a_saved_async_session_holds_every_keyframe(tmp_path):
+    """save waits for the worker: the saved session has every keyframe the tracker handed over."""
+    data = SyntheticDataset("default", resolution=(40, 30), stride=3)
+    slam = GauSemSLAM(from_flat(CHEAP), "cpu", len(SYNTHETIC_CLASSES))
+    results = [slam.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
+                                                    f.timestamp)) for f in (data[i] for i in range(7))]
+    slam.save(tmp_path / "session")
+    loaded = GauSemSLAM.load(tmp_path / "session", "cpu", from_flat({**CHEAP, "worker.mode": "sync"}))
+    assert [kf.frame_id for s in loaded.submaps for kf in s.keyframes] == [r.frame_id for r in results
+                                                                            if r.is_keyframe]
+    np.testing.assert_allclose(np.stack([p.numpy() for _, p in loaded.trajectory()]),
+                               np.stack([p.numpy() for _, p in slam.trajectory()]), atol=1e-6)
+    slam.close()
+    loaded.close()
