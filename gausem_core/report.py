@@ -170,6 +170,9 @@ def performance_metrics(result: RunResult, device: torch.device) -> dict:
     if result.frame_seconds:
         out["frame_ms_median"] = 1e3 * percentile(result.frame_seconds, 0.5)
         out["frame_ms_p95"] = 1e3 * percentile(result.frame_seconds, 0.95)
+    rules = sorted({rule for rule, _ in slam.allocation_rules})
+    out["allocation"] = {rule: {"decisions": slam.allocation_rules[rule, False] + slam.allocation_rules[rule, True],
+                                "new_submaps": slam.allocation_rules[rule, True]} for rule in rules}
     out["worker"] = {"mode": slam.cfg.worker.mode, **(slam.worker.stats.summary() if slam.worker is not None else {}),
                      "map_age_frames_median": percentile(result.map_ages, 0.5),
                      "map_age_frames_p95": percentile(result.map_ages, 0.95)}

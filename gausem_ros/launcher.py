@@ -5,7 +5,8 @@ one process (``gausem-ros``). Without ROS ``launch`` (not on PyPI), this is a sm
 [--respawn] [-- ROS_ARGS...]``
 
 Each node runs as ``python -m gausem_ros.nodes.<name> --ros-args --params-file F ROS_ARGS``; with ``--play`` the
-player runs too and, once it exits, the nodes are stopped with SIGINT. A node that dies is reported (name, exit code
+player runs too (a ``--lockstep`` one makes tracking_mapping map each keyframe before it answers:
+``-p worker.mode:=sync`` ahead of ROS_ARGS) and, once it exits, the nodes are stopped with SIGINT. A node that dies is reported (name, exit code
 or signal) and the others go on; with ``--respawn`` it is started again after ``--respawn-delay`` s (doubled after
 each crash within 10 s of its start, at most 32x). The launcher ends when the player is done, when every node has
 ended, or on SIGINT/SIGTERM, which it forwards to every child; children still running ``--grace`` s later are killed.
@@ -175,8 +176,10 @@ def main(args=None) -> int:
     parser.add_argument("--respawn-delay", type=float, default=1.0, help="seconds before a respawn (doubles after "
                                                                          "quick crashes)")
     ns = parser.parse_args(own)
-    try:
-        nodes = {name: node_command(name, ns.params_file, ros_args) for name in ns.nodes.split(",") if name}
+    lockstep = ["-p", "worker.mode:=sync"] if ns.play and "--lockstep" in shlex.split(ns.play) else []
+    try:  # a lock-step replay maps each keyframe before answering (gausem run's results); a -p given wins
+        nodes = {name: node_command(name, ns.params_file, lockstep + ros_args if name == "tracking_mapping"
+                                    else ros_args) for name in ns.nodes.split(",") if name}
     except ValueError as err:
         parser.error(str(err))
     player = player_command(ns.play, ros_args) if ns.play else None

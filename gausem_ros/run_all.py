@@ -39,13 +39,14 @@ from .nodes.common import ros_process
 from .nodes.loop_detection import LoopDetectionNode
 from .nodes.pose_graph import PoseGraphNode
 from .nodes.segmentation import SegmentationNode
-from .nodes.tracking_mapping import TrackingMappingNode
+from .nodes.tracking_mapping import LOCKSTEP_DEFAULTS, TrackingMappingNode
 from .player import add_player_arguments, is_bag, player_from_args
 
 
-def build_nodes(**node_kwargs) -> list:
-    """The node set the parameters call for; the tracking node first."""
-    tracking = TrackingMappingNode(**node_kwargs)
+def build_nodes(lockstep: bool = False, **node_kwargs) -> list:
+    """The node set the parameters call for; the tracking node first (``lockstep``: mapping each keyframe before it
+    answers, ``worker.mode: sync``, unless the parameters say otherwise)."""
+    tracking = TrackingMappingNode(LOCKSTEP_DEFAULTS if lockstep else None, **node_kwargs)
     nodes = [tracking]
     if tracking.cfg.semantics.segmenter != "labels":
         nodes.append(SegmentationNode(**node_kwargs))
@@ -143,7 +144,7 @@ def main(args=None) -> int:
     with ros_process(argv):  # SIGINT and SIGTERM raise KeyboardInterrupt in the spin
         executor = NodeExecutor(num_threads=5)
         try:
-            nodes = build_nodes()
+            nodes = build_nodes(lockstep=bool(ns.source and ns.lockstep))
             player = player_from_args(ns) if ns.source else None
             for node in nodes + ([player] if player else []):
                 executor.add_node(node)

@@ -139,6 +139,34 @@ def test_tracking_node_in_lockstep_with_the_player(tmp_path):
     assert len(trajectory) == frames + 1 and (tmp_path / "out" / "map.ply").stat().st_size > 0
 
 
+def test_the_node_maps_on_its_worker_by_default_and_publishes_the_keyframes_it_finishes():
+    """tracking_mapping's default is worker.mode async: odometry for every frame, each keyframe's record published
+    once the worker has mapped it (with a later frame, or at finish), the worker's state in the diagnostics, the
+    path appended frame by frame."""
+    frames = 8
+    with ros_session(109) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides({**FAST_SLAM, "mapping.every": 2}))
+        player = Player(open_source("synthetic", size=(80, 60), max_frames=frames), rate=0.0, lockstep=True,
+                        timeout=30.0, context=ctx)
+        recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS), (Path, "gausem/path", LATCHED_QOS),
+                                  (PointCloud2, "gausem/keyframes", EVENT_QOS)])
+        for node in (tracking, player, recorder.node):
+            executor.add_node(node)
+        assert spin_until(executor, lambda: player.done, 50.0)
+        assert tracking.slam.asynchronous and tracking.cfg.worker.mode == "async"
+        status = tracking._status()
+        assert status["worker.mode"] == "async" and {"worker.queue_depth", "worker.lag_frames",
+                                                     "worker.map_age_frames"} <= set(status)
+        tracking.finish()
+        keyframes = [k.frame_id for s in tracking.slam.submaps for k in s.keyframes]
+        stats = tracking.slam.worker.stats
+        assert len(keyframes) >= 2 and stats.mapped == len(keyframes) == stats.submitted - stats.superseded
+        assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == frames and sorted(
+            r.keyframe_id for m in recorder.messages["gausem/keyframes"]
+            for r in ma.pointcloud2_to_records(m, ma.KeyframeRecord)[:1]) == keyframes, 5.0)
+        assert [len(p.poses) for p in recorder.messages["gausem/path"][:frames]] == list(range(1, frames + 1))
+
+
 def _frame_messages(stamp: float, size=(40, 30), rgb_encoding="rgb8", depth=None, label=0):
     """rgb, depth (32FC1 exactly as given: NaN and inf go on the wire) and labels of one frame."""
     header = ma.make_header(stamp, "cam")
@@ -407,7 +435,7 @@ def test_a_node_given_a_renamed_parameter_fails_naming_the_new_name():
 
 def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
     """Frames 0-3 with every node up, 4-5 with loop_detection and pose_graph down, 6-9 after fresh instances start."""
-    slam = {**FAST_SLAM, "mapping.every": 2}  # keyframes 0, 2, 4, 6, 8
+    slam = {**FAST_SLAM, "mapping.every": 2, "worker.mode": "sync"}  # keyframes 0, 2, 4, 6, 8, each mapped in its frame
     # a loop per check
     loops = {"loop.keyframe_every": 2, "loop.check_every": 1, "loop.exclude_recent": 0,
              "loop.place_recognition": "descriptor", "loop.max_fallback_descriptor_distance": 2.0,
@@ -475,6 +503,7 @@ def test_a_loop_candidate_is_registered_optimised_by_pose_graph_and_applied_with
     tracker registers it, re-publishes the submap's keyframes and publishes the constraint; pose_graph answers; the
     tracker moves the keyframes and re-maps the submap."""
     slam = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 30, "device": "cpu",
+            "worker.mode": "sync",  # each keyframe's loop answered within its frame, as gausem-ros --lockstep runs
             "backend": "torch", "loop.keyframe_every": 1000, "submaps.min_keyframes": 100,  # one submap
             "loop_closure": "nodes"}
     frames = list(open_source("synthetic", size=(80, 60), max_frames=5))
@@ -521,6 +550,7 @@ def test_in_core_mode_the_tracker_closes_loops_itself_and_publishes_them():
     """loop_closure: core (the default): no loop_detection / pose_graph; the core's accepted loop (keyframe 2 -> 0)
     is published."""
     slam = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 30, "device": "cpu",
+            "worker.mode": "sync",  # each keyframe's loop answered within its frame, as gausem-ros --lockstep runs
             "backend": "torch", "submaps.min_keyframes": 100, "loop.keyframe_every": 2, "loop.check_every": 1,
             "loop.exclude_recent": 0, "loop.max_fallback_descriptor_distance": 2.0,
             "loop.place_recognition": "descriptor"}  # 80x60 frames hold too few ORB features for the bag of words

@@ -258,6 +258,11 @@ class SubmapExtent:
         if bool(obs.valid_depth.any()):
             self.volume.add(Frustum(obs.camera, cam_to_world.detach().clone(), *depth_range(obs.depth)))
 
+    def classes_known(self, labels: torch.Tensor) -> bool:
+        """Whether the anchor keyframe or a keyframe's class ids (H, W) hold more than one class (without labels every
+        pixel is one class, and the class KL is 0 whatever the view)."""
+        return int(self.anchor_counts.count_nonzero()) > 1 or int(labels.unique().numel()) > 1
+
     def kl_to_anchor(self, labels: torch.Tensor) -> float:
         """r_kl of a keyframe's class ids (H, W) against the anchor keyframe's."""
         classes = max(self.num_classes, len(self.anchor_counts), int(labels.max()) + 1)
@@ -273,18 +278,22 @@ class Decision:
     overlap: float
     kl: float
     reason: str
+    rule: str = ""  # which rule decided: "semantic", "overlap (no classes)" or "motion"
 
 
 @dataclass(frozen=True)
 class SemanticAllocation:
     """The paper's spatial-semantic rule: new submap iff r_olap < max_overlap AND r_kl > min_class_kl, with
     hysteresis: never before the active submap holds ``min_keyframes`` keyframes. ``overlap``: how r_olap is measured,
-    "iou" or "view" (module docstring)."""
+    "iou" or "view" (module docstring). ``fallback_without_classes``: where no classes are known (the anchor and the
+    keyframe each hold a single class, as data without labels does) the class KL is 0 and could never fire, so the
+    overlap alone decides; else such a run stays one submap that grows without bound."""
 
     max_overlap: float = 0.5
     min_class_kl: float = 0.4
     min_keyframes: int = 1
     overlap: str = "iou"
+    fallback_without_classes: bool = True
 
     def __post_init__(self):
         if self.overlap not in OVERLAP_MEASURES:
@@ -300,9 +309,13 @@ class SemanticAllocation:
         grown = extent.num_keyframes >= self.min_keyframes
         reason = (f"overlap ({self.overlap}) {overlap:.3f} {'<' if spatial else '>='} {self.max_overlap} and "
                   f"class KL {kl:.3f} {'>' if semantic else '<='} {self.min_class_kl}")
+        rule = "semantic"
+        if self.fallback_without_classes and not extent.classes_known(obs.labels):
+            semantic, rule = True, "overlap (no classes)"
+            reason += "; no classes known: the overlap alone decides"
         if not grown:
             reason += f"; the submap holds {extent.num_keyframes} < {self.min_keyframes} keyframes"
-        return Decision(spatial and semantic and grown, overlap, kl, reason)
+        return Decision(spatial and semantic and grown, overlap, kl, reason, rule)
 
 
 def euler_xyz_deg(rot: torch.Tensor) -> torch.Tensor:
@@ -330,7 +343,7 @@ class MotionAllocation:
         new = moved > self.translation or turned > self.rotation_deg
         reason = (f"moved {moved:.3f} m (limit {self.translation}), turned {turned:.1f} deg "
                   f"(limit {self.rotation_deg})")
-        return Decision(new, math.nan, math.nan, reason)
+        return Decision(new, math.nan, math.nan, reason, "motion")
 
 
 Allocation = SemanticAllocation | MotionAllocation
@@ -339,7 +352,8 @@ Allocation = SemanticAllocation | MotionAllocation
 def make_allocation(cfg: SubmapConfig) -> Allocation:
     """The policy named by ``cfg.policy`` ("semantic" or "motion") with its thresholds."""
     if cfg.policy == "semantic":
-        return SemanticAllocation(cfg.max_overlap, cfg.min_class_kl, cfg.min_keyframes, cfg.overlap)
+        return SemanticAllocation(cfg.max_overlap, cfg.min_class_kl, cfg.min_keyframes, cfg.overlap,
+                                  cfg.fallback_without_classes)
     if cfg.policy == "motion":
         return MotionAllocation(cfg.motion_translation, cfg.motion_rotation_deg)
     raise ValueError(f"submaps.policy must be 'semantic' or 'motion', got {cfg.policy!r}")

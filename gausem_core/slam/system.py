@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import threading
 import weakref
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -250,6 +251,7 @@ class GauSemSLAM:
         self.vignetting = Vignetting(cfg.vignetting)
         self.mapper = Mapper(cfg.mapping, cfg.backend, cfg.seed)
         self.allocation = make_allocation(cfg.submaps)
+        self.allocation_rules: Counter = Counter()  # (rule, whether it opened a submap) of every allocation decision
         self.store = SubmapStore(int(cfg.submaps.memory_budget_mb * 2**20), cfg.submaps.cache_dir or None)
         self._close = weakref.finalize(self, self.store.close)
         self.submaps: list[Submap] = []
@@ -399,6 +401,7 @@ class GauSemSLAM:
         the last mapping loss and the allocation decision."""
         obs = self._calibrate(obs, pose)
         decision = self.allocation.should_start_new(self.active.extent, obs, pose)
+        self.allocation_rules[decision.rule or "scripted", decision.new] += 1
         closed = []
         if decision.new:
             old = self.active

@@ -32,13 +32,14 @@ LAST_FRAME_KEY = "last_frame_stamp_ns"  # tracking_mapping's diagnostics: stamp 
 _DYNAMIC = ParameterDescriptor(dynamic_typing=True)
 
 
-def declare_slam_config(node) -> SlamConfig:
-    """Declare every SLAM parameter (dotted names of ``flatten(SlamConfig())``) and build the configuration from
-    their values, so ``--params-file params/<dataset>.yaml`` configures a node like ``gausem run --params``.
+def declare_slam_config(node, defaults: dict | None = None) -> SlamConfig:
+    """Declare every SLAM parameter (dotted names of ``flatten(SlamConfig())``; ``defaults`` replaces some of their
+    defaults, e.g. a live node's ``worker.mode``) and build the configuration from their values, so ``--params-file
+    params/<dataset>.yaml`` configures a node like ``gausem run --params``.
     Types are checked by ``from_flat`` (an integer given for a float parameter is accepted), and so are old names
     (``config.RENAMED``): given one, the node fails naming the new name."""
     values = {name: node.declare_parameter(name, default, _DYNAMIC).value
-              for name, default in flatten(SlamConfig()).items()}
+              for name, default in {**flatten(SlamConfig()), **(defaults or {})}.items()}
     return from_flat({**values, **_given_old_names(node)})
 
 

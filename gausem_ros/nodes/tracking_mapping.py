@@ -5,7 +5,8 @@ Subscribes (relative names, remappable): ``rgb/image`` (rgb8/bgr8/rgba8/bgra8), 
 (mono8/mono16 class ids; not with ``use_labels: false``), approximately synchronised; with ``loop_closure: nodes``,
 ``gausem/loop_candidates`` and ``gausem/pose_graph`` (records, ``msg_adapters.records``).
 Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_frame``, stamped like the rgb image),
-``gausem/path`` (latched, re-published after every frame and every correction), TF ``map_frame`` -> camera frame,
+``gausem/path`` (latched, re-published after every frame with its pose appended; rebuilt from the trajectory after a
+loop correction), TF ``map_frame`` -> camera frame,
 ``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/keyframes``
 (KeyframeRecord, pose in its submap frame), ``gausem/submaps`` (SubmapEvent), with ``loop_closure: nodes``
 ``gausem/place_signatures`` (PlaceSignatureRecord of each loop keyframe), ``gausem/loop_constraints``
@@ -29,6 +30,15 @@ first flagged new_map, one at a time in step with loop_detection's answers, befo
 into the loaded map as with ``core``. The next frames are relocalised against it (the robot is not where the last
 saved frame was): until one is placed, frames are dropped as ``relocalisation_failed`` and nothing is published for
 them.
+
+Mapping beside tracking: the node's core maps on its mapping worker (``worker.mode: async``, this node's default;
+``gausem-ros --lockstep`` and ``gausem-launch --play '... --lockstep'`` make it ``sync``, as ``gausem run``): a frame's
+odometry is published once it is tracked, while keyframes, submaps and loops are mapped on the worker; their events
+(keyframes, submaps, loop constraints) are published when the worker finishes them, with a later frame. The
+diagnostics add ``worker.mode``, ``worker.queue_depth`` (keyframes waiting), ``worker.lag_frames`` (frames tracked
+while the last keyframe was being mapped), ``worker.keyframes_superseded`` and ``worker.map_age_frames`` (frames
+between the last frame and the newest keyframe of the map it was tracked against). ``worker.tracker_threads`` and
+``worker.threads`` split the CPU cores between the two (default: half each).
 
 Live input: the image subscriptions run in their own callback group, so with a multi-threaded executor (as every
 GauSem entry point uses) inputs keep arriving while a frame is processed; frames are processed one at a time, the
@@ -156,10 +166,17 @@ _HEALTH_LEVELS = {"ok": (DiagnosticStatus.OK, ""), "degraded": (DiagnosticStatus
                   "lost": (DiagnosticStatus.ERROR, "tracking lost")}
 
 
+LIVE_DEFAULTS = {"worker.mode": "async"}  # a live node maps on the mapping worker, beside its tracker
+LOCKSTEP_DEFAULTS = {"worker.mode": "sync"}  # a lock-step replay maps each keyframe before answering: gausem run's
+
+
 class TrackingMappingNode(Node):
-    def __init__(self, **kwargs):
+    """``slam_defaults``: SLAM parameter defaults of this node (default :data:`LIVE_DEFAULTS`; the parameters given
+    still win)."""
+
+    def __init__(self, slam_defaults: dict | None = None, **kwargs):
         super().__init__("tracking_mapping", **kwargs)
-        self.cfg = declare_slam_config(self)
+        self.cfg = declare_slam_config(self, LIVE_DEFAULTS if slam_defaults is None else slam_defaults)
         self.params = p = declare_parameters(self, NODE_DEFAULTS)
         if p.loop_closure not in LOOP_CLOSURE_MODES:
             raise ValueError(f"tracking_mapping: loop_closure must be one of {', '.join(LOOP_CLOSURE_MODES)}, got "
@@ -236,6 +253,8 @@ class TrackingMappingNode(Node):
         self._last_stamp = -math.inf
         self._camera_frame = self.params.camera_frame or "camera"
         self._map_dirty = False
+        self._path: PathMsg | None = None  # the published path (None: rebuild it from the trajectory)
+        self.map_age = 0  # frames between the last frame and the newest keyframe of the map it was tracked against
         self._loop_answers.clear()
         self._new_map = True  # the next place signature is the map's first (loop_detection starts over)
         self._loaded_places: list[tuple[PlaceSignature, float]] = []  # a loaded map's, still to go to loop_detection
@@ -395,6 +414,8 @@ class TrackingMappingNode(Node):
     def _track_and_publish(self, obs: Observation, image_frame: str, arrived: float, skipped: int) -> None:
         result = self.slam.process(obs, skipped)
         self._last_stamp = obs.timestamp
+        self.map_age = result.map_age
+        self._publish_mapped(result.mapped)
         self.health = result.health
         self.health_log.append((result.frame_id, obs.timestamp, result.health))
         if result.relocalisation is not None:
@@ -422,7 +443,9 @@ class TrackingMappingNode(Node):
         self._in_progress = False
         self.latencies.append(time.monotonic() - arrived)
         self._tf.sendTransform(ma.matrix_to_transform(pose, header, self._camera_frame))
-        self._publish_path()
+        if self._corrected(result.events):
+            self._path = None  # rebuilt from the corrected trajectory
+        self._publish_path((obs.timestamp, pose))
         self._publish_events(result.events, header)
         self._map_dirty = True
         self.drops.publish()
@@ -451,10 +474,21 @@ class TrackingMappingNode(Node):
                 "tracking.status": self.health.status,
                 **{f"tracking.{name}": value for name, value in self.health.signals().items()},
                 "camera.vignetting_corner_gain": math.exp(self.slam.vignetting.a),
-                "camera.undistorted": bool(self.lens_distortion),
+                "camera.undistorted": bool(self.lens_distortion), **self._worker_status(),
                 **latency_stats(self.latencies[-100:]),
                 **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(sync.dropped.items())
                    if name != sync.names[0]}}
+
+    def _worker_status(self) -> dict:
+        """The mapping worker's state: mode, keyframes waiting, the last mapped keyframe's lag (tracker frames between
+        its arrival and its mapping), keyframes superseded in the queue, and the last frame's map age."""
+        worker = self.slam.worker
+        status = {"worker.mode": self.cfg.worker.mode, "worker.map_age_frames": self.map_age}
+        if worker is not None:
+            lags = worker.stats.lag_frames
+            status.update({"worker.queue_depth": worker.depth, "worker.lag_frames": lags[-1] if lags else 0,
+                           "worker.keyframes_superseded": worker.stats.superseded})
+        return status
 
     def summary(self) -> dict:
         """The whole run's input accounting: frames in = processed + dropped (by reason) + pending; latency."""
@@ -467,10 +501,31 @@ class TrackingMappingNode(Node):
         """Frames received and not yet processed or dropped: unmatched in the synchroniser, queued, in progress."""
         return self._inputs.synchronizer.pending(0) + self._queue.pending + self._in_progress
 
-    def _publish_path(self) -> None:
-        poses = [(t, m) for t, m in ((t, rigid_float64(p).numpy()) for t, p in self.slam.trajectory())
-                 if np.isfinite(m).all()]
-        self._path_pub.publish(ma.poses_to_path(poses, self.params.map_frame))
+    def _publish_path(self, new: tuple[float, np.ndarray] | None = None) -> None:
+        """The path with the ``new`` pose appended (one pose converted a frame); rebuilt from the whole trajectory
+        after a correction (:attr:`_path` None)."""
+        if self._path is None:
+            self._path = ma.poses_to_path([(t, m) for t, m in ((t, rigid_float64(p).numpy())
+                                                               for t, p in self.slam.trajectory())
+                                           if np.isfinite(m).all()], self.params.map_frame)
+        elif new is not None:
+            entry = ma.matrix_to_pose_stamped(new[1], ma.make_header(new[0], self.params.map_frame))
+            self._path.poses.append(entry)
+            self._path.header = entry.header
+        self._path_pub.publish(self._path)
+
+    @staticmethod
+    def _corrected(events: FrameEvents) -> bool:
+        """Whether a keyframe's loop closure moved the map (the path is then rebuilt)."""
+        return events.loop is not None and bool(events.loop.correction)
+
+    def _publish_mapped(self, mapped: tuple[FrameEvents, ...]) -> None:
+        """The events of keyframes the mapping worker finished (async), stamped like their keyframes."""
+        for events in mapped:
+            if self._corrected(events):
+                self._path = None
+            stamp = events.keyframe.timestamp if events.keyframe is not None else max(self._last_stamp, 0.0)
+            self._publish_events(events, ma.make_header(stamp, self.params.map_frame))
 
     def _publish_events(self, events: FrameEvents, header) -> None:
         """A frame's events: submaps closed and opened, its keyframe, a loop keyframe's place signature
@@ -586,6 +641,7 @@ class TrackingMappingNode(Node):
         self.get_logger().info(f"pose graph update of {len(update.nodes)} poses: moved {correction.anchors} submaps "
                                f"and {correction.keyframes} keyframes (in {len(correction.submaps)} submaps)")
         if correction:
+            self._path = None
             self._publish_path()
             self._map_dirty = True
         self.pose_graph_updates.append(update)  # applied
@@ -598,12 +654,14 @@ class TrackingMappingNode(Node):
         loop = self.slam.finish()
         if self._busy:
             self._busy = (self._busy[0], self._busy[1] + time.perf_counter() - start)
+        self._publish_mapped(self.slam.take_mapped())  # async: the keyframes mapped after the last frame
         header = ma.make_header(max(self._last_stamp, 0.0), self.params.map_frame)
         if loop is not None and loop.constraint is not None:
             self._constraint_pub.publish(ma.records_to_pointcloud2([ma.loop_constraint_to_record(loop.constraint)],
                                                                    header))
         if self.slam.submaps:
             self._publish_keyframes(self.slam.keyframe_states(), header)  # as loop closure and refinement left them
+        self._path = None
         self._publish_path()
         self._map_dirty = True
 
