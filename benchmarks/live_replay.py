@@ -66,13 +66,13 @@ def markdown(doc: dict) -> str:
              f"interval in the real-time run {fmt(doc['camera_interval_ms'])} ms (rate {doc['rate']:.4f} of the "
              f"recorded pace).", "",
              "| mode | processed | released | superseded | T median / p95 (ms) | latency median / p95 (ms) "
-             "| duration (s) | lost | worker lag median / max | map age median / p95 | ATE (cm) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| duration (s) | lost | keyframes superseded | worker lag median / max | map age median / p95 | ATE (cm) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in doc["table"]:
         lines.append(f"| {r['mode']} | {r['frames_processed']} | {fmt(r['frames_released'])} | "
                      f"{fmt(r['frames_superseded'])} | {fmt(r['tracker_ms_median'], 0)} / {fmt(r['tracker_ms_p95'], 0)} "
                      f"| {fmt(r['latency_ms_median'], 0)} / {fmt(r['latency_ms_p95'], 0)} | {fmt(r['duration_s'])} | "
-                     f"{r['lost']} | {fmt(r['worker_lag_frames_median'])} / {fmt(r['worker_lag_frames_max'])} | "
+                     f"{r['lost']} | {fmt(r['keyframes_superseded'])} | {fmt(r['worker_lag_frames_median'])} / {fmt(r['worker_lag_frames_max'])} | "
                      f"{fmt(r['map_age_frames_median'])} / {fmt(r['map_age_frames_p95'])} | {fmt(r['ate_cm'], 2)} |")
     return "\n".join(lines) + "\n"
 

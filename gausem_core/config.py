@@ -140,7 +140,7 @@ class SubmapConfig:
     min_class_kl: float = 0.4
     min_keyframes: int = 4  # hysteresis: a submap keeps at least this many keyframes (semantic policy; 1 = off)
     fallback_without_classes: bool = True  # semantic policy on data without classes (every pixel one class: the
-    # class KL is 0): the overlap alone decides; false: such a run stays one submap
+    # class KL is 0): the motion rule below decides; false: such a run stays one submap
     motion_translation: float = 0.5
     motion_rotation_deg: float = 50.0
     boundary_iterations: int = 20  # boundary local BA on a submap that is closed: mapper iterations ...

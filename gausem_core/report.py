@@ -1,4 +1,4 @@
-"""The outputs of an offline run (docs/DESIGN.md §4): trajectories, keyframes, the map, metrics, a montage and a plot.
+"""The outputs of an offline run (the README's table): trajectories, keyframes, the map, metrics, a montage and a plot.
 
 Rendering is evaluated as the paper does, on the processed frames' own views: the final global map is rendered at
 each evaluated frame's *estimated* pose and compared with that frame's input. Ground truth is read here for

@@ -1,4 +1,4 @@
-"""Evaluating a ROS run like ``gausem run``: the outputs of docs/DESIGN.md §4 through :mod:`gausem_core.report`.
+"""Evaluating a ROS run like ``gausem run``: the outputs of the README's table through :mod:`gausem_core.report`.
 
 The tracking node's :class:`GauSemSLAM` holds the estimate; ground truth and labels come from a *reference* dataset
 (the dataset that was replayed, or the one a bag was made from with ``gausem-bag``), whose frames are matched to the

@@ -1,4 +1,4 @@
-"""QoS profiles used across GauSem's topics (docs/DESIGN.md §3; measurements in its §4).
+"""QoS profiles used across GauSem's topics (docs/DESIGN.md §4; measurements in its §5).
 
 - ``IMAGE_QOS``: reliable, keep last 10 -- images between GauSem processes (best effort drops 20-60 % of VGA
   frames across processes with Fast DDS).

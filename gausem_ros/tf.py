@@ -3,7 +3,7 @@
 ``make_transform_broadcaster(node)`` returns, in order of preference:
 1. ``tf2_ros.TransformBroadcaster`` / ``StaticTransformBroadcaster`` (a real ROS install);
 2. a small publisher of ``tf2_msgs/TFMessage`` on ``/tf`` (keep last 100) or ``/tf_static`` (transient local),
-   the QoS tf2_ros uses, when only ``tf2_msgs`` is importable (e.g. built locally, docs/DESIGN.md §4);
+   the QoS tf2_ros uses, when only ``tf2_msgs`` is importable (e.g. built locally, docs/DESIGN.md §5);
 3. a broadcaster that drops transforms and logs once that TF is unavailable (PyPI wheels ship neither package);
    nodes keep publishing odometry and path, which carry the same poses.
 All three have ``sendTransform(transform_or_list)`` like tf2_ros.

@@ -122,7 +122,7 @@ def test_class_kl_by_hand_and_direction():
                          [(0.0, 0, False), (0.0, 1, False), (math.pi, 0, False), (math.pi, 1, True)])
 def test_semantic_policy_needs_both_conditions(turn, label, new):
     extent = SubmapExtent.start(observation(0), pose(), num_classes=3)
-    policy = SemanticAllocation(0.5, 0.4, fallback_without_classes=False)
+    policy = SemanticAllocation(0.5, 0.4)
     decision = policy.should_start_new(extent, observation(label), pose(omega=(0, turn, 0)))
     assert decision.new is new and decision.rule == "semantic"
     assert (decision.overlap < 0.5) == (turn > 0)
@@ -130,20 +130,21 @@ def test_semantic_policy_needs_both_conditions(turn, label, new):
     assert "overlap" in decision.reason and "class KL" in decision.reason
 
 
-@pytest.mark.parametrize("turn, new", [(0.0, False), (math.pi, True)])
-def test_without_classes_the_overlap_alone_decides(turn, new):
-    """Data without labels: anchor and keyframe are all one class, the class KL is 0; the fallback splits on the
-    overlap (and says so); without it the submap never splits."""
+@pytest.mark.parametrize("shift, new", [(0.1, False), (0.8, True)])
+def test_without_classes_the_motion_rule_decides(shift, new):
+    """Data without labels: anchor and keyframe are all one class, the class KL is 0; the fallback splits by the
+    motion rule (and says so); without it the submap never splits."""
     extent = SubmapExtent.start(observation(0), pose(), num_classes=1)
-    turned = pose(omega=(0, turn, 0))
-    decision = SemanticAllocation(0.5, 0.4).should_start_new(extent, observation(0), turned)
+    moved = pose(rho=(0, 0, -shift))  # backwards along the view
+    decision = SemanticAllocation(0.5, 0.4, fallback=MotionAllocation(0.5, 50.0)).should_start_new(
+        extent, observation(0), moved)
     assert decision.new is new and decision.kl == 0.0
-    assert decision.rule == "overlap (no classes)" and "no classes known" in decision.reason
-    assert not SemanticAllocation(0.5, 0.4, fallback_without_classes=False).should_start_new(
-        extent, observation(0), turned).new
+    assert decision.rule == "motion (no classes)" and "no classes known" in decision.reason
+    assert not SemanticAllocation(0.5, 0.4).should_start_new(extent, observation(0), moved).new
     two_classes = SubmapExtent.start(observation(0), pose(), num_classes=2)
     two_classes.anchor_counts[1] = 5  # the anchor saw a second class: classes are known, the semantic rule holds
-    assert SemanticAllocation(0.5, 0.4).should_start_new(two_classes, observation(0), turned).rule == "semantic"
+    assert SemanticAllocation(0.5, 0.4, fallback=MotionAllocation()).should_start_new(
+        two_classes, observation(0), moved).rule == "semantic"
 
 
 def test_semantic_policy_hysteresis_waits_for_min_keyframes():
@@ -182,8 +183,8 @@ def test_euler_angles_zyx():
 
 def test_make_allocation_from_config():
     semantic = SubmapConfig(max_overlap=0.3, min_class_kl=0.2, min_keyframes=2)
-    assert make_allocation(semantic) == SemanticAllocation(0.3, 0.2, 2)
-    assert not make_allocation(SubmapConfig(fallback_without_classes=False)).fallback_without_classes
+    assert make_allocation(semantic) == SemanticAllocation(0.3, 0.2, 2, fallback=MotionAllocation(0.5, 50.0))
+    assert make_allocation(SubmapConfig(fallback_without_classes=False)).fallback is None
     motion = SubmapConfig(policy="motion", motion_translation=1.0, motion_rotation_deg=30.0)
     assert make_allocation(motion) == MotionAllocation(1.0, 30.0)
     with pytest.raises(ValueError, match="policy"):

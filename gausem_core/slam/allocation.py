@@ -285,15 +285,15 @@ class Decision:
 class SemanticAllocation:
     """The paper's spatial-semantic rule: new submap iff r_olap < max_overlap AND r_kl > min_class_kl, with
     hysteresis: never before the active submap holds ``min_keyframes`` keyframes. ``overlap``: how r_olap is measured,
-    "iou" or "view" (module docstring). ``fallback_without_classes``: where no classes are known (the anchor and the
-    keyframe each hold a single class, as data without labels does) the class KL is 0 and could never fire, so the
-    overlap alone decides; else such a run stays one submap that grows without bound."""
+    "iou" or "view" (module docstring). ``fallback``: where no classes are known (the anchor and the keyframe each
+    hold a single class, as data without labels does) the class KL is 0 and could never fire, so this rule (the motion
+    rule) decides; None: such a run stays one submap that grows without bound."""
 
     max_overlap: float = 0.5
     min_class_kl: float = 0.4
     min_keyframes: int = 1
     overlap: str = "iou"
-    fallback_without_classes: bool = True
+    fallback: "MotionAllocation | None" = None
 
     def __post_init__(self):
         if self.overlap not in OVERLAP_MEASURES:
@@ -309,13 +309,13 @@ class SemanticAllocation:
         grown = extent.num_keyframes >= self.min_keyframes
         reason = (f"overlap ({self.overlap}) {overlap:.3f} {'<' if spatial else '>='} {self.max_overlap} and "
                   f"class KL {kl:.3f} {'>' if semantic else '<='} {self.min_class_kl}")
-        rule = "semantic"
-        if self.fallback_without_classes and not extent.classes_known(obs.labels):
-            semantic, rule = True, "overlap (no classes)"
-            reason += "; no classes known: the overlap alone decides"
+        if self.fallback is not None and not extent.classes_known(obs.labels):
+            moved = self.fallback.should_start_new(extent, obs, cam_to_world)
+            return Decision(moved.new, overlap, kl, f"no classes known, the motion rule decides: {moved.reason}",
+                            "motion (no classes)")
         if not grown:
             reason += f"; the submap holds {extent.num_keyframes} < {self.min_keyframes} keyframes"
-        return Decision(spatial and semantic and grown, overlap, kl, reason, rule)
+        return Decision(spatial and semantic and grown, overlap, kl, reason, "semantic")
 
 
 def euler_xyz_deg(rot: torch.Tensor) -> torch.Tensor:
@@ -352,8 +352,9 @@ Allocation = SemanticAllocation | MotionAllocation
 def make_allocation(cfg: SubmapConfig) -> Allocation:
     """The policy named by ``cfg.policy`` ("semantic" or "motion") with its thresholds."""
     if cfg.policy == "semantic":
+        fallback = MotionAllocation(cfg.motion_translation, cfg.motion_rotation_deg)
         return SemanticAllocation(cfg.max_overlap, cfg.min_class_kl, cfg.min_keyframes, cfg.overlap,
-                                  cfg.fallback_without_classes)
+                                  fallback if cfg.fallback_without_classes else None)
     if cfg.policy == "motion":
         return MotionAllocation(cfg.motion_translation, cfg.motion_rotation_deg)
     raise ValueError(f"submaps.policy must be 'semantic' or 'motion', got {cfg.policy!r}")

@@ -1,4 +1,4 @@
-"""GauSem's ROS 2 nodes (docs/DESIGN.md §3). Each module holds one node class and its ``main(args=None)`` entry point.
+"""GauSem's ROS 2 nodes (docs/DESIGN.md §4). Each module holds one node class and its ``main(args=None)`` entry point.
 
 - ``segmentation``: rgb/image -> semantic/labels (mono16) + semantic/color (rgb8), with a segmenter that works on the
   image alone (``semantics.segmenter: dinov2``). With ``labels`` the class ids come with the data: the player (or

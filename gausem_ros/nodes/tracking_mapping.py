@@ -66,7 +66,7 @@ Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
   implementation, :class:`~gausem_core.slam.loop_closure.LoopClosure`), exactly as ``gausem run`` does, so a
   lock-step replay gives the offline run's loops and trajectory; the accepted loops are published on
   ``gausem/loop_constraints`` for observers, and loop_detection and pose_graph need not run.
-- ``nodes`` (distributed, docs/DESIGN.md §3): the same core code in three nodes. This node's core describes each loop
+- ``nodes`` (distributed, docs/DESIGN.md §4): the same core code in three nodes. This node's core describes each loop
   keyframe (:meth:`~gausem_core.slam.loop_closure.LoopClosure.describe`) and publishes that place signature on
   ``gausem/place_signatures``; loop_detection runs the core's detector on it and answers with the ranked candidates
   (``gausem/loop_candidates``); this node's core confirms one (the bag of words: geometric verification in order,
