@@ -4,7 +4,8 @@
 2. ``async`` lock-step: every frame, the mapping worker beside the tracker; its median per-frame cost is the
    tracker's own cost T (``frame_ms_median``: the ``process`` call, which in async returns after tracking);
 3. ``--realtime``: the frames released on the wall clock at one every ``--interval-factor`` x T (default 1.5), the
-   tracker taking the newest, the rest superseded.
+   tracker taking the newest, the rest superseded. Where the tracker's median cost in that run exceeds T by over
+   10 % (the camera thread reading frames beside it), T becomes that cost and the run is repeated (the one reported).
 
 Reported per run: frames processed (and released, superseded), T, latency median / p95, the worker's lag and the map's
 age, tracking losses and the ATE of the processed frames. Writes ``benchmarks/results/live_replay_<name>.{json,md}``.
@@ -62,7 +63,8 @@ def row(mode: str, metrics: dict) -> dict:
 def markdown(doc: dict) -> str:
     fmt = lambda v, d=1: "-" if v is None else (f"{v:.{d}f}" if isinstance(v, float) else str(v))  # noqa: E731
     lines = [f"# Live replay: {doc['dataset']} at {doc['size']}", "", f"`{doc['command']}` at commit {doc['commit']} "
-             f"on {doc['machine']}.", "", f"Tracker cost T (async lock-step median): {fmt(doc['T_ms'])} ms; camera "
+             f"on {doc['machine']}.", "", f"Tracker cost T: {fmt(doc['T_ms'])} ms (async lock-step median "
+             f"{fmt(doc.get('T_lockstep_ms'))} ms); camera "
              f"interval in the real-time run {fmt(doc['camera_interval_ms'])} ms (rate {doc['rate']:.4f} of the "
              f"recorded pace).", "",
              "| mode | processed | released | superseded | T median / p95 (ms) | latency median / p95 (ms) "
@@ -92,10 +94,14 @@ def main() -> None:
         t_s = lockstep["frame_ms_median"] / 1e3
         rate = sync["interval_s"] / (args.interval_factor * t_s)
         live = gausem_run(args, Path(tmp) / "live", ["--realtime", f"{rate:.6f}"])
+        if live["frame_ms_median"] / 1e3 > 1.1 * t_s:  # the tracker is slower live (the camera thread reads frames
+            t_s = live["frame_ms_median"] / 1e3  # beside it): again at the interval factor of its live cost
+            rate = sync["interval_s"] / (args.interval_factor * t_s)
+            live = gausem_run(args, Path(tmp) / "live", ["--realtime", f"{rate:.6f}"])
     command = "benchmarks/live_replay.py " + " ".join(sys.argv[1:])
     doc = {"command": f".venv/bin/python {command}", "machine": f"{platform.node()} ({os.cpu_count()} CPU cores, "
            "no GPU)", "commit": git_commit(), "dataset": args.dataset, "size": args.size,
-           "T_ms": 1e3 * t_s, "camera_interval_ms": 1e3 * args.interval_factor * t_s, "rate": rate,
+           "T_ms": 1e3 * t_s, "T_lockstep_ms": lockstep["frame_ms_median"], "camera_interval_ms": 1e3 * args.interval_factor * t_s, "rate": rate,
            "table": [row("sync lock-step", sync), row("async lock-step", lockstep), row("async --realtime", live)]}
     results = REPO / "benchmarks" / "results"
     (results / f"live_replay_{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
