@@ -183,8 +183,8 @@ def test_euler_angles_zyx():
 
 def test_make_allocation_from_config():
     semantic = SubmapConfig(max_overlap=0.3, min_class_kl=0.2, min_keyframes=2)
-    assert make_allocation(semantic) == SemanticAllocation(0.3, 0.2, 2, fallback=MotionAllocation(0.5, 50.0))
-    assert make_allocation(SubmapConfig(fallback_without_classes=False)).fallback is None
+    assert make_allocation(semantic) == SemanticAllocation(0.3, 0.2, 2)  # no fallback by default
+    assert make_allocation(SubmapConfig(fallback_without_classes=True)).fallback == MotionAllocation(0.5, 50.0)
     motion = SubmapConfig(policy="motion", motion_translation=1.0, motion_rotation_deg=30.0)
     assert make_allocation(motion) == MotionAllocation(1.0, 30.0)
     with pytest.raises(ValueError, match="policy"):

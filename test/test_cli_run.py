@@ -66,10 +66,10 @@ class DropsFrames(GauSemSLAM):
         super().__init__(*args, **kwargs)
         self.drop = drop
 
-    def _place(self, obs, motion):
+    def _place(self, obs, motion, *tracked_against):
         if obs.timestamp in self.drop:
             return None, RelocalisationResult(False, torch.eye(4), 0.0, math.nan, 0, "none", 0, 0)
-        return super()._place(obs, motion)
+        return super()._place(obs, motion, *tracked_against)
 
 
 def test_a_strided_run_with_a_dropped_frame_is_evaluated_on_its_own_frames(tmp_path):

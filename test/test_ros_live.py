@@ -244,7 +244,8 @@ def test_gausem_ros_replays_in_real_time_with_sim_time(tmp_path):
 def test_a_restarted_tracker_loads_its_saved_map_relocalises_and_goes_on(tmp_path):
     """save_map writes the session; a new tracker started with map_path holds the same map, re-publishes its
     keyframes (pose_graph rebuilds), relocalises the next frames and tracks on; a bad map_path is a clear error."""
-    slam = {**FAST_SLAM, "mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 60,
+    slam = {**FAST_SLAM, "worker.mode": "sync", "mapping.every": 2, "mapping.iterations": 10,
+            "mapping.init_iterations": 60,
             "mapping.init_samples_fraction": 1.0, "refinement.enabled": False, "output_dir": str(tmp_path / "out")}
     frames = list(open_source("synthetic", size=(80, 60), max_frames=10))
     with ros_session(135) as (ctx, executor):
@@ -290,7 +291,8 @@ def test_loop_detection_holds_a_loaded_map_and_a_revisit_of_it_is_a_loop_candida
     """With loop_closure: nodes, loading a map replaces loop_detection's database by the loaded keyframes' place
     signatures (as the loaded core holds them; a keyframe of an earlier map is forgotten, not kept beside them), and a
     revisit of a loaded place gets a candidate in the loaded map."""
-    slam = {**FAST_SLAM, "mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 60,
+    slam = {**FAST_SLAM, "worker.mode": "sync", "mapping.every": 2, "mapping.iterations": 10,
+            "mapping.init_iterations": 60,
             "mapping.init_samples_fraction": 1.0, "refinement.enabled": False, "loop.place_recognition": "descriptor",
             "loop.keyframe_every": 2, "loop.check_every": 1, "loop.exclude_recent": 0}
     frames = list(open_dataset("synthetic", size=(80, 60), max_frames=6))

@@ -163,7 +163,7 @@ def test_the_node_maps_on_its_worker_by_default_and_publishes_the_keyframes_it_f
         assert len(keyframes) >= 2 and stats.mapped == len(keyframes) == stats.submitted - stats.superseded
         assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == frames and sorted(
             r.keyframe_id for m in recorder.messages["gausem/keyframes"]
-            for r in ma.pointcloud2_to_records(m, ma.KeyframeRecord)[:1]) == keyframes, 5.0)
+            for r in ma.pointcloud2_to_records(m, ma.KeyframeRecord)[:1]) == keyframes, 30.0)
         assert [len(p.poses) for p in recorder.messages["gausem/path"][:frames]] == list(range(1, frames + 1))
 
 

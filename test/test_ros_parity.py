@@ -32,7 +32,8 @@ from ros_harness import FAST_SLAM, Recorder, ros_param_args, ros_session, spin_f
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = REPO / "params" / "synthetic.yaml"
 FRAMES, SIZE = 8, (80, 60)
-SLAM = {**FAST_SLAM, "mapping.every": 4, "mapping.init_iterations": 40, "mapping.init_samples_fraction": 1.0}
+SLAM = {**FAST_SLAM, "mapping.every": 4, "mapping.init_iterations": 40, "mapping.init_samples_fraction": 1.0,
+        "worker.mode": "sync"}  # parity with gausem run: each keyframe mapped within its frame
 # keyframes 0 and 4: bundle adjustment moves keyframe 4 after its frame; a map that covers the view (alpha > 0.99)
 # so that the tracker moves the camera
 NODES = ("tracking_mapping", "loop_detection", "pose_graph")
