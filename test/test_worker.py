@@ -117,10 +117,13 @@ class Frames:
 def test_the_live_camera_hands_out_the_newest_frame_and_counts_the_superseded():
     camera = LiveCamera(Frames(SyntheticDataset("default", resolution=(20, 15)), 12, 0.01), rate=1.0)
     camera.start()
-    taken = []
+    taken = [camera.take()]  # then a consumer busy until the camera has released every frame
+    for _ in range(1000):
+        if camera.ended_at is not None:
+            break
+        threading.Event().wait(0.01)
     while (item := camera.take()) is not None:
         taken.append(item)
-        threading.Event().wait(0.035)  # a consumer slower than the camera
     camera.stop()
     positions = [t.position for t in taken]
     assert positions == sorted(positions) and positions[0] == 0 and positions[-1] == 11

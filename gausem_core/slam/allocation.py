@@ -278,7 +278,8 @@ class Decision:
     overlap: float
     kl: float
     reason: str
-    rule: str = ""  # which rule decided: "semantic", "overlap (no classes)" or "motion"
+    rule: str = "custom"  # which rule decided: "semantic", "motion (no classes)", "motion" (custom: a policy of the
+    # caller's that names none)
 
 
 @dataclass(frozen=True)

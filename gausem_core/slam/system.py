@@ -363,11 +363,10 @@ class GauSemSLAM:
         submap = self._place_submap(obs, frame_id, torch.eye(4, device=self.device))
         self.feature_start.remember(obs)
         if self.worker is not None:
-            self.worker.submit(Job(frame_id, "open", partial(self._first_job, submap, obs)))
+            self.worker.submit(Job(frame_id, "open", lambda: self._first_job(submap, obs)[0]))
             return self._result(None, True, None, None)
-        loss = self._optimise_first(submap)
-        self._calibrate(obs, submap.keyframes[0].cam_to_world)
-        return self._result(None, True, loss, None, events=self._keyframe_events([]))
+        events, loss = self._first_job(submap, obs)
+        return self._result(None, True, loss, None, events=events)
 
     def _tracked_submap(self) -> Submap:
         """The submap frames are tracked against: the newest one whose Gaussians are trackable (async: a new submap
@@ -379,11 +378,12 @@ class GauSemSLAM:
                 self.worker.raise_error()
         return submap
 
-    def _first_job(self, submap: Submap, obs: Observation) -> FrameEvents:
-        """The worker's half of :meth:`_first_frame`."""
-        self._optimise_first(submap)
+    def _first_job(self, submap: Submap, obs: Observation) -> tuple[FrameEvents, float | None]:
+        """The mapping half of :meth:`_first_frame` (async: on the worker): optimisation, vignetting calibration,
+        the keyframe's events; and the last mapping loss."""
+        loss = self._optimise_first(submap)
         self._calibrate(obs, submap.keyframes[0].cam_to_world)
-        return self._keyframe_events([])
+        return self._keyframe_events([]), loss
 
     def _keyframe_job(self, obs: Observation, record: FrameRecord) -> FrameEvents:
         """The worker's mapping of a keyframe the tracker recorded as ``record``: at its current pose (corrections
@@ -401,7 +401,7 @@ class GauSemSLAM:
         the last mapping loss and the allocation decision."""
         obs = self._calibrate(obs, pose)
         decision = self.allocation.should_start_new(self.active.extent, obs, pose)
-        self.allocation_rules[decision.rule or "scripted", decision.new] += 1
+        self.allocation_rules[decision.rule, decision.new] += 1
         closed = []
         if decision.new:
             old = self.active
