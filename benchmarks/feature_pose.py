@@ -1,4 +1,4 @@
-"""How accurate is the pose from ORB feature matches (``slam.loop.verification.feature_pose``: the feature start of
+"""How accurate is the pose from ORB feature matches (``slam.features.feature_pose``: the feature start of
 tracking after a gap, and loop verification's seed for registration)? Per sequence and frame gap g: frame pairs
 (i, i + g), i every ``--every`` frames, each pair's pose against the ground truth, for each ``depth_noise`` (0: PnP on
 reprojection alone; > 0: the query's depth joins the last refinement). Reports the pairs found and the median
@@ -19,8 +19,7 @@ import torch
 from gausem_core.config import BowConfig
 from gausem_core.data import open_dataset
 from gausem_core.io.metrics import git_commit
-from gausem_core.slam.loop.verification import feature_pose
-from gausem_core.slam.loop.words import extract_features
+from gausem_core.slam.features import extract_features, feature_pose
 from gausem_core.tools.run import parse_size
 
 SEQUENCES = ["synthetic:loop", "synthetic:loop_noisy", "tum:../shared/data/tum_fr1_rpy",

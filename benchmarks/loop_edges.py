@@ -37,8 +37,8 @@ from gausem_core.geometry import invert_pose, se3_log  # noqa: E402
 from gausem_core.io.metrics import git_commit  # noqa: E402
 from gausem_core.pipeline import Pipeline  # noqa: E402
 from gausem_core.slam.depth_filter import filter_observation  # noqa: E402
+from gausem_core.slam.features import extract_features  # noqa: E402
 from gausem_core.slam.loop.verification import verify  # noqa: E402
-from gausem_core.slam.loop.words import extract_features  # noqa: E402
 from gausem_core.slam.registration import align_keyframes  # noqa: E402
 
 SEQUENCES = ("tum_fr1_rpy", "7scenes_redkitchen", "synthetic_loop_noisy")

@@ -9,7 +9,7 @@ import torch
 
 from gausem_core.slam.loop import LoopCandidate, PlaceSignature
 from gausem_core.slam import loop_graphs
-from gausem_core.slam.loop.words import DESCRIPTOR_BYTES, OrbFeatures
+from gausem_core.slam.features import DESCRIPTOR_BYTES, OrbFeatures
 from gausem_core.slam.loop_closure import LoopConstraint
 
 from .records import (LoopCandidateRecord, LoopConstraintRecord, PlaceSignatureRecord, PoseGraphNode,

@@ -339,7 +339,8 @@ def test_only_keyframes_near_the_best_similarity_enter_the_landmark_ranking(min_
 def test_detector_from_config_with_the_bag_of_words_and_a_mismatched_signature():
     """"bow": a bag-of-words database whose bow.candidates best are ranked; a global descriptor is refused clearly
     (and so are ORB features by a descriptor database), before anything is stored."""
-    from gausem_core.slam.loop.words import BagOfWords, OrbFeatures
+    from gausem_core.slam.features import OrbFeatures
+    from gausem_core.slam.loop.words import BagOfWords
     cfg = LoopConfig()
     bow = LoopDetector.from_config(cfg, "bow")
     assert isinstance(bow.database, BagOfWords) and bow.max_candidates == cfg.bow.candidates

@@ -435,7 +435,7 @@ def test_place_signatures_to_and_from_the_core_type():
     """Both kinds of appearance round-trip exactly (the loop detector stores what the tracker computed); a record
     with both or neither, or ORB columns of different counts, is refused."""
     from gausem_core.slam.loop import PlaceSignature
-    from gausem_core.slam.loop.words import OrbFeatures
+    from gausem_core.slam.features import OrbFeatures
     rng = np.random.default_rng(8)
     descriptor = PlaceSignature(40, 5, torch.from_numpy(rng.random(384).astype(np.float32)),
                                 torch.from_numpy(rng.random(6)), (0, 7))

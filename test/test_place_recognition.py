@@ -8,9 +8,10 @@ import pytest
 import torch
 
 from gausem_core.config import BowConfig, LoopConfig, MappingConfig
-from gausem_core.slam.loop.verification import feature_pose, refine_with_depth, verify
-from gausem_core.slam.loop.verification import match_features as match_feature_pairs
-from gausem_core.slam.loop.words import BagOfWords, Vocabulary, extract_features
+from gausem_core.slam.features import extract_features, feature_pose, refine_with_depth
+from gausem_core.slam.features import match_features as match_feature_pairs
+from gausem_core.slam.loop.verification import verify
+from gausem_core.slam.loop.words import BagOfWords, Vocabulary
 from gausem_core.slam.mapper import Mapper
 from loop_scene import frame, make_submap, pose_error
 

@@ -317,7 +317,7 @@ def _orb_places() -> list:
     """Bag-of-words signatures of synthetic views: three places, then the first one again (a revisit)."""
     from gausem_core.config import BowConfig
     from gausem_core.slam.loop import PlaceSignature
-    from gausem_core.slam.loop.words import extract_features
+    from gausem_core.slam.features import extract_features
     from loop_scene import frame
     places = []
     for n, index in enumerate((0, 90, 180, 3)):

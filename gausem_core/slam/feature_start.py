@@ -3,7 +3,7 @@
 Dense alignment converges from a pixel or two at its coarsest pyramid level; a live node slower than its camera sees
 larger motions between the frames it processes. Features match across those: the current frame's ORB keypoints are
 matched to the last good frame's, whose depth makes them 3D points, and RANSAC PnP gives the current camera's pose
-relative to it (:func:`~gausem_core.slam.loop.verification.feature_pose`, as loop verification uses). That pose is one
+relative to it (:func:`~gausem_core.slam.features.feature_pose`, as loop verification uses). That pose is one
 more start for the tracker, which keeps the start its coarsest level aligns best, so a wrong feature pose costs one
 coarse alignment, not the frame.
 """
@@ -13,8 +13,7 @@ import torch
 
 from gausem_core.config import FeatureStartConfig, check_gap_mode, gap_mode_applies
 from gausem_core.geometry import invert_pose, project_to_se3
-from gausem_core.slam.loop.verification import feature_pose
-from gausem_core.slam.loop.words import OrbFeatures, extract_features
+from gausem_core.slam.features import OrbFeatures, extract_features, feature_pose
 from gausem_core.slam.observation import Observation
 
 

@@ -47,10 +47,11 @@ from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_log
 from gausem_core.semantics.descriptors import DescriptorExtractor, make_descriptor
 from gausem_core.slam.events import Correction
+from gausem_core.slam.features import OrbFeatures, extract_features
 from gausem_core.slam.loop import (DescriptorDatabase, LoopCandidate, LoopDetector, PlaceSignature, gaussian_idf,
                                    landmark_scores, nearby_keyframes, observed_gaussians)
 from gausem_core.slam.loop.verification import verify
-from gausem_core.slam.loop.words import BagOfWords, OrbFeatures, extract_features
+from gausem_core.slam.loop.words import BagOfWords
 from gausem_core.slam.loop_graphs import LoopGraphs, PoseGraphUpdate, odometry_sigmas
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.observation import Observation

@@ -10,7 +10,8 @@ import torch
 from gausem_core.config import LoopConfig
 from gausem_core.slam.loop.database import DescriptorDatabase
 from gausem_core.slam.loop.landmarks import landmark_distance
-from gausem_core.slam.loop.words import BagOfWords, OrbFeatures
+from gausem_core.slam.features import OrbFeatures
+from gausem_core.slam.loop.words import BagOfWords
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,7 @@
 """Place recognition on the images themselves, without pretrained weights: a bag of binary words over ORB features
 with a vocabulary built online.
 
-Each keyframe's grey image gets up to ``features`` ORB keypoints (images whose short side is below
-``min_image_side`` are upscaled by an integer factor first: ORB's 31-pixel patches find little in a 80x60 image);
-their 256-bit descriptors, pixel positions and camera-frame points (from the depth at the keypoint) are kept.
+Each keyframe's ORB features come from :mod:`gausem_core.slam.features`.
 
 Vocabulary: a descriptor within ``word_radius`` bits (Hamming) of a known word is that word; otherwise it becomes a
 new word (words are never merged or moved, so a keyframe's word ids stay valid). A query's descriptors are quantised
@@ -15,66 +13,12 @@ loop detector treats it as it treats global-descriptor distances.
 """
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 import torch
 
 from gausem_core.config import BowConfig
-
-DESCRIPTOR_BYTES = 32  # ORB: 256 bits
-
-
-@dataclass
-class OrbFeatures:
-    """ORB features of one image: ``keypoints`` (N, 2) float32 pixel positions (pixel centres at +0.5, as
-    :class:`~gausem_core.geometry.PinholeCamera`), ``descriptors`` (N, 32) uint8, ``points`` (N, 3) float32
-    camera-frame points (NaN where the depth has no reading), ``scale``: the upscaling ORB ran at."""
-
-    keypoints: np.ndarray
-    descriptors: np.ndarray
-    points: np.ndarray
-    scale: int
-
-    def __len__(self) -> int:
-        return len(self.keypoints)
-
-    def tensors(self) -> dict:
-        """As CPU tensors (for a saved session)."""
-        return {"keypoints": torch.from_numpy(self.keypoints), "descriptors": torch.from_numpy(self.descriptors),
-                "points": torch.from_numpy(self.points), "scale": self.scale}
-
-    @classmethod
-    def from_tensors(cls, values: dict) -> "OrbFeatures":
-        return cls(values["keypoints"].numpy(), values["descriptors"].numpy(), values["points"].numpy(),
-                   int(values["scale"]))
-
-
-def extract_features(rgb: torch.Tensor, depth: torch.Tensor, camera, cfg: BowConfig) -> OrbFeatures:
-    """ORB features of an RGB image (H, W, 3) in [0, 1] with its metric depth (H, W) (0 = no reading)."""
-    if rgb.dim() != 3 or rgb.shape[2] != 3 or tuple(depth.shape) != tuple(rgb.shape[:2]):
-        raise ValueError(f"extract_features: need rgb (H, W, 3) and depth (H, W), got {tuple(rgb.shape)} and "
-                         f"{tuple(depth.shape)}")
-    height, width = depth.shape
-    grey = cv2.cvtColor((rgb.detach().float().clamp(0, 1) * 255).round().byte().cpu().numpy(), cv2.COLOR_RGB2GRAY)
-    scale = max(1, math.ceil(cfg.min_image_side / min(height, width)))
-    if scale > 1:
-        grey = cv2.resize(grey, (width * scale, height * scale), interpolation=cv2.INTER_LINEAR)
-    orb = cv2.ORB_create(nfeatures=cfg.features, fastThreshold=cfg.fast_threshold)
-    found, descriptors = orb.detectAndCompute(grey, None)
-    if descriptors is None or not found:
-        return OrbFeatures(np.zeros((0, 2), np.float32), np.zeros((0, DESCRIPTOR_BYTES), np.uint8),
-                           np.zeros((0, 3), np.float32), scale)
-    keypoints = (np.array([k.pt for k in found], np.float32) + 0.5) / scale  # OpenCV: pixel centres at integers
-    columns = np.clip(keypoints[:, 0].astype(np.int64), 0, width - 1)
-    rows = np.clip(keypoints[:, 1].astype(np.int64), 0, height - 1)
-    z = depth.detach().float().cpu().numpy()[rows, columns]
-    z = np.where(z > 0, z, np.nan).astype(np.float32)
-    points = np.stack([(keypoints[:, 0] - camera.cx) / camera.fx * z, (keypoints[:, 1] - camera.cy) / camera.fy * z,
-                       z], 1).astype(np.float32)
-    return OrbFeatures(keypoints, descriptors, points, scale)
+from gausem_core.slam.features import DESCRIPTOR_BYTES, OrbFeatures
 
 
 class Vocabulary:
