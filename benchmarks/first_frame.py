@@ -36,7 +36,7 @@ def first_frame(pipeline: Pipeline, cfg, frames: int) -> tuple[float, float]:
     observations = [pipeline.observation(pipeline.dataset[i]) for i in range(frames)]
     start = time.perf_counter()
     slam.process(observations[0])
-    if slam.worker is not None:
+    if slam.back_end.worker is not None:
         slam.submaps[0].trackable.wait()
     ready = time.perf_counter() - start
     for obs in observations[1:]:

@@ -170,7 +170,7 @@ def memory_case(args) -> None:
                "keyframes": sum(len(s.keyframes) for s in slam.submaps),
                "active_gaussians": slam.active.num_gaussians,
                "stored_gaussians": sum(s.num_gaussians for s in slam.submaps[:-1]),
-               "store_memory_mb": slam.store.nbytes / 2**20, "store_disk_mb": slam.store.disk_bytes / 2**20}
+               "store_memory_mb": slam.back_end.store.nbytes / 2**20, "store_disk_mb": slam.back_end.store.disk_bytes / 2**20}
     print(json.dumps(figures))
 
 

@@ -122,6 +122,12 @@ def project_to_se3(pose: torch.Tensor) -> torch.Tensor:
     return m.to(pose)
 
 
+def rigid_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a @ b for 4x4 rigid transforms, computed in float64 with the rotation projected back onto SO(3) (SVD), in a's
+    dtype: chains of anchors then stay rigid instead of accumulating rounding."""
+    return project_to_se3(a.double() @ b.double()).to(a.dtype)
+
+
 def rigid_float64(pose: torch.Tensor) -> torch.Tensor:
     """A pose as a float64 CPU tensor, projected onto SE(3) when finite (a non-finite pose is returned as is)."""
     m = pose.detach().cpu().double()

@@ -128,7 +128,7 @@ def rendered_views(result: RunResult, pipeline: Pipeline, positions: list[int]):
         world_to_cam = invert_pose(torch.as_tensor(result.poses[k], dtype=cloud.dtype, device=cloud.device))
         with torch.no_grad():
             out = render(cloud, world_to_cam, obs.camera, backend=pipeline.cfg.backend)
-        yield frame, obs, replace(out, color=result.slam.vignetting.apply(out.color, obs.camera))
+        yield frame, obs, replace(out, color=result.slam.back_end.vignetting.apply(out.color, obs.camera))
 
 
 def evaluate_rendering(result: RunResult, pipeline: Pipeline, eval_every: int,
@@ -162,7 +162,7 @@ def evaluate_rendering(result: RunResult, pipeline: Pipeline, eval_every: int,
 def performance_metrics(result: RunResult, device: torch.device) -> dict:
     """Frames, timing, map size, peak host memory and (on CUDA) peak GPU memory."""
     frames = len(result.frame_ids)
-    slam = result.slam
+    slam, back = result.slam, result.slam.back_end
     out = {"frames": frames, "seconds": result.seconds, "fps": result.fps,
            "seconds_per_frame": result.seconds / frames if frames else math.nan,
            "num_gaussians": sum(len(s.cloud) for s in slam.submaps), "num_submaps": len(slam.submaps),
@@ -170,10 +170,10 @@ def performance_metrics(result: RunResult, device: torch.device) -> dict:
     if result.frame_seconds:
         out["frame_ms_median"] = 1e3 * percentile(result.frame_seconds, 0.5)
         out["frame_ms_p95"] = 1e3 * percentile(result.frame_seconds, 0.95)
-    rules = sorted({rule for rule, _ in slam.allocation_rules})
-    out["allocation"] = {rule: {"decisions": slam.allocation_rules[rule, False] + slam.allocation_rules[rule, True],
-                                "new_submaps": slam.allocation_rules[rule, True]} for rule in rules}
-    out["worker"] = {"mode": slam.cfg.worker.mode, **(slam.worker.stats.summary() if slam.worker is not None else {}),
+    rules = sorted({rule for rule, _ in back.allocation_rules})
+    out["allocation"] = {rule: {"decisions": back.allocation_rules[rule, False] + back.allocation_rules[rule, True],
+                                "new_submaps": back.allocation_rules[rule, True]} for rule in rules}
+    out["worker"] = {"mode": slam.cfg.worker.mode, **(back.worker.stats.summary() if back.worker is not None else {}),
                      "map_age_frames_median": percentile(result.map_ages, 0.5),
                      "map_age_frames_p95": percentile(result.map_ages, 0.95)}
     if result.live is not None:
@@ -277,9 +277,9 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
     if evaluation.rows:
         write_montage(out / "montage.png", evaluation.rows)
     metrics.update(performance_metrics(result, pipeline.device))
-    a = result.slam.vignetting.a
+    a = result.slam.back_end.vignetting.a
     metrics["vignetting"] = {"a": a, "corner_gain": math.exp(a)}  # V(r) = exp(a r^2); corner_gain: V at r = 1
-    descriptor = result.slam.descriptor
+    descriptor = result.slam.back_end.descriptor
     metrics["semantics"] = {**pipeline.semantics.summary(),
                             "descriptor": descriptor.kind if descriptor is not None else None}
     if result.slam.loop_closure is not None:

@@ -13,7 +13,7 @@ from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_exp, se3_log
 from gausem_core.slam.mapper import Keyframe, gaussians_from_pixels
 from gausem_core.slam.observation import Observation
-from gausem_core.slam.system import Submap
+from gausem_core.slam.submap import Submap
 
 PALETTE = SYNTHETIC_CLASSES.palette.float()
 

@@ -15,6 +15,7 @@ from gausem_core.io.trajectory import read_tum_trajectory
 from gausem_core.pipeline import Pipeline
 from gausem_core.report import write_outputs
 from gausem_core.slam.relocalisation import RelocalisationResult
+from gausem_core.slam.front_end import FrontEnd
 from gausem_core.slam.system import GauSemSLAM
 
 FAST = ["--set", "mapping.init_iterations=60", "--set", "mapping.iterations=5"]
@@ -59,24 +60,25 @@ def test_gausem_run_saves_and_resumes_a_session(tmp_path):
     assert metrics["frames"] == 5 and metrics["ate"]["rmse"] < 0.2
 
 
-class DropsFrames(GauSemSLAM):
+class DropsFrames(FrontEnd):
     """Drops the frames with the given timestamps as a failed relocalisation does (not recorded, map untouched)."""
 
-    def __init__(self, *args, drop: set[float], **kwargs):
-        super().__init__(*args, **kwargs)
+    def __init__(self, *args, drop: set[float]):
+        super().__init__(*args)
         self.drop = drop
 
-    def _place(self, obs, motion, *tracked_against):
+    def _track_or_relocalise(self, obs, motion, *tracked_against):
         if obs.timestamp in self.drop:
             return None, RelocalisationResult(False, torch.eye(4), 0.0, math.nan, 0, "none", 0, 0)
-        return super()._place(obs, motion, *tracked_against)
+        return super()._track_or_relocalise(obs, motion, *tracked_against)
 
 
 def test_a_strided_run_with_a_dropped_frame_is_evaluated_on_its_own_frames(tmp_path):
     dataset = SyntheticDataset("default", resolution=(80, 60), stride=3, max_frames=5)  # frame ids 0, 3, ..., 12
     cfg = from_flat({"device": "cpu", "mapping.init_iterations": 60, "mapping.iterations": 5})
     pipeline = Pipeline(dataset, cfg, progress=False)
-    slam = DropsFrames(cfg, pipeline.device, len(pipeline.palette), drop={dataset[1].timestamp})
+    slam = GauSemSLAM(cfg, pipeline.device, len(pipeline.palette))
+    slam.front_end = DropsFrames(cfg, slam.device, slam.back_end, drop={dataset[1].timestamp})
     result = pipeline.run(slam)
     assert result.frame_ids == [0, 6, 9, 12] and result.dataset_positions == [0, 2, 3, 4]
 

@@ -208,7 +208,7 @@ def test_a_session_saved_while_lost_goes_on_as_the_original(planted_run):
     slam, results, _, _, _, observations, session = planted_run
     loaded = GauSemSLAM.load(session, relocalise=False)
     assert loaded.lost and loaded.frames[SLOT].lost and not any(f.lost for f in loaded.frames[:SLOT])
-    assert loaded.health.state_dict()["residuals"] and loaded.health.state_dict()["motions"]
+    assert loaded.front_end.health.state_dict()["residuals"] and loaded.front_end.health.state_dict()["motions"]
     resumed = loaded.process(observations[SLOT + 1])
     original = results[SLOT + 1]
     assert torch.equal(resumed.cam_to_world, original.cam_to_world) and resumed.health == original.health

@@ -99,7 +99,7 @@ def drifting_run(revisit: int = REVISIT, overrides: dict | None = None, labelled
     truth = [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]
     palette = SYNTHETIC_CLASSES.palette if labelled else UNLABELLED_PALETTE
     slam = GauSemSLAM(from_flat({**CONFIG, **(overrides or {})}), "cpu", len(palette))
-    slam.tracker = DriftingOdometry(slam, truth)
+    slam.front_end.tracker = DriftingOdometry(slam, truth)
     for n, f in enumerate(frames):
         labels = f.labels if labelled else np.zeros_like(f.labels)
         slam.process(Observation.from_arrays(f.rgb, f.depth, labels, f.camera, palette, n / RATE))

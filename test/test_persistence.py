@@ -44,7 +44,7 @@ class ScriptedPolicy:
 
 
 def scripted(slam, observations):
-    slam.allocation = ScriptedPolicy(observations[i].timestamp for i in SWITCH_AT)
+    slam.back_end.allocation = ScriptedPolicy(observations[i].timestamp for i in SWITCH_AT)
     return slam
 
 
@@ -81,10 +81,10 @@ def test_a_loaded_session_goes_on_bit_identically(sequence, saved):
     observations, _ = sequence
     original, folder = saved
     assert len(original.submaps) == 3 and [s.is_active for s in original.submaps] == [False, False, True]
-    assert original.store.on_disk(("cloud", 0)) and original.loop_closure.detector.database.ids.size > 0
+    assert original.back_end.store.on_disk(("cloud", 0)) and original.loop_closure.detector.database.ids.size > 0
     loaded = scripted(GauSemSLAM.load(folder, relocalise=False), observations)
     assert_same_state(original, loaded)
-    assert not loaded.submaps[0].is_active and loaded.store.on_disk(("cloud", 0))
+    assert not loaded.submaps[0].is_active and loaded.back_end.store.on_disk(("cloud", 0))
     for obs in observations[SAVED:SAVED + NEXT]:
         a, b = original.process(obs), loaded.process(obs)
         assert (a.frame_id, a.submap_id, a.is_keyframe) == (b.frame_id, b.submap_id, b.is_keyframe)
@@ -101,7 +101,7 @@ def test_the_session_folder_is_self_contained(saved, tmp_path):
     """A system's offloaded submaps (spilled to its temporary store) survive that store's deletion in the save."""
     _, folder = saved
     system = GauSemSLAM.load(folder, relocalise=False)
-    assert system.store.on_disk(("cloud", 0))
+    assert system.back_end.store.on_disk(("cloud", 0))
     system.save(tmp_path / "again")
     cloud, trajectory = system.global_cloud(), system.trajectory()
     images = system.submaps[0].observation(system.submaps[0].keyframes[-1]).rgb
@@ -132,8 +132,8 @@ def test_a_session_without_the_tracking_loss_fields_loads_as_never_lost(saved, t
         del frame["lost"]
     (old / SESSION_FILE).write_text(json.dumps(document))
     loaded = GauSemSLAM.load(old, relocalise=False)
-    assert not loaded.lost and loaded.dropped == 0 and not any(f.lost for f in loaded.frames)
-    assert loaded.health.state_dict() == {"residuals": [], "motions": []}
+    assert not loaded.lost and loaded.front_end.dropped == 0 and not any(f.lost for f in loaded.frames)
+    assert loaded.front_end.health.state_dict() == {"residuals": [], "motions": []}
     current = GauSemSLAM.load(folder, relocalise=False)
     assert all(torch.equal(p, q) for (_, p), (_, q) in zip(current.trajectory(), loaded.trajectory(), strict=True))
 
@@ -161,7 +161,7 @@ def test_relocalisation_places_an_earlier_frame(sequence, saved):
     error = invert_pose(poses[3].double()) @ result.cam_to_world.double()
     assert float(error[:3, 3].norm()) < 0.02
     assert math.degrees(float(so3_log(error[:3, :3]).norm())) < 2.0
-    assert len(loaded.frames) == frames + 1 and loaded.segment_start == frames
+    assert len(loaded.frames) == frames + 1 and loaded.front_end.segment_start == frames
     follow = loaded.process(observations[4])  # tracking goes on from there
     assert follow.relocalisation is None
 

@@ -17,7 +17,8 @@ from gausem_core.pipeline import Pipeline, RunResult
 from gausem_core.report import format_summary, loop_metrics, nearest_palette_class, write_outputs
 from gausem_core.slam.loop_closure import LoopRecord
 from gausem_core.slam.mapper import Keyframe, gaussians_from_pixels
-from gausem_core.slam.system import GauSemSLAM, Submap
+from gausem_core.slam.submap import Submap
+from gausem_core.slam.system import GauSemSLAM
 
 ANCHOR = torch.tensor([[0.0, -1.0, 0.0, 0.5], [1.0, 0.0, 0.0, -0.2], [0.0, 0.0, 1.0, 0.1], [0.0, 0.0, 0.0, 1.0]])
 
@@ -55,8 +56,8 @@ def fake_result(dataset, poses=None):
     pixels = torch.nonzero(obs[0].valid_depth.reshape(-1)).squeeze(1)
     cloud = gaussians_from_pixels(obs[0], gt[0], pixels, opacity=0.99)
     slam = GauSemSLAM(cfg, "cpu")
-    slam.submaps = [Submap(0, torch.eye(4), cloud, [Keyframe(0, obs[0], gt[0], fixed=True)]),
-                    Submap(1, ANCHOR, GaussianCloud.empty(), [Keyframe(2, obs[2], torch.linalg.inv(ANCHOR) @ gt[2])])]
+    slam.submaps[:] = [Submap(0, torch.eye(4), cloud, [Keyframe(0, obs[0], gt[0], fixed=True)]),
+                       Submap(1, ANCHOR, GaussianCloud.empty(), [Keyframe(2, obs[2], torch.linalg.inv(ANCHOR) @ gt[2])])]
     poses = np.stack([g.double().numpy() for g in gt]) if poses is None else poses
     return RunResult(slam, [f.timestamp for f in frames], poses, [f.gt_pose for f in frames],
                      [f.index for f in frames], list(range(len(frames))), seconds=2.0), cloud

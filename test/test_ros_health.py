@@ -70,7 +70,7 @@ def test_tracking_health_reaches_diagnostics_and_odometry_and_a_lost_frame_is_dr
         assert spin_until(executor, lambda: latest().level == DiagnosticStatus.WARN, 5.0)
         values = {kv.key: kv.value for kv in latest().values}
         assert values["tracking.status"] == "degraded" and values["tracking.inlier_fraction"] == "0.5"
-        assert float(values["camera.vignetting_corner_gain"]) == math.exp(tracking.slam.vignetting.a)
+        assert float(values["camera.vignetting_corner_gain"]) == math.exp(tracking.slam.back_end.vignetting.a)
         assert "tracking degraded" in latest().message
 
         send(1.2, TrackingHealth("lost", jump=40.0, reasons=("jump",)),

@@ -159,7 +159,7 @@ def test_the_node_maps_on_its_worker_by_default_and_publishes_the_keyframes_it_f
                                                      "worker.map_age_frames"} <= set(status)
         tracking.finish()
         keyframes = [k.frame_id for s in tracking.slam.submaps for k in s.keyframes]
-        stats = tracking.slam.worker.stats
+        stats = tracking.slam.back_end.worker.stats
         assert len(keyframes) >= 2 and stats.mapped == len(keyframes) == stats.submitted - stats.superseded
         tracked = tracking.frames_processed  # every frame not judged lost
         assert tracked >= frames - 2

@@ -75,7 +75,7 @@ def test_submaps_offloaded_to_disk_come_back_onto_the_gpu():
     slam, results = run_system(config(**SUBMAPS), (160, 120), 9)
     assert [r.submap_id for r in results if r.is_keyframe] == [0, 1, 2, 3, 4]
     inactive = [s for s in slam.submaps if not s.is_active]
-    assert len(inactive) == 4 and slam.store.nbytes == 0 and slam.store.disk_bytes > 0  # all spilled
+    assert len(inactive) == 4 and slam.back_end.store.nbytes == 0 and slam.back_end.store.disk_bytes > 0  # all spilled
     assert_on_cuda(results=frame_results(results), **system_results(slam))
     assert_events_on_cpu(results)
     for submap in inactive:  # read back bit-identically: the store's copy equals what the GPU gets

@@ -12,12 +12,13 @@ import torch
 
 from gausem_core.config import from_flat
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
-from gausem_core.geometry import invert_pose, se3_exp
+from gausem_core.geometry import invert_pose, rigid_product, se3_exp
 from gausem_core.slam.allocation import Decision, make_allocation, partition_keyframes
 from gausem_core.slam.depth_filter import filter_observation
 from gausem_core.slam.loop_graphs import PoseGraphUpdate
 from gausem_core.slam.observation import Observation
-from gausem_core.slam.system import GauSemSLAM, StoredObservation, rigid_product
+from gausem_core.slam.submap import StoredObservation
+from gausem_core.slam.system import GauSemSLAM
 from gausem_core.slam.tracker import TrackingResult
 
 CHEAP = {"backend": "torch", "loop.enabled": False, "mapping.iterations": 2, "mapping.init_iterations": 5,
@@ -65,16 +66,16 @@ def run(sequence, count, overrides=None, switch_at=None, device="cpu", stored=No
     copies of what goes to the submap store are kept in ``stored`` when given."""
     observations, poses = sequence
     slam = GauSemSLAM(from_flat({**CHEAP, **(overrides or {})}), device, len(SYNTHETIC_CLASSES))
-    slam.tracker = OracleTracker(slam, poses)
+    slam.front_end.tracker = OracleTracker(slam, poses)
     if switch_at is not None:
-        slam.allocation = ScriptedPolicy(observations[i].timestamp for i in switch_at)
+        slam.back_end.allocation = ScriptedPolicy(observations[i].timestamp for i in switch_at)
     if stored is not None:
-        keep = slam.store.store
+        keep = slam.back_end.store.store
 
         def recording_store(key, tensors):
             stored[key] = {name: t.clone() for name, t in tensors.items()}
             keep(key, tensors)
-        slam.store.store = recording_store
+        slam.back_end.store.store = recording_store
     inputs = [Observation(*(getattr(o, n).to(device) for n in ("rgb", "depth", "semantic", "labels")), o.camera,
                           o.timestamp) for o in observations[:count]]
     return slam, [slam.process(obs) for obs in inputs], inputs
@@ -179,7 +180,7 @@ def test_inactive_submaps_leave_the_device_and_come_back_bit_identical(sequence,
                           switch_at=[4], device=device, stored=stored)
     closed, active = slam.submaps
     assert not closed.is_active and active.is_active and ("cloud", 0) in stored and ("cloud", 1) not in stored
-    assert slam.store.on_disk(("cloud", 0)) is spilled
+    assert slam.back_end.store.on_disk(("cloud", 0)) is spilled
     for name, tensor in closed.load_cloud(device).tensors().items():
         assert tensor.device.type == device and torch.equal(tensor, stored[("cloud", 0)][name])
     assert all(t.device.type == "cpu" for t in closed.load_cloud().tensors().values())
@@ -210,7 +211,7 @@ def test_trajectory_and_global_cloud_cover_all_frames(sequence):
     parts = torch.split(cloud.means, sizes)
     for submap, part in zip(slam.submaps, parts):
         assert torch.allclose(part, submap.load_cloud().transformed(submap.anchor).means)
-    directory = slam.store.directory
+    directory = slam.back_end.store.directory
     assert directory.is_dir()
     slam.close()
     assert not directory.exists()
@@ -249,4 +250,4 @@ def test_interrupt_cuts_the_frame_in_progress_short_and_leaves_a_consistent_map(
     assert time.monotonic() - start < 5.0
     assert len(slam.frames) == 1 and len(slam.active.cloud) > 0
     slam.process(obs[1])
-    assert len(slam.frames) == 2 and not slam.mapper.hurry.is_set()
+    assert len(slam.frames) == 2 and not slam.back_end.mapper.hurry.is_set()

@@ -193,7 +193,8 @@ def test_the_motion_model_predicts_across_skipped_frames_by_their_timestamps():
     """A live node that falls behind skips frames: the constant-velocity prediction for the next one it processes
     repeats the last motion over the time elapsed, not once; without increasing stamps it counts frames. Frames 1-3
     are recorded at their true poses (the motion model alone, not the tracker, is under test)."""
-    from gausem_core.slam.system import FrameRecord, GauSemSLAM
+    from gausem_core.slam.submap import FrameRecord
+    from gausem_core.slam.system import GauSemSLAM
 
     cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "mapping.init_iterations": 5})
     dataset = open_dataset("synthetic", size=(40, 30), max_frames=12)
@@ -208,7 +209,7 @@ def test_the_motion_model_predicts_across_skipped_frames_by_their_timestamps():
     for i in range(1, 4):
         slam.frames.append(FrameRecord(i, dataset[i].timestamp, slam.active, keyframe,
                                        invert_pose(keyframe.cam_to_world) @ truth(i)))
-    skipped = slam._motion_model(dataset[10].timestamp)  # frames 4-9 skipped
+    skipped = slam.front_end.motion_model(dataset[10].timestamp)  # frames 4-9 skipped
     once = constant_velocity(truth(3), truth(2))
 
     def error(pose):
@@ -216,7 +217,7 @@ def test_the_motion_model_predicts_across_skipped_frames_by_their_timestamps():
     assert error(skipped.predicted) < 0.3 * error(once) and skipped.gap  # a gap: the tracker searches around it
     jittered = dataset[3].timestamp + 1.3 * (dataset[3].timestamp - dataset[2].timestamp)  # stamp jitter, no gap
     for stamp in (jittered, dataset[3].timestamp):  # ... and no time elapsed: one frame on, by the count
-        motion = slam._motion_model(stamp)
+        motion = slam.front_end.motion_model(stamp)
         assert torch.allclose(motion.predicted, once, atol=1e-5) and motion.steps == 1 and not motion.gap
 
 
@@ -224,35 +225,36 @@ def test_the_motion_model_counts_the_frames_a_caller_skipped():
     """A node steadily four times slower than its camera: the stamps alone show no gap (every interval alike), the
     skipped frames it passes on do; the prediction repeats the latest motion once per the camera frames that motion
     spanned. The count goes into the frame's record."""
-    from gausem_core.slam.system import FrameRecord, GauSemSLAM
+    from gausem_core.slam.submap import FrameRecord
+    from gausem_core.slam.system import GauSemSLAM
 
     cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "mapping.init_iterations": 5})
     dataset = open_dataset("synthetic", size=(40, 30), max_frames=17)
     pipeline = Pipeline(dataset, cfg, progress=False)
     slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
     slam.process(pipeline.observation(dataset[0]), skipped=5)
-    assert slam.skipped == 0 and slam.frames[0].skipped == 0
+    assert slam.front_end.skipped == 0 and slam.frames[0].skipped == 0
     origin = np.linalg.inv(dataset[0].gt_pose)
     keyframe = slam.active.keyframes[0]
     for i in (4, 8):
         truth = torch.tensor(origin @ dataset[i].gt_pose, dtype=torch.float32)
         slam.frames.append(FrameRecord(i, dataset[i].timestamp, slam.active, keyframe,
                                        invert_pose(keyframe.cam_to_world) @ truth, skipped=3))
-    slam.skipped = 3
-    told = slam._motion_model(dataset[12].timestamp)
+    slam.front_end.skipped = 3
+    told = slam.front_end.motion_model(dataset[12].timestamp)
     assert told.gap and told.steps == pytest.approx(1.0, abs=0.1)
-    slam.skipped = 5  # six camera frames on, the pair spanned four
-    assert slam._motion_model(dataset[14].timestamp).steps == pytest.approx(1.5)
+    slam.front_end.skipped = 5  # six camera frames on, the pair spanned four
+    assert slam.front_end.motion_model(dataset[14].timestamp).steps == pytest.approx(1.5)
     for record in slam.frames:
         record.skipped = 0
-    slam.skipped = 0
-    unknown = slam._motion_model(dataset[12].timestamp)
+    slam.front_end.skipped = 0
+    unknown = slam.front_end.motion_model(dataset[12].timestamp)
     assert not unknown.gap and unknown.steps == 1 and torch.allclose(told.predicted, unknown.predicted, atol=1e-3)
     with pytest.raises(ValueError, match="skipped must be >= 0"):
         slam.process(pipeline.observation(dataset[12]), skipped=-1)
     result = slam.process(pipeline.observation(dataset[16]), skipped=7)
-    assert result.health.status != "lost" and slam.skipped == 0 and slam.frames[-1].skipped == 7
-    assert result.is_keyframe  # after that gap the map covers too little of the view: the mapping made the record
+    assert result.health.status != "lost" and slam.front_end.skipped == 0 and slam.frames[-1].skipped == 7
+    assert result.is_keyframe  # after that gap the map covers too little of the view
 
 
 def test_the_search_starts_surround_the_start_and_an_unknown_mode_is_rejected():

@@ -1,4 +1,4 @@
-"""Online vignetting calibration (slam.vignetting): a planted radial falloff is measured and divided out, none is
+"""Online vignetting calibration (slam.back_end.vignetting): a planted radial falloff is measured and divided out, none is
 invented on a clean camera, and the estimate lives in the system's state."""
 import math
 from dataclasses import replace

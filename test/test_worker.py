@@ -169,7 +169,7 @@ def test_async_tracks_every_frame_while_the_worker_opens_submaps():
         estimate = [pose for _, pose in slam.trajectory()]
         errors[mode] = max(float((e[:3, 3] - t[:3, 3]).norm()) for e, t in zip(estimate, truth))
         if mode == "async":
-            stats = slam.worker.stats
+            stats = slam.back_end.worker.stats
             assert stats.mapped == len(keyframes) and stats.superseded == 0
         slam.close()
     assert errors["async"] < 0.05 and errors["sync"] < 0.05, errors  # metres, worst frame
@@ -206,7 +206,7 @@ def test_async_closes_a_loop_while_frames_keep_coming():
                      # the odometry is given: a map still being optimised must not have it judged lost
                      "health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0})
     slam = GauSemSLAM(cfg, "cpu", len(SYNTHETIC_CLASSES))
-    slam.tracker = InitOdometry(truth, BIAS)
+    slam.front_end.tracker = InitOdometry(truth, BIAS)
     results = []
     for n, f in enumerate(frames):
         results.append(slam.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera,
@@ -216,8 +216,8 @@ def test_async_closes_a_loop_while_frames_keep_coming():
     during = [e for r in results for e in r.mapped]
     slam.finish()
     assert slam.loop_closure.loops, "no loop closed"
-    assert any(e.loop is not None and e.loop.correction for e in during) or slam.worker.stats.lag_frames[-1] > 0
-    assert max(slam.worker.stats.lag_frames) >= 1  # the tracker went on while keyframes were mapped
+    assert any(e.loop is not None and e.loop.correction for e in during) or slam.back_end.worker.stats.lag_frames[-1] > 0
+    assert max(slam.back_end.worker.stats.lag_frames) >= 1  # the tracker went on while keyframes were mapped
     assert len(slam.submaps) >= 2
     estimate = [pose for _, pose in slam.trajectory()]
     assert ate_rmse(estimate, truth) <= 0.5 * ate_rmse(integrate_odometry(truth), truth)

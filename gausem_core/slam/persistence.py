@@ -31,7 +31,9 @@ from gausem_core.geometry import PinholeCamera
 from gausem_core.slam.allocation import Frustum, FrustumUnion, SubmapExtent
 from gausem_core.slam.mapper import Keyframe
 from gausem_core.slam.observation import Observation
-from gausem_core.slam.system import _IMAGES, FrameRecord, GauSemSLAM, Submap
+from gausem_core.slam.submap import KEYFRAME_IMAGES, FrameRecord, Submap
+from gausem_core.slam.submap_store import SubmapStore
+from gausem_core.slam.system import GauSemSLAM
 
 FORMAT = "gausem-session"
 VERSION = 1
@@ -120,7 +122,7 @@ def _submap_tree(submap: Submap, writer: _TensorWriter) -> dict:
         keyframes.append({"frame_id": kf.frame_id, "fixed": kf.fixed, "timestamp": obs.timestamp,
                           "camera": dataclasses.asdict(obs.camera),
                           "cam_to_world": writer.pack(kf.cam_to_world, STATE_FILE),
-                          "images": writer.pack({name: getattr(obs, name) for name in _IMAGES}, file)})
+                          "images": writer.pack({name: getattr(obs, name) for name in KEYFRAME_IMAGES}, file)})
     return {"id": submap.submap_id, "active": submap.is_active, "anchor": writer.pack(submap.anchor, STATE_FILE),
             "extent": writer.pack(_extent_tree(submap.extent), STATE_FILE),
             "cloud": writer.pack(submap.load_cloud().tensors(), file), "keyframes": keyframes}
@@ -131,11 +133,12 @@ def _state_tree(slam: GauSemSLAM, writer: _TensorWriter) -> dict:
                "reference": f.reference.frame_id, "relative": f.relative, "lost": f.lost,
                "skipped": f.skipped} for f in slam.frames]
     loop = slam.loop_closure.state_dict() if slam.loop_closure is not None else None
+    front, back = slam.front_end, slam.back_end
     return {"submaps": [_submap_tree(s, writer) for s in slam.submaps],
-            **writer.pack({"frames": frames, "segment_start": slam.segment_start, "lost": slam.lost,
-                           "dropped": slam.dropped, "skipped": slam.skipped, "health": slam.health.state_dict(),
-                           "feature_start": slam.feature_start.state_dict(), "vignetting": slam.vignetting.state_dict(),
-                           "mapper_generator": slam.mapper.generator.get_state(), "loop_closure": loop}, STATE_FILE)}
+            **writer.pack({"frames": frames, "segment_start": front.segment_start, "lost": front.lost,
+                           "dropped": front.dropped, "skipped": front.skipped, "health": front.health.state_dict(),
+                           "feature_start": front.feature_start.state_dict(), "vignetting": back.vignetting.state_dict(),
+                           "mapper_generator": back.mapper.generator.get_state(), "loop_closure": loop}, STATE_FILE)}
 
 
 def save_session(slam: GauSemSLAM, folder: str | Path) -> Path:
@@ -181,8 +184,8 @@ def _extent(tree: dict | None, device: torch.device) -> SubmapExtent | None:
     return SubmapExtent(tree["first_pose"].to(device), tree["anchor_counts"], FrustumUnion(frusta), tree["num_classes"])
 
 
-def _submap(tree: dict, reader: _TensorReader, device: torch.device, slam: GauSemSLAM) -> Submap:
-    """One submap, its tensors on ``device`` when active, else offloaded to ``slam``'s store."""
+def _submap(tree: dict, reader: _TensorReader, device: torch.device, store: SubmapStore) -> Submap:
+    """One submap, its tensors on ``device`` when active, else offloaded to ``store``."""
     tree = reader.unpack(tree)
     place = device if tree["active"] else "cpu"
     keyframes = [Keyframe(kf["frame_id"], Observation(**{n: t.to(place) for n, t in kf["images"].items()},
@@ -192,7 +195,7 @@ def _submap(tree: dict, reader: _TensorReader, device: torch.device, slam: GauSe
     cloud = GaussianCloud(**tree["cloud"]).to(place)
     submap = Submap(tree["id"], tree["anchor"].to(device), cloud, keyframes, _extent(tree["extent"], device))
     if not tree["active"]:
-        submap.offload(slam.store)
+        submap.offload(store)
     reader.forget(_submap_file(submap.submap_id))
     return submap
 
@@ -209,7 +212,8 @@ def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torc
     slam = GauSemSLAM(cfg or from_flat(saved), device, document["num_classes"], document["detect_loops"])
     reader = _TensorReader(folder)
     tree = document["state"]
-    slam.submaps = [_submap(submap, reader, slam.device, slam) for submap in tree["submaps"]]
+    front, back = slam.front_end, slam.back_end
+    back.submaps.extend(_submap(submap, reader, slam.device, back.store) for submap in tree["submaps"])
     state = reader.unpack({key: value for key, value in tree.items() if key != "submaps"})
     by_id = {s.submap_id: s for s in slam.submaps}
     for f in state["frames"]:
@@ -217,18 +221,18 @@ def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torc
         reference = next(kf for kf in submap.keyframes if kf.frame_id == f["reference"])
         slam.frames.append(FrameRecord(f["frame_id"], f["timestamp"], submap, reference,
                                        f["relative"].to(slam.device), f.get("lost", False), f.get("skipped", 0)))
-    slam.segment_start = state["segment_start"]
-    slam.dropped = state.get("dropped", 0)
-    slam.skipped = state.get("skipped", 0)
+    front.segment_start = state["segment_start"]
+    front.dropped = state.get("dropped", 0)
+    front.skipped = state.get("skipped", 0)
     if "health" in state:
-        slam.health.load_state_dict(state["health"])
-    slam.feature_start.load_state_dict(state.get("feature_start"))
+        front.health.load_state_dict(state["health"])
+    front.feature_start.load_state_dict(state.get("feature_start"))
     if "vignetting" in state:
-        slam.vignetting.load_state_dict(state["vignetting"])
-    slam.mapper.generator.set_state(state["mapper_generator"])
+        back.vignetting.load_state_dict(state["vignetting"])
+    back.mapper.generator.set_state(state["mapper_generator"])
     if slam.loop_closure is not None and state["loop_closure"] is not None:
         slam.loop_closure.load_state_dict(state["loop_closure"])
-    slam.lost = state.get("lost", False)
+    front.lost = state.get("lost", False)
     if relocalise and slam.submaps:
-        slam.lost, slam.segment_start = True, len(slam.frames)
+        front.lost, front.segment_start = True, len(slam.frames)
     return slam

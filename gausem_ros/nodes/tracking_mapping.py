@@ -466,14 +466,14 @@ class TrackingMappingNode(Node):
         """Diagnostics besides the drop counts: frames in, processed and pending, the last frame's tracking health,
         the latency over the last 100 frames, the last handled frame (lock-step players take it as the answer for a
         frame that produced no odometry), the depth and label messages the synchroniser dropped and the estimated
-        vignetting (brightness in the image corners relative to the centre, ``slam.vignetting``) and whether the
+        vignetting (brightness in the image corners relative to the centre, ``slam.back_end.vignetting``) and whether the
         frames are undistorted (``camera.undistorted``: the camera_info states a lens distortion)."""
         sync = self._inputs.synchronizer
         return {"frames_in": sync.received[0] + sync.lost[0], "frames_processed": self.frames_processed,
                 "frames_pending": self._frames_pending(), LAST_FRAME_KEY: self._handled_ns,
                 "tracking.status": self.health.status,
                 **{f"tracking.{name}": value for name, value in self.health.signals().items()},
-                "camera.vignetting_corner_gain": math.exp(self.slam.vignetting.a),
+                "camera.vignetting_corner_gain": math.exp(self.slam.back_end.vignetting.a),
                 "camera.undistorted": bool(self.lens_distortion), **self._worker_status(),
                 **latency_stats(self.latencies[-100:]),
                 **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(sync.dropped.items())
@@ -482,7 +482,7 @@ class TrackingMappingNode(Node):
     def _worker_status(self) -> dict:
         """The mapping worker's state: mode, keyframes waiting, the last mapped keyframe's lag (tracker frames between
         its arrival and its mapping), keyframes superseded in the queue, and the last frame's map age."""
-        worker = self.slam.worker
+        worker = self.slam.back_end.worker
         status = {"worker.mode": self.cfg.worker.mode, "worker.map_age_frames": self.map_age}
         if worker is not None:
             lags = worker.stats.lag_frames

@@ -1,0 +1,125 @@
+"""Submaps (paper §III-A) and the records of processed frames that hang off their keyframes.
+
+Each submap has its own frame, anchored at its first keyframe (``anchor`` = world-from-submap; the first keyframe sits
+at the identity and is never moved by bundle adjustment). Frames are stored relative to a reference keyframe of their
+submap, so corrections of anchors or keyframe poses (loop closure, pose graph) carry every frame along. Memory: only
+the active submap (Gaussians and keyframe images) lives on the compute device; a closed submap's tensors go to a
+:class:`~gausem_core.slam.submap_store.SubmapStore` and come back on demand, its anchor and keyframe poses at hand.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import torch
+
+from gausem_core.gaussians import GaussianCloud
+from gausem_core.geometry import PinholeCamera
+from gausem_core.slam.allocation import SubmapExtent
+from gausem_core.slam.mapper import Keyframe
+from gausem_core.slam.observation import Observation
+from gausem_core.slam.submap_store import SubmapStore
+
+KEYFRAME_IMAGES = ("rgb", "depth", "semantic", "labels")  # a keyframe observation's images, as stored
+
+
+@dataclass
+class StoredObservation:
+    """A closed submap's keyframe observation: camera and timestamp at hand, the images in the store."""
+
+    store: SubmapStore
+    key: tuple
+    camera: PinholeCamera
+    timestamp: float
+
+    def load(self, device: torch.device | str = "cpu") -> Observation:
+        """The observation, its images read back (bit-identical) onto ``device``."""
+        return Observation(**self.store.load(self.key, device), camera=self.camera, timestamp=self.timestamp)
+
+
+class Submap:
+    """Gaussians and keyframes in a local frame anchored at the first keyframe; ``anchor`` is world-from-submap.
+
+    While active, ``cloud`` and the keyframes' ``obs`` are tensors on the compute device. After :meth:`offload`
+    (inactive) they live in a :class:`SubmapStore`: ``cloud`` reads a CPU copy back (assigning it writes the store)
+    and each keyframe's ``obs`` is a :class:`StoredObservation`. Anchor and keyframe poses always stay in memory.
+    """
+
+    def __init__(self, submap_id: int, anchor: torch.Tensor, cloud: GaussianCloud,
+                 keyframes: list[Keyframe] | None = None, extent: SubmapExtent | None = None, trackable: bool = True):
+        self.submap_id = submap_id
+        self.trackable = threading.Event()  # its Gaussians are fit to track against (a new one's: once published)
+        if trackable:
+            self.trackable.set()
+        self.anchor = anchor
+        self.keyframes = list(keyframes or [])
+        self.extent = extent  # what allocation needs while the submap is active
+        self._cloud: GaussianCloud | None = cloud
+        self._store: SubmapStore | None = None
+        self.num_gaussians = len(cloud)
+
+    @property
+    def is_active(self) -> bool:
+        """Whether the tensors are resident (not offloaded to a store)."""
+        return self._store is None
+
+    @property
+    def cloud(self) -> GaussianCloud:
+        """The Gaussians in the submap frame (for an inactive submap: a copy read from the store)."""
+        return self.load_cloud()
+
+    @cloud.setter
+    def cloud(self, cloud: GaussianCloud) -> None:
+        if self._store is None:
+            self._cloud = cloud
+        else:
+            self._store.store(self._cloud_key, cloud.tensors())
+        self.num_gaussians = len(cloud)
+
+    def load_cloud(self, device: torch.device | str | None = None) -> GaussianCloud:
+        """The Gaussians on ``device`` (default: where they are; the CPU for an inactive submap). An inactive
+        submap's come back as a bit-identical copy; an active submap's are its own tensors (moved if asked)."""
+        if self._store is None:
+            return self._cloud if device is None else self._cloud.to(device)
+        return GaussianCloud(**self._store.load(self._cloud_key, device or "cpu"))
+
+    def observation(self, keyframe: Keyframe, device: torch.device | str = "cpu") -> Observation:
+        """One of the keyframes' observation: an active submap's own, an inactive one's read back onto ``device``."""
+        obs = keyframe.obs
+        return obs.load(device) if isinstance(obs, StoredObservation) else obs
+
+    def world_pose(self, keyframe: Keyframe) -> torch.Tensor:
+        """World-from-camera of one of this submap's keyframes."""
+        return self.anchor @ keyframe.cam_to_world
+
+    def offload(self, store: SubmapStore) -> None:
+        """Move the Gaussians and the keyframe images into ``store``; the submap becomes inactive."""
+        if self._store is not None:
+            raise ValueError(f"submap {self.submap_id} is already offloaded")
+        store.store(self._cloud_key, self._cloud.tensors())
+        for kf in self.keyframes:
+            key = ("keyframe", self.submap_id, kf.frame_id)
+            store.store(key, {name: getattr(kf.obs, name) for name in KEYFRAME_IMAGES})
+            kf.obs = StoredObservation(store, key, kf.obs.camera, kf.obs.timestamp)
+        self._cloud, self._store = None, store
+
+    @property
+    def _cloud_key(self) -> tuple:
+        return ("cloud", self.submap_id)
+
+
+@dataclass
+class FrameRecord:
+    """A processed frame, stored relative to its reference keyframe so map corrections carry it along."""
+
+    frame_id: int
+    timestamp: float
+    submap: Submap
+    reference: Keyframe
+    relative: torch.Tensor  # reference-keyframe-from-camera
+    lost: bool = False  # tracking was judged lost: the pose is kept for the record, nothing else uses it
+    skipped: int = 0  # camera frames missed just before this one (skipped by the caller, or dropped)
+
+    @property
+    def cam_to_world(self) -> torch.Tensor:
+        return self.submap.anchor @ self.reference.cam_to_world @ self.relative
