@@ -106,6 +106,11 @@ class MappingConfig:
     # "never") whenever the map renders a silhouette on less than min_coverage of the view
     coverage_keyframes: str = "gaps"
     min_coverage: float = 0.6
+    keyframes: str = "every"  # "every" (every-th frame, as above) or "motion": by need (slam.keyframes), when the view
+    # moved keyframe_motion (translation / median depth + rotation in radians) from the last keyframe's, or
+    # max_keyframe_interval frames after the last keyframe; the coverage rule applies to both
+    keyframe_motion: float = 0.15
+    max_keyframe_interval: int = 30
     iterations: int = 30
     init_iterations: int = 200  # the paper uses 1000 on a GPU
     window: int = 8  # keyframes sampled from the most recent this many (plus the current frame)

@@ -1,5 +1,5 @@
 """The front end: every frame's pose, from the motion model, frame-to-model tracking (paper Eq. 2), the health monitor
-and relocalisation, and the keyframe decision.
+and relocalisation, and the keyframe decision (``slam.keyframes``).
 
 It reads the map through the back end (the submap to track against, the recorded frames behind the motion model, all
 under the back end's lock, so that a correction lands between frames) and records each placed frame there; it never
@@ -18,6 +18,7 @@ from gausem_core.geometry import invert_pose
 from gausem_core.slam.back_end import BackEnd
 from gausem_core.slam.feature_start import FeatureStart
 from gausem_core.slam.health import HealthMonitor, TrackingHealth, image_signals
+from gausem_core.slam.keyframes import KeyframePolicy
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.relocalisation import RelocalisationResult, Start, relocalisation_starts, track_from_starts
 from gausem_core.slam.submap import FrameRecord, Submap
@@ -67,6 +68,7 @@ class FrontEnd:
         self.tracker = tracker if tracker is not None else Tracker(cfg.tracking, cfg.backend)
         self.feature_start = FeatureStart(cfg.tracking.feature_start)
         self.health = HealthMonitor(cfg.health)
+        self.keyframes = KeyframePolicy(cfg.mapping)
         self.lost = False  # the next frame is relocalised (set by load; a caller may set it after a tracking failure)
         self.segment_start = 0  # first frame id of the current tracking segment (the motion model stays inside it;
         # load starts a new one when it relocalises)
@@ -78,9 +80,10 @@ class FrontEnd:
         return self.back_end.frames
 
     def start(self, obs: Observation) -> None:
-        """The map's first frame (placed by the back end at the origin) is the last good one."""
+        """The map's first frame (placed by the back end at the origin, its first keyframe) is the last good one."""
         self.skipped = 0
         self.feature_start.remember(obs)
+        self.keyframes.remember(0, torch.eye(4, device=self.device))
 
     def place(self, obs: Observation, frame_id: int, skipped: int) -> Placement:
         """Track the frame against the newest trackable submap (while :attr:`lost`: relocalise it, or drop it), judge
@@ -105,22 +108,16 @@ class FrontEnd:
         self.lost = health.status == "lost"
         if not self.lost:
             self.feature_start.remember(obs)
-        keyframe = not self.lost and self._is_keyframe(frame_id, health, motion.gap or relocalised is not None)
         reference = submap.keyframes[-1]
         record = FrameRecord(frame_id, obs.timestamp, submap, reference, invert_pose(reference.cam_to_world) @ pose,
                              self.lost, missed)
         with self.back_end.lock:
             self.frames.append(record)
+            world = record.cam_to_world
+        keyframe = not self.lost and self.keyframes.is_keyframe(frame_id, world, obs, health,
+                                                                motion.gap or relocalised is not None)
         return replace(placement, record=record, pose=pose, tracked=tracked, relocalised=relocalised, health=health,
                        keyframe=keyframe)
-
-    def _is_keyframe(self, frame_id: int, health: TrackingHealth, gap: bool) -> bool:
-        """Every ``mapping.every``-th frame is mapped, and (``mapping.coverage_keyframes``; ``gap``: camera frames
-        were missed before it) a frame whose view the map covers less than ``mapping.min_coverage`` of: a camera
-        outrunning its map (frames a live node skipped, or fast motion)."""
-        cfg = self.cfg.mapping
-        return frame_id % cfg.every == 0 or (gap_mode_applies(cfg.coverage_keyframes, gap)
-                                             and health.coverage < cfg.min_coverage)
 
     def _track_or_relocalise(self, obs: Observation, motion: MotionPrediction, submap: Submap,
                              cloud: GaussianCloud) -> tuple[TrackingResult | None, RelocalisationResult | None]:

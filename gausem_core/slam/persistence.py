@@ -233,6 +233,9 @@ def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torc
     if slam.loop_closure is not None and state["loop_closure"] is not None:
         slam.loop_closure.load_state_dict(state["loop_closure"])
     front.lost = state.get("lost", False)
+    if slam.submaps:
+        submap, keyframe = max(((s, kf) for s in slam.submaps for kf in s.keyframes), key=lambda k: k[1].frame_id)
+        front.keyframes.remember(keyframe.frame_id, submap.world_pose(keyframe))
     if relocalise and slam.submaps:
         front.lost, front.segment_start = True, len(slam.frames)
     return slam
