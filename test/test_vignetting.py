@@ -125,6 +125,6 @@ def run(sensor_vignetting: bool) -> GauSemSLAM:
 @pytest.mark.slow
 def test_the_system_learns_the_sensors_vignetting_and_invents_none():
     # the sensor darkens its corners to 75 %: exp(a r^2) fits 1 - 0.25 r^2 best at about a = -0.28
-    learnt = run(sensor_vignetting=True).vignetting.a
+    learnt = run(sensor_vignetting=True).back_end.vignetting.a
     assert -0.34 < learnt < -0.2, learnt
-    assert abs(run(sensor_vignetting=False).vignetting.a) < 0.03
+    assert abs(run(sensor_vignetting=False).back_end.vignetting.a) < 0.03

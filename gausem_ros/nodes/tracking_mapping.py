@@ -695,7 +695,7 @@ class TrackingMappingNode(Node):
         """Replace the map by a saved session (raises OSError / ValueError when it cannot be read), re-publish it and
         relocalise the next frames against it."""
         slam = GauSemSLAM.load(folder, self.device, cfg=self.cfg)
-        slam.detect_loops = not self.loop_nodes
+        slam.back_end.detect_loops = not self.loop_nodes
         self.slam.close()
         self._reset_state(slam)
         header = ma.make_header(max((t for t, _ in slam.trajectory()), default=0.0), self.params.map_frame)
