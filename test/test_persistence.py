@@ -2,6 +2,7 @@
 relocalisation of the first frame after loading."""
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -194,9 +195,10 @@ def test_unreadable_sessions_are_named(saved, tmp_path):
     truncated.mkdir()
     for path in folder.iterdir():
         (truncated / path.name).write_bytes(path.read_bytes())
-    data = (truncated / "submap_0001.pt").read_bytes()
-    (truncated / "submap_0001.pt").write_bytes(data[:len(data) // 2])
-    with pytest.raises(SessionError, match="submap_0001.pt"):
+    [submap] = truncated.glob("submap_0001.*.pt")
+    data = submap.read_bytes()
+    submap.write_bytes(data[:len(data) // 2])
+    with pytest.raises(SessionError, match=submap.name):
         GauSemSLAM.load(truncated)
     (truncated / SESSION_FILE).write_text((folder / SESSION_FILE).read_text()[:100])
     with pytest.raises(SessionError, match=SESSION_FILE):
@@ -238,3 +240,32 @@ def test_a_session_loads_only_with_the_place_recognition_it_was_saved_with(saved
     other = from_flat({**SETTINGS, "loop.place_recognition": "descriptor"})
     with pytest.raises(ValueError, match="place_recognition: bow"):
         GauSemSLAM.load(folder, cfg=other)
+
+
+def test_a_save_killed_midway_leaves_the_previous_session_whole(saved, tmp_path, monkeypatch):
+    """Saving into a folder that holds a session: until the new session.json replaces the old one, the old session
+    loads as it was; after, only the new save's files remain."""
+    original, _ = saved
+    folder = tmp_path / "session"
+    original.save(folder)
+    first = sorted(path.name for path in folder.iterdir())
+    trajectory = original.trajectory()
+    real_save, written = torch.save, []
+
+    def dies_after_two_files(tensors, path):  # (the submap store spills with torch.save too: those go on)
+        if Path(path).parent == folder:
+            if len(written) == 2:
+                raise KeyboardInterrupt("killed")
+            written.append(path)
+        real_save(tensors, path)
+    monkeypatch.setattr(torch, "save", dies_after_two_files)
+    with pytest.raises(KeyboardInterrupt):
+        original.save(folder)
+    monkeypatch.setattr(torch, "save", real_save)
+    assert len(written) == 2 and all(path.name not in first for path in written)
+    loaded = GauSemSLAM.load(folder, relocalise=False)
+    assert all(t == u and torch.equal(p, q) for (t, p), (u, q) in zip(trajectory, loaded.trajectory()))
+    loaded.close()
+    original.save(folder)
+    files = sorted(path.name for path in folder.iterdir())
+    assert len(files) == len(first) and not set(files) & (set(first) - {SESSION_FILE})

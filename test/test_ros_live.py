@@ -28,7 +28,7 @@ from gausem_core.data import SYNTHETIC_CLASSES, open_dataset  # noqa: E402
 from gausem_core.slam.loop import PlaceSignature  # noqa: E402
 from gausem_core.slam.observation import Observation  # noqa: E402
 from gausem_core.slam.system import GauSemSLAM  # noqa: E402
-from gausem_ros.launcher import Launcher  # noqa: E402
+from gausem_ros.launcher import Launcher, node_command  # noqa: E402
 from gausem_ros.nodes.loop_detection import LoopDetectionNode  # noqa: E402
 from gausem_ros.nodes.pose_graph import PoseGraphNode  # noqa: E402
 from gausem_ros.nodes.tracking_mapping import TrackingMappingNode  # noqa: E402
@@ -241,49 +241,95 @@ def test_gausem_ros_replays_in_real_time_with_sim_time(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_restarted_tracker_loads_its_saved_map_relocalises_and_goes_on(tmp_path):
-    """save_map writes the session; a new tracker started with map_path holds the same map, re-publishes its
-    keyframes (pose_graph rebuilds), relocalises the next frames and tracks on; a bad map_path is a clear error."""
+def test_a_restarted_tracker_resumes_from_its_checkpoint_relocalises_and_goes_on(tmp_path):
+    """A tracker with map_path (no session there yet: a new map) checkpoints at every keyframe; killed without saving,
+    a new tracker with the same map_path holds the checkpointed map, re-publishes its keyframes (pose_graph rebuilds),
+    relocalises the next frames and tracks on; an unreadable session in map_path is a clear error."""
+    session = tmp_path / "session"
     slam = {**FAST_SLAM, "worker.mode": "sync", "mapping.every": 2, "mapping.iterations": 10,
-            "mapping.init_iterations": 60,
-            "mapping.init_samples_fraction": 1.0, "refinement.enabled": False, "output_dir": str(tmp_path / "out")}
+            "mapping.init_iterations": 60, "mapping.init_samples_fraction": 1.0, "refinement.enabled": False,
+            "map_path": str(session), "checkpoint_keyframes": 1, "checkpoint_period": 0.0}
     frames = list(open_source("synthetic", size=(80, 60), max_frames=10))
     with ros_session(135) as (ctx, executor):
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(slam))
-        client_node = Recorder(ctx, []).node
-        save = client_node.create_client(Trigger, "gausem/save_map")
-        for node in (tracking, client_node):
-            executor.add_node(node)
+        assert not tracking.slam.frames and not session.exists()
+        executor.add_node(tracking)
         player = Player(frames[:6], rate=0.0, lockstep=True, timeout=30.0, context=ctx)
         executor.add_node(player)
         assert spin_until(executor, lambda: player.done, 60.0)
-        future = save.call_async(Trigger.Request())
-        assert spin_until(executor, future.done, 10.0) and future.result().success
-        saved = _trajectory(tracking)
+        assert tracking.checkpoints.stats.written == 3 and tracking.checkpoints.stats.frames == 5  # keyframes 0, 2, 4
+        status = tracking._status()
+        assert status["checkpoint.written"] == 3 and status["checkpoint.seconds_last"] > 0
+        ran = _trajectory(tracking)
         keyframes = sorted(k.frame_id for s in tracking.slam.submaps for k in s.keyframes)
-        for node in (tracking, player):  # the tracker "crashes"
+        for node in (tracking, player):  # the tracker "crashes": nothing saved after the last checkpoint
             executor.remove_node(node)
             node.destroy_node()
 
         graph = PoseGraphNode(context=ctx)
         executor.add_node(graph)
-        restarted = TrackingMappingNode(context=ctx, parameter_overrides=overrides(
-            {**slam, "map_path": str(tmp_path / "out" / "session")}))
+        restarted = TrackingMappingNode(context=ctx, parameter_overrides=overrides(slam))
         executor.add_node(restarted)
         assert restarted.slam.lost
         loaded = _trajectory(restarted)
-        assert [t for t, _ in loaded] == [t for t, _ in saved]
-        assert all(torch_equal(a, b) for (_, a), (_, b) in zip(loaded, saved))
+        assert [t for t, _ in loaded] == [t for t, _ in ran[:5]]  # frame 5 came after the last checkpoint
+        assert all(torch_equal(a, b) for (_, a), (_, b) in zip(loaded, ran))
         assert spin_until(executor, lambda: sorted(graph.keyframes) == keyframes, 5.0)  # re-published
         player = Player(frames[6:], rate=0.0, lockstep=True, timeout=30.0, context=ctx)
         executor.add_node(player)
         assert spin_until(executor, lambda: player.done, 60.0)
         assert restarted.frames_processed == 4 and not restarted.slam.lost and not restarted.drops.counts
-        assert len(restarted.slam.frames) == 10
+        assert len(restarted.slam.frames) == 9
 
+        (session / "session.json").write_text("{")
         with pytest.raises(ValueError, match="cannot load map_path"):
-            TrackingMappingNode(context=ctx, parameter_overrides=overrides(
-                {**slam, "map_path": str(tmp_path / "nowhere")}))
+            TrackingMappingNode(context=ctx, parameter_overrides=overrides(slam))
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(threading.current_thread() is not threading.main_thread(), reason="needs the main thread")
+def test_a_tracker_killed_mid_replay_is_respawned_into_the_same_map(tmp_path, monkeypatch):
+    """gausem-launch --respawn with map_path: kill -9 of the tracking_mapping process after its checkpoints; the
+    respawned process resumes the checkpointed map and places the next frames in the same map frame (near their true
+    poses relative to the first frame, not at a new map's origin)."""
+    monkeypatch.setattr(signal, "signal", lambda signum, handler: None)  # wait() runs in a thread here
+    monkeypatch.setenv("ROS_DOMAIN_ID", "167")
+    monkeypatch.setenv("PYTHONPATH", str(REPO))
+    slam = {**FAST_SLAM, "worker.mode": "sync", "mapping.every": 2, "mapping.iterations": 10,
+            "mapping.init_iterations": 60, "mapping.init_samples_fraction": 1.0, "refinement.enabled": False,
+            "map_path": str(tmp_path / "session"), "checkpoint_keyframes": 1, "checkpoint_period": 0.0}
+    launcher = Launcher({"tracking_mapping": node_command("tracking_mapping", None, ros_param_args(slam))},
+                        respawn=True, respawn_delay=0.2, grace=10.0)
+    thread, _ = _run_launcher(launcher)
+    frames = list(open_source("synthetic", size=(80, 60), max_frames=10))
+    truth = {frame.stamp_ns: frame.gt_pose for frame in frames}
+    try:
+        with ros_session(167) as (ctx, executor):
+            odometry = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS)])
+            executor.add_node(odometry.node)
+            first = Player(frames[:6], rate=0.0, lockstep=True, timeout=60.0, wait_subscribers=60.0, context=ctx)
+            executor.add_node(first)
+            assert spin_until(executor, lambda: first.done, 180.0)
+            assert (tmp_path / "session" / "session.json").exists()  # checkpointed at its keyframes
+            before = list(odometry.messages["gausem/odometry"])
+            victim = launcher.nodes[0].process
+            victim.send_signal(signal.SIGKILL)
+            assert _until(lambda: launcher.nodes[0].restarts == 1 and launcher.nodes[0].process is not victim, 10.0)
+            then = Player(frames[6:], rate=0.0, lockstep=True, timeout=20.0, wait_subscribers=60.0, context=ctx)
+            executor.add_node(then)
+            assert spin_until(executor, lambda: then.done, 180.0)
+            after = odometry.messages["gausem/odometry"][len(before):]
+            assert len(before) >= 4 and len(after) >= 3  # (a frame relocalisation cannot place yet gets no odometry)
+            # the map's world frame is its first frame's camera (the first frame answered)
+            origin = np.linalg.inv(truth[ma.time_to_ns(before[0].header.stamp)])
+            for msg in after:
+                expected = (origin @ truth[ma.time_to_ns(msg.header.stamp)])[:3, 3]
+                position = ma.odometry_to_matrix(msg)[:3, 3]
+                assert np.linalg.norm(expected) > 0.15 and np.linalg.norm(position - expected) < 0.05
+    finally:
+        launcher._forward(signal.SIGTERM, None)
+        thread.join(30.0)
+    assert not thread.is_alive()
 
 
 @pytest.mark.slow

@@ -10,8 +10,13 @@ The folder (format ``gausem-session``, version :data:`VERSION`) is self-containe
   :meth:`~gausem_core.slam.loop_closure.LoopClosure.state_dict`. Every tensor in the tree is a reference
   ``{"$tensor": "FILE:KEY"}`` into one of the tensor files. Written last: a folder without it holds no (complete)
   session. Sessions written before the tracking-loss fields existed load as never lost, with empty health histories.
-- ``state.pt``: the small tensors of the tree (poses, descriptors, ...).
-- ``submap_NNNN.pt``: one submap's Gaussians and keyframe images (an offloaded submap's read back from its store).
+- ``state.TOKEN.pt``: the small tensors of the tree (poses, descriptors, ...).
+- ``submap_NNNN.TOKEN.pt``: one submap's Gaussians and keyframe images (an offloaded submap's read back from its store).
+
+Saving again into the same folder is crash-safe: each save's tensor files carry a new random ``TOKEN``, ``session.json``
+is replaced atomically once they are written, and only then are the previous save's files deleted. A process killed at
+any point leaves the previous session or the new one, whole (sessions written before tokens, ``state.pt`` and
+``submap_NNNN.pt``, load too).
 
 Tensor files are ``torch.save`` dicts of CPU tensors, read with ``torch.load(weights_only=True)``. Ids go on after the
 saved ones (frame ids count the recorded frames, submap ids the submaps), and every value comes back bit-identical.
@@ -21,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import secrets
 from pathlib import Path
 
 import torch
@@ -38,7 +44,7 @@ from gausem_core.slam.system import GauSemSLAM
 FORMAT = "gausem-session"
 VERSION = 1
 SESSION_FILE = "session.json"
-STATE_FILE = "state.pt"
+STATE = "state"  # the small tensors' file (its name gets the save's token)
 
 
 class SessionError(ValueError):
@@ -49,19 +55,21 @@ class SessionError(ValueError):
 class _TensorWriter:
     """Replaces the tensors of a tree by references and collects them per file."""
 
-    def __init__(self):
+    def __init__(self, token: str = ""):
+        self.token = token  # every file name gets it: ``NAME.TOKEN.pt``
         self.files: dict[str, dict[str, torch.Tensor]] = {}
 
-    def pack(self, tree, file: str):
+    def pack(self, tree, name: str):
+        file = f"{name}.{self.token}.pt" if self.token else f"{name}.pt"
         if isinstance(tree, torch.Tensor):
             tensors = self.files.setdefault(file, {})
             key = str(len(tensors))
             tensors[key] = tree.detach().cpu()
             return {"$tensor": f"{file}:{key}"}
         if isinstance(tree, dict):
-            return {key: self.pack(value, file) for key, value in tree.items()}
+            return {key: self.pack(value, name) for key, value in tree.items()}
         if isinstance(tree, (list, tuple)):
-            return [self.pack(value, file) for value in tree]
+            return [self.pack(value, name) for value in tree]
         return tree
 
 
@@ -81,9 +89,11 @@ class _TensorReader:
             return [self.unpack(value) for value in tree]
         return tree
 
-    def forget(self, name: str) -> None:
-        """Drop a tensor file read before (its tensors stay wherever the tree put them)."""
-        self._files.pop(name, None)
+    def forget(self, tree) -> None:
+        """Drop the tensor files the references in ``tree`` name, read before (their tensors stay wherever the tree
+        put them)."""
+        for name in _files(tree):
+            self._files.pop(name, None)
 
     def _tensor(self, reference: str) -> torch.Tensor:
         name, _, key = reference.rpartition(":")
@@ -110,21 +120,28 @@ def _extent_tree(extent: SubmapExtent | None) -> dict | None:
                         "far": f.far} for f in extent.volume.frusta]}
 
 
-def _submap_file(submap_id: int) -> str:
-    return f"submap_{submap_id:04d}.pt"
+def _files(tree) -> set[str]:
+    """The tensor files a tree's references name."""
+    if isinstance(tree, dict):
+        if set(tree) == {"$tensor"}:
+            return {tree["$tensor"].rpartition(":")[0]}
+        return set().union(*map(_files, tree.values()))
+    if isinstance(tree, list):
+        return set().union(*map(_files, tree))
+    return set()
 
 
 def _submap_tree(submap: Submap, writer: _TensorWriter) -> dict:
-    file = _submap_file(submap.submap_id)
+    file = f"submap_{submap.submap_id:04d}"
     keyframes = []
     for kf in submap.keyframes:
         obs = submap.observation(kf)
         keyframes.append({"frame_id": kf.frame_id, "fixed": kf.fixed, "timestamp": obs.timestamp,
                           "camera": dataclasses.asdict(obs.camera),
-                          "cam_to_world": writer.pack(kf.cam_to_world, STATE_FILE),
+                          "cam_to_world": writer.pack(kf.cam_to_world, STATE),
                           "images": writer.pack({name: getattr(obs, name) for name in KEYFRAME_IMAGES}, file)})
-    return {"id": submap.submap_id, "active": submap.is_active, "anchor": writer.pack(submap.anchor, STATE_FILE),
-            "extent": writer.pack(_extent_tree(submap.extent), STATE_FILE),
+    return {"id": submap.submap_id, "active": submap.is_active, "anchor": writer.pack(submap.anchor, STATE),
+            "extent": writer.pack(_extent_tree(submap.extent), STATE),
             "cloud": writer.pack(submap.load_cloud().tensors(), file), "keyframes": keyframes}
 
 
@@ -138,15 +155,15 @@ def _state_tree(slam: GauSemSLAM, writer: _TensorWriter) -> dict:
             **writer.pack({"frames": frames, "segment_start": front.segment_start, "lost": front.lost,
                            "dropped": front.dropped, "skipped": front.skipped, "health": front.health.state_dict(),
                            "feature_start": front.feature_start.state_dict(), "vignetting": back.vignetting.state_dict(),
-                           "mapper_generator": back.mapper.generator.get_state(), "loop_closure": loop}, STATE_FILE)}
+                           "mapper_generator": back.mapper.generator.get_state(), "loop_closure": loop}, STATE)}
 
 
 def save_session(slam: GauSemSLAM, folder: str | Path) -> Path:
-    """Write ``slam``'s whole state into ``folder`` (created; files of an earlier save are replaced). Returns the
-    path of ``session.json``, written last."""
+    """Write ``slam``'s whole state into ``folder`` (created; an earlier save there is replaced, crash-safe: see the
+    module doc). Returns the path of ``session.json``, written last."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    writer = _TensorWriter()
+    writer = _TensorWriter(secrets.token_hex(4))
     document = {"format": FORMAT, "version": VERSION, "config": flatten(slam.cfg), "num_classes": slam.num_classes,
                 "detect_loops": slam.detect_loops, "state": _state_tree(slam, writer)}
     for name, tensors in writer.files.items():
@@ -155,6 +172,9 @@ def save_session(slam: GauSemSLAM, folder: str | Path) -> Path:
     partial = path.with_suffix(".json.partial")
     partial.write_text(json.dumps(document))
     os.replace(partial, path)
+    for stale in [*folder.glob("state*.pt"), *folder.glob("submap_*.pt")]:  # an earlier save's files
+        if stale.name not in writer.files:
+            stale.unlink()
     return path
 
 
@@ -186,7 +206,7 @@ def _extent(tree: dict | None, device: torch.device) -> SubmapExtent | None:
 
 def _submap(tree: dict, reader: _TensorReader, device: torch.device, store: SubmapStore) -> Submap:
     """One submap, its tensors on ``device`` when active, else offloaded to ``store``."""
-    tree = reader.unpack(tree)
+    raw, tree = tree, reader.unpack(tree)
     place = device if tree["active"] else "cpu"
     keyframes = [Keyframe(kf["frame_id"], Observation(**{n: t.to(place) for n, t in kf["images"].items()},
                                                       camera=PinholeCamera(**kf["camera"]),
@@ -196,7 +216,7 @@ def _submap(tree: dict, reader: _TensorReader, device: torch.device, store: Subm
     submap = Submap(tree["id"], tree["anchor"].to(device), cloud, keyframes, _extent(tree["extent"], device))
     if not tree["active"]:
         submap.offload(store)
-    reader.forget(_submap_file(submap.submap_id))
+    reader.forget(raw)
     return submap
 
 

@@ -23,8 +23,11 @@ state (``session/``, :mod:`gausem_core.slam.persistence`) to ``output_dir``; ``g
 the session in ``map_path`` (default: ``output_dir/session``); ``gausem/finish`` ends the sequence with the global
 refinement (as the offline pipeline does after the last frame); ``gausem/reset`` starts a new map.
 
-Resuming: with ``map_path`` set, the node starts from that saved session (a restarted tracker goes on with the map it
-saved). A loaded map is re-published (submaps, keyframes, path, map), so pose_graph rebuilds its graph; with
+Resuming: with ``map_path`` set, the node starts from the session saved there, or, when the folder holds none yet,
+starts a new map there; either way it checkpoints the session into it (crash-safe, ``slam.checkpoint``) every
+``checkpoint_keyframes`` new keyframes or ``checkpoint_period`` seconds, so a tracker killed and respawned
+(``gausem-launch --respawn``) goes on with the map of its last checkpoint, in the same ``map`` frame. The diagnostics
+add ``checkpoint.written``, ``checkpoint.frames`` and ``checkpoint.seconds_last`` (what writing it cost). A loaded map is re-published (submaps, keyframes, path, map), so pose_graph rebuilds its graph; with
 ``loop_closure: nodes`` its loop database goes to loop_detection too (the stored place signatures, flagged loaded, the
 first flagged new_map, one at a time in step with loop_detection's answers, before the next frame), so loops close
 into the loaded map as with ``core``. The next frames are relocalised against it (the robot is not where the last
@@ -107,7 +110,9 @@ from gausem_core.semantics.source import UNLABELLED_PALETTE
 from gausem_core.slam.events import FrameEvents, KeyframeState, SubmapChange
 from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.loop import PlaceSignature
+from gausem_core.slam.checkpoint import Checkpointer
 from gausem_core.slam.observation import Observation
+from gausem_core.slam.persistence import SESSION_FILE
 from gausem_core.slam.system import GauSemSLAM
 
 from ..qos import EVENT_QOS, INPUT_QOS_HINT, LATCHED_QOS, input_qos, subscribe_camera
@@ -133,7 +138,10 @@ NODE_DEFAULTS = {
     "loop_closure": "core",      # or "nodes": see the module docstring
     "loop_answer_timeout": 5.0,  # seconds; nodes: the longest wait for loop_detection's and pose_graph's answers
     "save_on_exit": False,       # write map.ply, trajectory.txt and session/ to output_dir when the node shuts down
-    "map_path": "",              # a saved session folder to start from (and for gausem/load_map)
+    "map_path": "",              # a session folder: the map resumes from it when it holds a session, else starts there;
+    # checkpoints go there (and gausem/load_map reads it)
+    "checkpoint_keyframes": 5,   # with map_path: checkpoint the session every this many new keyframes (0: never) ...
+    "checkpoint_period": 60.0,   # ... or this many seconds after the last checkpoint, at the next frame (0: never)
 }
 LOOP_CLOSURE_MODES = ("core", "nodes")
 SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched",
@@ -199,6 +207,8 @@ class TrackingMappingNode(Node):
             lambda: self._constraint_pub.get_subscription_count() > 0,
             lambda what: self.get_logger().warning(f"no {what} answer within loop_answer_timeout = "
                                                    f"{p.loop_answer_timeout} s; going on with the next frame"))
+        self.checkpoints = Checkpointer(p.map_path, p.checkpoint_keyframes, p.checkpoint_period) if p.map_path \
+            else None
         if self.device.type == "cuda":  # the inputs are subscribed once the renderer is ready
             self.get_logger().info("preparing the renderer on cuda (gsplat compiles its kernels on a machine's first "
                                    "run: one to two minutes)")
@@ -232,11 +242,13 @@ class TrackingMappingNode(Node):
         self.create_service(Trigger, "gausem/reset", self._on_reset)
         self.create_service(Trigger, "gausem/load_map", self._on_load_map)
         self.create_service(Trigger, "gausem/finish", self._on_finish)
-        if p.map_path:
+        if p.map_path and (Path(p.map_path) / SESSION_FILE).exists():
             try:
                 self.load_map(p.map_path)
-            except OSError as err:
+            except (OSError, ValueError) as err:  # a truncated or foreign session: say which parameter names it
                 raise ValueError(f"tracking_mapping: cannot load map_path {p.map_path!r}: {err}") from err
+        elif p.map_path:
+            self.get_logger().info(f"no session in map_path {p.map_path} yet: a new map, checkpointed there")
 
     @property
     def loop_nodes(self) -> bool:
@@ -261,6 +273,8 @@ class TrackingMappingNode(Node):
         self.health = TrackingHealth("ok")  # the last frame's
         self.health_log: list[tuple[int, float, TrackingHealth]] = []  # (frame, stamp, health) of every frame given
         # to the core, dropped ones included (the report's tracking_status.csv)
+        if self.checkpoints is not None:
+            self.checkpoints.start(self.slam)  # a new or loaded map: nothing in it is new yet
 
     # --- inputs -------------------------------------------------------------------------------------------------
     @survives_errors(frame=False)
@@ -410,6 +424,19 @@ class TrackingMappingNode(Node):
             self._in_progress = False  # counted as a processing_error drop
             raise
         self._busy = (self._busy[0] if self._busy else start, time.perf_counter())
+        self._checkpoint()
+
+    def _checkpoint(self) -> None:
+        """Write the session to ``map_path`` when a checkpoint is due; a failure is logged, the node goes on."""
+        if self.checkpoints is None or not self.checkpoints.due(self.slam):
+            return
+        try:
+            seconds = self.checkpoints.write(self.slam)
+        except OSError as err:
+            self.checkpoints.start(self.slam)  # tried again at the next interval, not at every frame
+            self.get_logger().error(f"checkpoint: could not write to {self.params.map_path}: {err}")
+        else:
+            self.get_logger().debug(f"checkpoint of {len(self.slam.frames)} frames in {seconds:.2f} s")
 
     def _track_and_publish(self, obs: Observation, image_frame: str, arrived: float, skipped: int) -> None:
         result = self.slam.process(obs, skipped)
@@ -474,7 +501,7 @@ class TrackingMappingNode(Node):
                 "tracking.status": self.health.status,
                 **{f"tracking.{name}": value for name, value in self.health.signals().items()},
                 "camera.vignetting_corner_gain": math.exp(self.slam.back_end.vignetting.a),
-                "camera.undistorted": bool(self.lens_distortion), **self._worker_status(),
+                "camera.undistorted": bool(self.lens_distortion), **self._worker_status(), **self._checkpoint_status(),
                 **latency_stats(self.latencies[-100:]),
                 **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(sync.dropped.items())
                    if name != sync.names[0]}}
@@ -489,6 +516,14 @@ class TrackingMappingNode(Node):
             status.update({"worker.queue_depth": worker.depth, "worker.lag_frames": lags[-1] if lags else 0,
                            "worker.keyframes_superseded": worker.stats.superseded})
         return status
+
+    def _checkpoint_status(self) -> dict:
+        """Checkpoints written, frames in the last one and what writing it cost."""
+        if self.checkpoints is None:
+            return {}
+        stats = self.checkpoints.stats
+        return {"checkpoint.written": stats.written, "checkpoint.frames": stats.frames,
+                "checkpoint.seconds_last": stats.seconds_last}
 
     def summary(self) -> dict:
         """The whole run's input accounting: frames in = processed + dropped (by reason) + pending; latency."""
