@@ -32,7 +32,7 @@ def frame(stamp: float):
             ma.labels_to_image(np.zeros((30, 40), np.int64), header))
 
 
-def test_tracking_health_reaches_diagnostics_and_odometry_and_a_lost_frame_is_dropped():
+def test_tracking_health_reaches_diagnostics_and_odometry_and_a_lost_frame_is_dropped(tmp_path):
     """The node reports the health its core returns (injected here; the core's own never says lost)."""
     with ros_session(160) as (ctx, executor):
         never_lost = {"health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0}
@@ -50,9 +50,15 @@ def test_tracking_health_reaches_diagnostics_and_odometry_and_a_lost_frame_is_dr
         spin_for(executor, 0.3)
         process = tracking.slam.process
 
+        def judged(health):
+            def process_judged(obs, skipped=0):
+                result = process(obs, skipped)
+                tracking.slam.frames[-1].lost = health.status == "lost"  # as the core records a lost frame
+                return dataclasses.replace(result, health=health)
+            return process_judged
+
         def send(stamp, health=None, expect=None):
-            tracking.slam.process = process if health is None else (
-                lambda obs, skipped=0: dataclasses.replace(process(obs, skipped), health=health))
+            tracking.slam.process = process if health is None else judged(health)
             for pub, msg in zip(pubs, frame(stamp)):
                 pub.publish(msg)
             assert spin_until(executor, expect, 20.0), dict(tracking.drops.counts)
@@ -77,4 +83,9 @@ def test_tracking_health_reaches_diagnostics_and_odometry_and_a_lost_frame_is_dr
              lambda: tracking.drops.counts["tracking_lost"] == 1)
         spin_for(executor, 0.3)
         assert len(recorder.messages["gausem/odometry"]) == 2 and tracking.frames_processed == 2
+        tracking._path = None  # as after a correction: rebuilt from the trajectory, the lost frame not in it
+        tracking._publish_path()
+        assert len(tracking.slam.frames) == 3 and len(tracking._path.poses) == 2
+        _, written = tracking.save_map(tmp_path)
+        assert len(written.read_text().splitlines()) == 1 + 2  # a header line, the two published poses
         assert latest().level == DiagnosticStatus.ERROR and "tracking lost" in latest().message

@@ -242,9 +242,10 @@ class GauSemSLAM:
         then wait for :meth:`take_mapped`)."""
         return self.back_end.finish()
 
-    def trajectory(self) -> list[tuple[float, torch.Tensor]]:
-        """(timestamp, cam_to_world) of every processed frame, with all corrections applied."""
-        return [(f.timestamp, f.cam_to_world) for f in self.frames]
+    def trajectory(self, include_lost: bool = True) -> list[tuple[float, torch.Tensor]]:
+        """(timestamp, cam_to_world) of every processed frame, with all corrections applied; without
+        ``include_lost``, of those whose tracking was not judged lost."""
+        return [(f.timestamp, f.cam_to_world) for f in self.frames if include_lost or not f.lost]
 
     def global_cloud(self) -> GaussianCloud:
         """All submaps' Gaussians in the world frame, on the compute device (inactive ones read from the store)."""

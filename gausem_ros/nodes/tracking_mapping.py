@@ -538,10 +538,11 @@ class TrackingMappingNode(Node):
 
     def _publish_path(self, new: tuple[float, np.ndarray] | None = None) -> None:
         """The path with the ``new`` pose appended (one pose converted a frame); rebuilt from the whole trajectory
-        after a correction (:attr:`_path` None)."""
+        after a correction (:attr:`_path` None). Frames judged lost are in neither (nor in save_map's trajectory), as
+        they publish no odometry."""
         if self._path is None:
             self._path = ma.poses_to_path([(t, m) for t, m in ((t, rigid_float64(p).numpy())
-                                                               for t, p in self.slam.trajectory())
+                                                               for t, p in self.slam.trajectory(False))
                                            if np.isfinite(m).all()], self.params.map_frame)
         elif new is not None:
             entry = ma.matrix_to_pose_stamped(new[1], ma.make_header(new[0], self.params.map_frame))
@@ -710,7 +711,7 @@ class TrackingMappingNode(Node):
         cloud = self.slam.global_cloud()
         ply, trajectory = folder / "map.ply", folder / "trajectory.txt"
         write_gaussian_ply(ply, cloud, cloud.class_ids(self.palette.to(cloud.means.device)))
-        poses = self.slam.trajectory()
+        poses = self.slam.trajectory(include_lost=False)  # as published: a lost frame has no odometry
         write_tum_trajectory(trajectory, Trajectory([t for t, _ in poses],
                                                     np.array([rigid_float64(p).numpy() for _, p in poses]
                                                             ).reshape(-1, 4, 4)))
