@@ -3,8 +3,9 @@
 Sources: a dataset spec of :func:`gausem_core.data.open_dataset` (``synthetic[:SEQ]``, ``tum:PATH``, ``scannet:PATH``,
 ``replica:PATH``), a ROS 1 ``.bag`` file or a ROS 2 bag folder (sqlite3 or mcap). Bags may use the TUM RGB-D topic
 names (``/camera/rgb/image_color``, ``/camera/depth/image``, ``/camera/rgb/camera_info``) or GauSem's
-(``/rgb/image``, ``/depth/image``, ``/rgb/camera_info``, ``/semantic/labels``, as ``gausem-bag`` writes them); other
-topics (``/tf`` with motion-capture ground truth, ...) are not replayed.
+(``/rgb/image``, ``/depth/image``, ``/rgb/camera_info``, ``/semantic/labels``, as ``gausem-bag`` writes them); an input
+under another name is mapped with ``--topic INPUT=TOPIC`` (e.g. ``--topic labels=/camera/labels``); every other topic
+(``/tf`` with motion-capture ground truth, ...) is not replayed, and named in a log line.
 Published (relative names, remappable): ``rgb/image``, ``depth/image``, ``rgb/camera_info``, ``semantic/labels``
 (only when the data has labels) with reliable QoS, and ``/clock`` (the replayed stamps, for ``use_sim_time``).
 Ground truth is never published; ``--gt-out FILE`` writes the dataset's ground-truth poses of the replayed frames as a
@@ -88,13 +89,22 @@ def dataset_frames(dataset: Dataset, frame_id: str = "camera", depth_encoding: s
         yield PlayerFrame(ma.seconds_to_ns(frame.timestamp), messages, frame.gt_pose)
 
 
-def bag_frames(path: str | Path) -> Iterator[PlayerFrame]:
-    """Frames of a bag: each rgb image opens a frame; messages before the first rgb image join the first frame."""
+def bag_frames(path: str | Path, topics: dict[str, str] | None = None) -> Iterator[PlayerFrame]:
+    """Frames of a bag: each rgb image opens a frame; messages before the first rgb image join the first frame.
+    ``topics``: input key -> bag topic, besides the known names (e.g. ``{"labels": "/camera/labels"}``); every other
+    topic is named once in a log line as not replayed."""
+    keys = {**BAG_TOPIC_KEYS, **{topic: key for key, topic in (topics or {}).items()}}
     frame = None
     leading: list[tuple[str, object]] = []
+    skipped: set[str] = set()
     for item in read_bag(path):
-        key = BAG_TOPIC_KEYS.get(item.topic)
+        key = keys.get(item.topic)
         if key is None:
+            if item.topic not in skipped:
+                skipped.add(item.topic)
+                rclpy.logging.get_logger("gausem_player").info(
+                    f"bag topic {item.topic} is not replayed (an input it carries: --topic INPUT={item.topic}, "
+                    f"INPUT one of {', '.join(OUTPUTS)})")
             continue
         if key == "rgb":
             if frame is not None:
@@ -106,19 +116,32 @@ def bag_frames(path: str | Path) -> Iterator[PlayerFrame]:
         yield frame
 
 
+def parse_topics(pairs: list[str]) -> dict[str, str]:
+    """``INPUT=TOPIC`` pairs (``--topic``) as a dict; ValueError naming a bad one."""
+    topics = {}
+    for pair in pairs:
+        key, _, topic = pair.partition("=")
+        if key not in OUTPUTS or not topic:
+            raise ValueError(f"--topic {pair!r}: expected INPUT=TOPIC with INPUT one of {', '.join(OUTPUTS)}")
+        topics[key] = topic
+    return topics
+
+
 def is_bag(source: str) -> bool:
     path = Path(source)
     return (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file())
 
 
 def open_source(source: str, *, size=None, stride: int = 1, max_frames: int | None = None, frame_id: str = "camera",
-                depth_encoding: str = "32FC1") -> Iterator[PlayerFrame]:
-    """Frames of a bag (path) or of a dataset spec (resized/strided/capped by the options; bags are replayed as
-    recorded and accept none of them)."""
+                depth_encoding: str = "32FC1", topics: dict[str, str] | None = None) -> Iterator[PlayerFrame]:
+    """Frames of a bag (path; ``topics``: see :func:`bag_frames`) or of a dataset spec (resized/strided/capped by the
+    options; bags are replayed as recorded and accept none of them)."""
     if is_bag(source):
         if size is not None or stride != 1 or max_frames is not None:
             raise ValueError("--size, --stride and --max-frames apply to datasets, not to bags")
-        return bag_frames(source)
+        return bag_frames(source, topics)
+    if topics:
+        raise ValueError("--topic applies to bags, not to datasets")
     return dataset_frames(open_dataset(source, size=size, stride=stride, max_frames=max_frames), frame_id,
                           depth_encoding)
 
@@ -294,6 +317,9 @@ def add_source_arguments(parser: argparse.ArgumentParser, required: bool = True)
     parser.add_argument("--max-frames", type=int, help="at most this many dataset frames")
     parser.add_argument("--frame-id", default="camera", help="camera frame id of dataset frames")
     parser.add_argument("--depth-encoding", choices=("32FC1", "16UC1"), default="32FC1")
+    parser.add_argument("--topic", action="append", default=[], metavar="INPUT=TOPIC",
+                        help=f"replay a bag topic of another name as an input ({', '.join(OUTPUTS)}), e.g. "
+                             "labels=/camera/labels; repeatable")
 
 
 def add_player_arguments(parser: argparse.ArgumentParser, required: bool = True, finish: bool = True) -> None:
@@ -301,7 +327,8 @@ def add_player_arguments(parser: argparse.ArgumentParser, required: bool = True,
     add_source_arguments(parser, required)
     parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor; 0 = as fast as possible")
     parser.add_argument("--lockstep", action="store_true", help="wait for gausem/odometry of each frame")
-    parser.add_argument("--timeout", type=float, default=10.0, help="lock-step wait per frame (s)")
+    parser.add_argument("--timeout", type=float, default=60.0, help="lock-step wait per frame (s; covers a first "
+                        "frame's map initialisation on a CPU)")
     parser.add_argument("--wait-subscribers", type=float, default=5.0, help="wait for subscribers at most (s)")
     if finish:
         parser.add_argument("--finish", action="store_true",
@@ -312,7 +339,7 @@ def add_player_arguments(parser: argparse.ArgumentParser, required: bool = True,
 
 def player_from_args(ns: argparse.Namespace, **node_kwargs) -> Player:
     frames = open_source(ns.source, size=ns.size, stride=ns.stride, max_frames=ns.max_frames, frame_id=ns.frame_id,
-                         depth_encoding=ns.depth_encoding)
+                         depth_encoding=ns.depth_encoding, topics=parse_topics(getattr(ns, "topic", [])))
     return Player(frames, rate=ns.rate, lockstep=ns.lockstep, timeout=ns.timeout,
                   wait_subscribers=ns.wait_subscribers, finish=getattr(ns, "finish", False),
                   finish_timeout=getattr(ns, "finish_timeout", 600.0), **node_kwargs)
