@@ -146,8 +146,9 @@ NODE_DEFAULTS = {
 LOOP_CLOSURE_MODES = ("core", "nodes")
 SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched",
                 "lost_in_transport": "lost_in_transport"}
-NO_LABELS_HINT = ("; use_labels is true but no semantic/labels arrived: set -p use_labels:=false for data without "
-                  "labels, or run the segmentation node (semantics.segmenter: dinov2)")
+NO_LABELS_HINT = ("; use_labels is true but no semantic/labels arrived: a bag that records labels under another name "
+                  "replays them with gausem-player --topic labels=TOPIC; for data without labels set "
+                  "-p use_labels:=false, or run the segmentation node (semantics.segmenter: dinov2)")
 
 
 def _pyramid_minimum(cfg: SlamConfig) -> int:
