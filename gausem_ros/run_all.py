@@ -121,6 +121,11 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
         parser.error("--report needs a SOURCE to play")
     if ns.report and not ns.reference and is_bag(ns.source):
         parser.error("--report with a bag needs --reference SPEC: the dataset the bag was made from")
+    if ns.report:  # read the reference (its frames, class table) now, not after the replay
+        try:
+            open_dataset(ns.reference or ns.source)
+        except (OSError, ValueError) as err:
+            parser.error(f"--report: cannot read the reference {ns.reference or ns.source!r}: {err}")
     return ns
 
 

@@ -32,3 +32,7 @@ def test_report_arguments(tmp_path, capsys):
             str(a), "-p", "x:=1", "--params-file", str(b)]
     ns = run_all.parse_arguments(argv)
     assert (ns.reference, str(ns.report)) == ("synthetic", "out") and run_all.params_file(argv) == str(b)
+    capsys.readouterr()
+    with pytest.raises(SystemExit):  # a reference that cannot be read fails before anything is replayed
+        run_all.parse_arguments(["gausem-ros", str(bag), "--report", "out", "--reference", f"tum:{tmp_path / 'no'}"])
+    assert "--report: cannot read the reference" in capsys.readouterr().err
