@@ -17,7 +17,8 @@ when ``-p use_sim_time:=true`` is given for the nodes it feeds). Frames are publ
 which sleeps until the next frame is due (or a lock-step answer wakes it), so an executor busy with a slow frame in
 the same process does not hold playback back. ``--lockstep`` publishes
 frame k+1 only after ``gausem/odometry`` for frame k arrived, or tracking_mapping's ``gausem/diagnostics`` said it
-dropped frame k (bad input, a diverged estimate), or ``--timeout`` seconds passed (which is logged).
+dropped frame k (bad input, a diverged estimate, unmatched inputs), or ``--timeout`` seconds passed (which is
+logged).
 ``--finish`` calls tracking_mapping's ``gausem/finish`` service (the global refinement) after the last frame (in
 lock-step, after its answer) and waits for it (``--finish-timeout`` s at most), so that the path published then is
 the final trajectory. A frame is the messages from one rgb image up to the next; the player first waits

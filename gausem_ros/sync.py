@@ -8,12 +8,14 @@ queues (at most ``queue_size`` each, oldest evicted) and every message takes par
 among several valid sets the one with the smallest stamp spread wins, after a match everything at or before the
 matched stamps is dropped (so late, out-of-order arrivals cannot produce a match that goes back in time), and no
 message disappears silently: each one is either matched, still queued (``pending``) or dropped, and every drop is
-counted in ``dropped[(input name, reason)]`` and reported to ``on_drop(index, reason, detail)``. Reasons:
+counted in ``dropped[(input name, reason)]`` and reported to ``on_drop(index, reason, detail, stamp)`` (the dropped
+message's stamp in seconds; None for one never received). Reasons:
 
 - ``backwards``: stamped at or before the last matched stamp of its input (out of order, or a replay restarted
   without :meth:`ApproximateTimeSync.reset`);
 - ``duplicate``: a stamp already queued on the same input (the first is kept);
-- ``unmatched``: left behind by a later match or evicted from a full queue without a partner within ``slop``; the
+- ``unmatched``: left behind by a later match, evicted from a full queue or, by :meth:`ApproximateTimeSync.flush`,
+  still waiting for its partners ``max_age`` seconds after it arrived (a lock-step replay sends no later match); the
   detail gives the nearest stamp offset seen on each other input, or ``no_<input>`` when that input has sent nothing;
 - ``lost_in_transport``: never received, seen as a gap in the publisher's sequence numbers (``add``'s ``sequence``:
   the DDS publication sequence number of the message info, which rclpy hands to a two-argument callback); a
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import itertools
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -37,19 +40,21 @@ from .qos import INPUT_QOS_HINT, subscribe_camera
 
 class ApproximateTimeSync:
     def __init__(self, names: Sequence[str], callback: Callable[..., None], queue_size: int = 10,
-                 slop: float = 0.02, on_drop: Callable[[int, str, str], None] = lambda i, reason, detail: None):
+                 slop: float = 0.02, on_drop: Callable[[int, str, str, float | None], None] = lambda *drop: None,
+                 clock: Callable[[], float] = time.monotonic):
         if len(names) < 1 or queue_size < 1 or not slop >= 0:
             raise ValueError(f"ApproximateTimeSync needs at least one input, queue_size >= 1 and slop >= 0, "
                              f"got {list(names)}, {queue_size}, {slop}")
         self.names = list(names)
         self.callback, self.queue_size, self.slop, self.on_drop = callback, queue_size, slop, on_drop
+        self.clock = clock  # when a message arrived (flush)
         self._lock = threading.Lock()
         self.reset()
 
     def reset(self) -> None:
         """Forget every queued message, the stamp watermarks and the counts (a new sequence starts)."""
         with self._lock:
-            self._queues: list[dict[float, object]] = [{} for _ in self.names]
+            self._queues: list[dict[float, tuple[object, float]]] = [{} for _ in self.names]  # stamp: (msg, arrival)
             self._last_matched = [float("-inf")] * len(self.names)
             self.received = [0] * len(self.names)
             self.lost = [0] * len(self.names)  # messages never received (sequence-number gaps)
@@ -66,17 +71,32 @@ class ApproximateTimeSync:
         when known); emit a match if it completes one."""
         if not 0 <= index < len(self._queues):
             raise ValueError(f"input index {index} out of range 0..{len(self._queues) - 1}")
-        drops: list[tuple[int, str, str]] = []
+        drops: list[tuple[int, str, str, float | None]] = []
         with self._lock:
             self.received[index] += 1
             self._count_lost(index, sequence, drops)
             match = self._add(index, stamp, msg, drops)
-            for i, reason, _ in drops:
-                self.dropped[(self.names[i], reason)] += 1
+            self._count(drops)
         for drop in drops:
             self.on_drop(*drop)
         if match is not None:
             self.callback(*match)
+
+    def flush(self, max_age: float) -> None:
+        """Drop, as unmatched, every message that arrived more than ``max_age`` seconds ago and is still waiting."""
+        drops: list[tuple[int, str, str, float | None]] = []
+        with self._lock:
+            oldest = self.clock() - max_age
+            for index, queue in enumerate(self._queues):
+                for stamp in sorted(s for s, (_, arrived) in queue.items() if arrived < oldest):
+                    self._evict(index, stamp, drops)
+            self._count(drops)
+        for drop in drops:
+            self.on_drop(*drop)
+
+    def _count(self, drops: list) -> None:
+        for i, reason, _, _ in drops:
+            self.dropped[(self.names[i], reason)] += 1
 
     def _count_lost(self, index: int, sequence: int | None, drops: list) -> None:
         """Messages skipped in the publisher's sequence since the last one received (none after a restart of the
@@ -88,18 +108,19 @@ class ApproximateTimeSync:
         self.lost[index] += gap
         detail = (f"{gap} {self.names[index]} message(s) never arrived (publication sequence {last} -> {sequence}): "
                   "the subscription queue overflowed before they were taken, or the network lost them")
-        drops.extend([(index, "lost_in_transport", detail)] * gap)
+        drops.extend([(index, "lost_in_transport", detail, None)] * gap)
 
     def _add(self, index: int, stamp: float, msg, drops: list):
         queue, name = self._queues[index], self.names[index]
         if stamp <= self._last_matched[index]:
             drops.append((index, "backwards", f"{name} stamped {stamp:.6f} s is not after the last matched one "
-                                              f"({self._last_matched[index]:.6f} s)"))
+                                              f"({self._last_matched[index]:.6f} s)", stamp))
             return None
         if stamp in queue:
-            drops.append((index, "duplicate", f"{name} stamped {stamp:.6f} s arrived twice; the first is kept"))
+            drops.append((index, "duplicate", f"{name} stamped {stamp:.6f} s arrived twice; the first is kept",
+                          stamp))
             return None
-        queue[stamp] = msg
+        queue[stamp] = msg, self.clock()
         if len(queue) > self.queue_size:
             self._evict(index, min(queue), drops)
             if stamp not in queue:
@@ -116,7 +137,7 @@ class ApproximateTimeSync:
     def _take(self, stamps: tuple[float, ...], drops: list) -> list:
         msgs = []
         for i, (queue, matched) in enumerate(zip(self._queues, stamps)):
-            msgs.append(queue.pop(matched))
+            msgs.append(queue.pop(matched)[0])
             for s in sorted(s for s in queue if s <= matched):
                 self._evict(i, s, drops)
             self._last_matched[i] = matched
@@ -125,7 +146,8 @@ class ApproximateTimeSync:
 
     def _evict(self, index: int, stamp: float, drops: list) -> None:
         del self._queues[index][stamp]
-        drops.append((index, "unmatched", f"{self.names[index]} stamped {stamp:.6f} s: {self._nearest(index, stamp)}"))
+        drops.append((index, "unmatched", f"{self.names[index]} stamped {stamp:.6f} s: {self._nearest(index, stamp)}",
+                      stamp))
 
     def _nearest(self, index: int, stamp: float) -> str:
         """The nearest stamp offset seen on every other input (a silent input is named)."""
@@ -156,7 +178,7 @@ def _feed(sync: ApproximateTimeSync, index: int, msg, info: dict) -> None:
 
 def make_synchronizer(node, inputs: Sequence[tuple[str, type, str]], callback: Callable[..., None], qos, *,
                       queue_size: int = 10, slop: float = 0.02,
-                      on_drop: Callable[[int, str, str], None] = lambda i, reason, detail: None,
+                      on_drop: Callable[[int, str, str, float | None], None] = lambda *drop: None,
                       callback_group=None) -> SynchronizedInputs:
     """Subscribe ``node`` to ``inputs`` ((name, msg type, topic), stamped messages) and call ``callback(*msgs)``
     with approximately synchronised messages, in the order of ``inputs`` (subscribed with :func:`subscribe_camera`)."""

@@ -51,8 +51,8 @@ def test_jittered_streams_match_frame_by_frame():
 
 
 class Drops(list):
-    def __call__(self, index, reason, detail):
-        self.append((index, reason, detail))
+    def __call__(self, index, reason, detail, stamp):
+        self.append((index, reason, detail, stamp))
 
 
 def test_unmatched_and_late_messages_are_dropped_and_reported_with_the_offset_seen():
@@ -63,8 +63,8 @@ def test_unmatched_and_late_messages_are_dropped_and_reported_with_the_offset_se
     s.add(0, 1.100, "rgb2")
     s.add(1, 1.101, "depth2")   # matches rgb2; rgb1 and depth0 are left behind
     assert out.matches == [("rgb2", "depth2")]
-    assert [(i, reason) for i, reason, _ in drops] == [(0, "unmatched"), (1, "unmatched")]
-    assert "nearest depth 0.050 s away" in drops[0][2]
+    assert [(i, reason) for i, reason, _, _ in drops] == [(0, "unmatched"), (1, "unmatched")]
+    assert "nearest depth 0.050 s away" in drops[0][2] and [stamp for *_, stamp in drops] == [1.000, 1.050]
     s.add(1, 1.001, "depth1")   # out of order, older than the last match on its input
     assert drops[-1][:2] == (1, "backwards") and len(out.matches) == 1
     assert s.dropped == {("rgb", "unmatched"): 1, ("depth", "unmatched"): 1, ("depth", "backwards"): 1}
@@ -158,7 +158,8 @@ def test_gaps_in_the_publication_sequence_are_counted_as_lost():
     for stamp, sequence in ((1.0, 7), (2.0, 8), (3.0, 11), (4.0, 1), (5.0, 2)):  # 9, 10 lost; then a new publisher
         s.add(0, stamp, f"rgb{stamp}", sequence)
     assert s.lost == [2, 0] and s.dropped[("rgb", "lost_in_transport")] == 2
-    assert [reason for _, reason, _ in drops] == ["lost_in_transport"] * 2 and "sequence 8 -> 11" in drops[0][2]
+    assert [reason for _, reason, _, _ in drops] == ["lost_in_transport"] * 2 and "sequence 8 -> 11" in drops[0][2]
+    assert [stamp for *_, stamp in drops] == [None, None]  # never received: no stamp
 
 
 # --- TF ---------------------------------------------------------------------------------------------------------------

@@ -49,7 +49,8 @@ newest synchronised one first (``NewestFrameQueue``), so a tracker that falls be
 a backlog. Every rgb image received is accounted for: processed (a pose published), pending, or dropped and counted
 by reason on gausem/diagnostics (``dropped.<reason>``) with a warning: ``superseded`` (a newer frame arrived while
 busy), ``lost_in_transport`` (never received: a gap in the publisher's sequence numbers, e.g. the subscription queue
-overflowed), ``unmatched`` (no depth/labels within ``sync_slop``; the warning gives the offset seen), ``no_depth`` /
+overflowed), ``unmatched`` (no depth/labels within ``sync_slop``, or none yet ``sync_wait`` s after it arrived; the
+warning gives the offset seen), ``no_depth`` /
 ``no_labels`` (that input never arrived: with ``use_labels`` true and no labels, the warning names the parameter),
 ``stale_stamp`` / ``duplicate_stamp`` (stamps going backwards or repeated), bad input (wrong encodings, data
 shorter than the declared size, a side below ``min_image_size``, size mismatches, too little valid depth, no
@@ -130,6 +131,8 @@ NODE_DEFAULTS = {
     "input_qos": "reliable",     # or "sensor_data" for a live camera driver
     "sync_queue_size": 10,
     "sync_slop": 0.02,           # seconds
+    "sync_wait": 5.0,            # seconds an rgb/depth/labels message waits for its partners before it is dropped as
+    # unmatched (0: until a later frame matches; a lock-step replay sends none, so its player would wait its timeout)
     "map_publish_period": 2.0,   # seconds
     "min_valid_depth": 0.05,     # fraction of pixels with a valid depth below which a frame is dropped
     "min_image_size": 16,        # pixels: frames with a smaller side are dropped (bad_size); >= the pyramids' need
@@ -225,6 +228,11 @@ class TrackingMappingNode(Node):
             "superseded", "a newer synchronised frame arrived before this one was processed"),
             ready=self._loop_settled)  # superseded and skipped frames reach the core through _process's count
         subscribe_camera(self, CameraInfo, "rgb/camera_info", self._on_camera_info, qos, input_group, INPUT_QOS_HINT)
+        if p.sync_wait < 0:
+            raise ValueError(f"tracking_mapping: sync_wait must be >= 0 (0: off), got {p.sync_wait}")
+        if p.sync_wait:
+            self.create_timer(min(p.sync_wait / 2, 0.5), lambda: self._inputs.synchronizer.flush(p.sync_wait),
+                              callback_group=input_group)
         if self.loop_nodes:
             self._signature_pub = self.create_publisher(PointCloud2, "gausem/place_signatures", EVENT_QOS)
             self.create_subscription(PointCloud2, "gausem/loop_candidates", self._on_loop_candidates, EVENT_QOS)
@@ -310,11 +318,14 @@ class TrackingMappingNode(Node):
     def _on_frame(self, *msgs: Image) -> None:
         self._queue.put(msgs)
 
-    def _on_sync_drop(self, index: int, reason: str, detail: str) -> None:
-        """The synchroniser dropped a message: an rgb image is a lost frame (counted by reason); depth and label
-        messages without a frame are only counted (``sync.<input>.<reason>`` in the diagnostics)."""
+    def _on_sync_drop(self, index: int, reason: str, detail: str, stamp: float | None) -> None:
+        """The synchroniser dropped a message: an rgb image is a lost frame (counted by reason; the diagnostics name
+        it as handled, which answers a lock-step player); depth and label messages without a frame are only counted
+        (``sync.<input>.<reason>`` in the diagnostics)."""
         if index:
             return
+        if stamp is not None:
+            self._handled_ns = max(self._handled_ns, ma.seconds_to_ns(stamp))
         sync = self._inputs.synchronizer
         silent = [name for name, received in zip(sync.names, sync.received) if not received]
         if reason == "unmatched" and silent:
