@@ -131,6 +131,11 @@ def test_tracking_node_in_lockstep_with_the_player(tmp_path):
         client = recorder.node.create_client(Trigger, "gausem/save_map")
         future = client.call_async(Trigger.Request())
         assert spin_until(executor, future.done, 10.0) and future.result().success
+        load = recorder.node.create_client(Trigger, "gausem/load_map").call_async(Trigger.Request())
+        assert spin_until(executor, load.done, 30.0) and load.result().success
+        summary = tracking.summary()  # the input accounting goes on across a loaded map
+        assert summary["frames_processed"] == frames and summary["frames_in"] == (
+            frames + sum(summary["dropped"].values()) + summary["frames_pending"])
         reset = recorder.node.create_client(Trigger, "gausem/reset").call_async(Trigger.Request())
         assert spin_until(executor, reset.done, 10.0) and reset.result().success
         assert tracking.frames_processed == 0 and not tracking.slam.frames
@@ -145,11 +150,12 @@ def test_the_node_maps_on_its_worker_by_default_and_publishes_the_keyframes_it_f
     path appended frame by frame."""
     frames = 8
     with ros_session(109) as (ctx, executor):
-        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides({**FAST_SLAM, "mapping.every": 2}))
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(
+            {**FAST_SLAM, "mapping.every": 2, "map_publish_period": 1000.0}))  # the map: only as finish sends it
         player = Player(open_source("synthetic", size=(80, 60), max_frames=frames), rate=0.0, lockstep=True,
                         timeout=30.0, context=ctx)
         recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS), (Path, "gausem/path", LATCHED_QOS),
-                                  (PointCloud2, "gausem/keyframes", EVENT_QOS)])
+                                  (PointCloud2, "gausem/keyframes", EVENT_QOS), (PointCloud2, "gausem/map", LATCHED_QOS)])
         for node in (tracking, player, recorder.node):
             executor.add_node(node)
         assert spin_until(executor, lambda: player.done, 50.0)
@@ -172,6 +178,8 @@ def test_the_node_maps_on_its_worker_by_default_and_publishes_the_keyframes_it_f
                           and max(len(p.poses) for p in recorder.messages["gausem/path"]) >= tracked, 30.0)
         lengths = [len(p.poses) for p in recorder.messages["gausem/path"]]  # a latched topic of depth 1 may skip some
         assert lengths[0] >= 1 and lengths[:-1] == sorted(lengths[:-1])  # grows frame by frame until finish
+        # the refined map, published by finish itself (the map timer's period is far longer than this test)
+        assert spin_until(executor, lambda: len(recorder.messages["gausem/map"]) == 1, 10.0)
 
 
 def _frame_messages(stamp: float, size=(40, 30), rgb_encoding="rgb8", depth=None, label=0):

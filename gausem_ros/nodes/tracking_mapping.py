@@ -216,6 +216,7 @@ class TrackingMappingNode(Node):
         if self.device.type == "cuda":  # the inputs are subscribed once the renderer is ready
             self.get_logger().info("preparing the renderer on cuda (gsplat compiles its kernels on a machine's first "
                                    "run: one to two minutes)")
+        self.frames_processed = 0  # the input accounting's (kept across load_map, cleared by gausem/reset)
         self._reset_state()
 
         inputs = [("rgb", Image, "rgb/image"), ("depth", Image, "depth/image")] + (
@@ -269,7 +270,6 @@ class TrackingMappingNode(Node):
         torch.manual_seed(self.cfg.seed)
         self.slam = slam or GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette),
                                        detect_loops=not self.loop_nodes)
-        self.frames_processed = 0
         self._busy: tuple[float, float] | None = None  # perf_counter at the first processed frame's start, last end
         self._last_stamp = -math.inf
         self._camera_frame = self.params.camera_frame or "camera"
@@ -712,6 +712,7 @@ class TrackingMappingNode(Node):
         self._path = None
         self._publish_path()
         self._map_dirty = True
+        self._publish_map()  # now: a caller that finishes may stop spinning (the map timer) right after
 
     # --- services -----------------------------------------------------------------------------------------------
     def save_map(self, folder: str | Path) -> tuple[Path, Path]:
@@ -781,6 +782,7 @@ class TrackingMappingNode(Node):
         del request
         self.slam.close()  # deletes the old map's spilled submaps now
         self._reset_state()
+        self.frames_processed = 0
         self._queue.clear()
         self._inputs.synchronizer.reset()  # a replay of the same stamps must not look stale
         self.drops.clear()
