@@ -89,3 +89,35 @@ def test_tracking_health_reaches_diagnostics_and_odometry_and_a_lost_frame_is_dr
         _, written = tracking.save_map(tmp_path)
         assert len(written.read_text().splitlines()) == 1 + 2  # a header line, the two published poses
         assert latest().level == DiagnosticStatus.ERROR and "tracking lost" in latest().message
+
+
+def test_a_scaled_camera_is_resized_to_the_map_and_another_camera_is_rejected():
+    """Mid-run, frames at twice the size with a camera_info scaled alike go on in the map's 40x30 camera; frames whose
+    camera is not a scaling of the map's are dropped as camera_changed."""
+    with ros_session(169) as (ctx, executor):
+        tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
+        sizes, process = [], tracking.slam.process
+        tracking.slam.process = lambda obs, skipped=0: sizes.append(tuple(obs.depth.shape)) or process(obs, skipped)
+        node = Recorder(ctx, []).node
+        pubs = [node.create_publisher(Image, t, IMAGE_QOS) for t in ("rgb/image", "depth/image", "semantic/labels")]
+        info_pub = node.create_publisher(CameraInfo, "rgb/camera_info", IMAGE_QOS)
+        executor.add_node(tracking)
+        executor.add_node(node)
+        assert spin_until(executor, lambda: all(p.get_subscription_count() for p in pubs + [info_pub]), 5.0)
+
+        def send(stamp, camera, expect):
+            info_pub.publish(ma.camera_to_camera_info(camera, ma.make_header(stamp, "cam")))
+            spin_for(executor, 0.2)
+            header = ma.make_header(stamp, "cam")
+            rgb = np.random.default_rng(0).integers(0, 256, (camera.height, camera.width, 3), dtype=np.uint8)
+            for pub, msg in zip(pubs, (ma.rgb_to_image(rgb, header), ma.numpy_to_image(
+                    np.full((camera.height, camera.width), 2.0, np.float32), "32FC1", header),
+                    ma.labels_to_image(np.zeros((camera.height, camera.width), np.int64), header))):
+                pub.publish(msg)
+            assert spin_until(executor, expect, 20.0), dict(tracking.drops.counts)
+
+        send(1.0, PinholeCamera(40.0, 40.0, 20.0, 15.0, 40, 30), lambda: tracking.frames_processed == 1)
+        send(1.1, PinholeCamera(80.0, 80.0, 40.0, 30.0, 80, 60), lambda: tracking.frames_processed == 2)
+        assert sizes == [(30, 40), (30, 40)]  # tracked in the map's camera
+        send(1.2, PinholeCamera(60.0, 60.0, 20.0, 15.0, 40, 30), lambda: tracking.drops.counts["camera_changed"] == 1)
+        assert tracking.frames_processed == 2

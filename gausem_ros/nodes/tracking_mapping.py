@@ -54,7 +54,8 @@ warning gives the offset seen), ``no_depth`` /
 ``no_labels`` (that input never arrived: with ``use_labels`` true and no labels, the warning names the parameter),
 ``stale_stamp`` / ``duplicate_stamp`` (stamps going backwards or repeated), bad input (wrong encodings, data
 shorter than the declared size, a side below ``min_image_size``, size mismatches, too little valid depth, no
-camera_info yet, labels outside the class table), ``tracking_diverged`` (a pose estimate that is not finite: nothing
+camera_info yet, labels outside the class table), ``camera_changed`` (a camera that is neither the map's nor a
+scaling of it: a frame of a scaled camera is resized to the map's, with a log line), ``tracking_diverged`` (a pose estimate that is not finite: nothing
 is published for it) and ``processing_error`` (any input whose handling raises; the node goes on). The core hears
 of the frames dropped before it (superseded, lost in transport, unmatched, bad input) with the next frame it gets,
 as skipped ones (``GauSemSLAM.process``): its motion model, ``tracking.feature_start`` and
@@ -173,6 +174,7 @@ def _check_size_limits(cfg: SlamConfig, min_image_size: int, max_image_pixels: i
                          f"{min_image_size ** 2}; raise max_image_pixels")
 
 
+CAMERA_TOLERANCE_PX = 0.5  # intrinsics (scaled to the map's image size) that differ by more are another camera
 DEGRADED_VARIANCE = 1.0  # m^2 and rad^2 on the odometry's pose covariance diagonal for a degraded frame
 _HEALTH_LEVELS = {"ok": (DiagnosticStatus.OK, ""), "degraded": (DiagnosticStatus.WARN, "tracking degraded"),
                   "lost": (DiagnosticStatus.ERROR, "tracking lost")}
@@ -282,6 +284,7 @@ class TrackingMappingNode(Node):
         self.health = TrackingHealth("ok")  # the last frame's
         self.health_log: list[tuple[int, float, TrackingHealth]] = []  # (frame, stamp, health) of every frame given
         # to the core, dropped ones included (the report's tracking_status.csv)
+        self._rescaled_sizes: set[tuple[int, int]] = set()  # frame sizes said to be resized to the map's camera
         if self.checkpoints is not None:
             self.checkpoints.start(self.slam)  # a new or loaded map: nothing in it is new yet
 
@@ -366,7 +369,7 @@ class TrackingMappingNode(Node):
         if valid < self.params.min_valid_depth:
             raise FrameRejected("invalid_depth", f"only {100 * valid:.1f} % of the depth pixels are valid (finite, "
                                                  f"> 0); at least {100 * self.params.min_valid_depth:.1f} % needed")
-        frame = self._limit_pixels(Frame(0, stamp, rgb, depth, labels, camera))
+        frame = self._in_map_camera(self._limit_pixels(Frame(0, stamp, rgb, depth, labels, camera)))
         return Observation.from_arrays(frame.rgb, frame.depth, frame.labels, frame.camera, self.palette, stamp,
                                        self.device)
 
@@ -407,6 +410,23 @@ class TrackingMappingNode(Node):
                                             f"{size[0]}x{size[1]}, a side below min_image_size; raise "
                                             "max_image_pixels or lower min_image_size")
         return resize_frame(frame, *size)
+
+    def _in_map_camera(self, frame: Frame) -> Frame:
+        """The frame in the camera of the map (its first keyframe's): one whose camera is a scaling of it is resized
+        to it (said once per size); another camera is rejected (camera_changed: a map has one camera model)."""
+        if not self.slam.submaps:
+            return frame
+        ours = self.slam.submaps[0].keyframes[0].obs.camera
+        theirs = frame.camera.scaled(ours.width, ours.height)
+        if max(abs(a - b) for a, b in zip((theirs.fx, theirs.fy, theirs.cx, theirs.cy),
+                                          (ours.fx, ours.fy, ours.cx, ours.cy))) > CAMERA_TOLERANCE_PX:
+            raise FrameRejected("camera_changed", f"the frame's camera {frame.camera} is not the map's {ours} nor a "
+                                                  "scaling of it; gausem/reset starts a map in the new camera")
+        if frame.size != (ours.width, ours.height) and frame.size not in self._rescaled_sizes:
+            self._rescaled_sizes.add(frame.size)
+            self.get_logger().info(f"frames of {frame.size[0]}x{frame.size[1]} are resized to the map's "
+                                   f"{ours.width}x{ours.height} (their camera is a scaling of its camera)")
+        return resize_frame(frame, ours.width, ours.height)
 
     # --- processing ---------------------------------------------------------------------------------------------
     @property
