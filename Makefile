@@ -45,8 +45,8 @@ demo: $(STAMP)
 bench: BENCH_SUITES ?= benchmarks/suites/paper.yaml benchmarks/suites/ablation.yaml
 bench: $(STAMP)
 	$(PIP) install -q -r requirements-bench.txt -c constraints.txt
-	$(VENV)/bin/gausem bench render --out benchmarks/results
-	for suite in $(BENCH_SUITES); do $(VENV)/bin/gausem bench slam --suite $$suite --out benchmarks/results || exit 1; done
+	$(PY) benchmarks/bench.py render --out benchmarks/results
+	for suite in $(BENCH_SUITES); do $(PY) benchmarks/bench.py slam --suite $$suite --out benchmarks/results || exit 1; done
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -10,14 +10,13 @@ COMMANDS = {
     "info": ("gausem_core.tools.info", "show versions and which optional back-ends are usable"),
     "demo": ("gausem_core.tools.demo", "run the end-to-end demo on the embedded synthetic sequence"),
     "run": ("gausem_core.tools.run", "run the offline SLAM pipeline on a dataset and write its outputs"),
-    "bench": ("gausem_core.tools.bench", "benchmarks (renderer, ...) written as JSON and Markdown"),
     "train-head": ("gausem_core.tools.train_head", "train the linear segmentation head on DINOv2 patch tokens"),
 }
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser of every sub-command, with the arguments of ``command`` only: its module alone is imported (the
-    benchmark harness alone takes seconds to import)."""
+    slowest take seconds to import)."""
     parser = argparse.ArgumentParser(prog="gausem", description="GauSem: semantic Gaussian-splatting RGB-D SLAM.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module, help_text) in COMMANDS.items():

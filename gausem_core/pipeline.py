@@ -15,17 +15,11 @@ from tqdm import tqdm
 
 from gausem_core.config import SlamConfig
 from gausem_core.live import LiveCamera
+from gausem_core.runtime import resolve_device
 from gausem_core.semantics.source import FrameSemantics
 from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device 'cuda' requested but CUDA is not available (set device: auto or cpu)")
-    return torch.device(name)
 
 
 def peak_rss_mb() -> float:

@@ -1,10 +1,15 @@
-"""Shared fixtures: deterministic seeds, the shared data folder (tests that need it skip without it)."""
+"""Shared fixtures: deterministic seeds, the shared data folder (tests that need it skip without it), a short synthetic
+sequence as observations."""
 import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+
+from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
+from gausem_core.geometry import invert_pose
+from gausem_core.slam.observation import Observation
 
 SHARED_DATA = Path(os.environ.get("GAUSEM_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
@@ -20,3 +25,15 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data folder {SHARED_DATA} is absent")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="module")
+def sequence(request):
+    """Every ``SEQUENCE_STRIDE``-th frame (the requesting module's constant) of the default synthetic sequence at
+    80x60: its observations and world poses (the first frame's is the identity)."""
+    data = SyntheticDataset("default", resolution=(80, 60), stride=request.module.SEQUENCE_STRIDE)
+    frames = [data[i] for i in range(len(data))]
+    first = torch.tensor(frames[0].gt_pose)
+    observations = [Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
+                                             f.timestamp) for f in frames]
+    return observations, [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]

@@ -18,7 +18,7 @@ from gausem_bench import tables
 from gausem_bench.baselines import import_open3d
 from gausem_bench.color_registration import ColorCalibration, ColorRegistered
 from gausem_bench.suite import SuiteError, baseline_parameters, gausem_parameters, load_suite, parse_suite, plan
-from gausem_core.cli import main
+from gausem_bench.cli import main
 from gausem_core.data import SyntheticDataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,22 +83,22 @@ def test_bad_suites_fail_clearly(document, message):
 
 
 def test_unknown_parameters_fail_before_anything_runs(tmp_path, capsys):
-    code = main(["bench", "slam", "--dataset", "synthetic", "--set", "mapping.iteratons=3", "--dry-run",
+    code = main(["slam", "--dataset", "synthetic", "--set", "mapping.iteratons=3", "--dry-run",
                  "--out", str(tmp_path / "res")])
     err = capsys.readouterr().err
     assert code == 2 and "unknown parameter 'mapping.iteratons'" in err and "did you mean 'mapping.iterations'" in err
     suite = tiny_suite(tmp_path, [{"name": "old", "overrides": {"tracking.iterations": 3}}])
-    assert main(["bench", "slam", "--suite", str(suite), "--dry-run"]) == 2
+    assert main(["slam", "--suite", str(suite), "--dry-run"]) == 2
     assert ("configuration 'old': renamed parameter: 'tracking.iterations' is now 'tracking.adam.iterations'"
             in capsys.readouterr().err)
     suite = tiny_suite(tmp_path, [{"name": "abl", "overrides": {"submap.policy": "motion"}}])
-    assert main(["bench", "slam", "--suite", str(suite), "--dry-run"]) == 2
+    assert main(["slam", "--suite", str(suite), "--dry-run"]) == 2
     assert "configuration 'abl': unknown parameter 'submap.policy'" in capsys.readouterr().err
     suite = tiny_suite(tmp_path, [{"name": "o3d", "method": "open3d_odometry", "overrides": {"depth_maximum": 4}}])
-    assert main(["bench", "slam", "--suite", str(suite), "--dry-run"]) == 2
+    assert main(["slam", "--suite", str(suite), "--dry-run"]) == 2
     assert "unknown parameter 'depth_maximum'" in capsys.readouterr().err
     suite = tiny_suite(tmp_path, [{"name": "typed", "overrides": {"loop.enabled": "no"}}])
-    assert main(["bench", "slam", "--suite", str(suite), "--dry-run"]) == 2
+    assert main(["slam", "--suite", str(suite), "--dry-run"]) == 2
     assert "loop.enabled" in capsys.readouterr().err
     assert not (tmp_path / "res").exists()
 
@@ -134,7 +134,7 @@ def test_plan_resolves_every_parameter_and_the_seed(tmp_path):
 
 
 def test_dry_run_lists_the_runs_and_runs_nothing(tmp_path, capsys):
-    code = main(["bench", "slam", "--suite", str(ROOT / "benchmarks/suites/smoke.yaml"), "--dry-run",
+    code = main(["slam", "--suite", str(ROOT / "benchmarks/suites/smoke.yaml"), "--dry-run",
                  "--out", str(tmp_path / "res"), "--work", str(tmp_path / "work")])
     out = capsys.readouterr().out
     suite = load_suite(ROOT / "benchmarks/suites/smoke.yaml")
@@ -174,7 +174,7 @@ def test_tiny_run_writes_json_and_paper_shaped_tables(tmp_path):
     suite = tiny_suite(tmp_path, [{"name": "full", "overrides": TINY},
                                   {"name": "no_loop", "overrides": {**TINY, "loop.enabled": False}}])
     res = tmp_path / "res"
-    assert main(["bench", "slam", "--suite", str(suite), "--out", str(res), "--work", str(tmp_path / "work"),
+    assert main(["slam", "--suite", str(suite), "--out", str(res), "--work", str(tmp_path / "work"),
                  "--quiet", "--threads", "1"]) == 0
     document = json.loads((res / "slam_tiny.json").read_text())
     assert document["suite"] == "tiny" and "--suite" in document["command"]
@@ -208,8 +208,7 @@ def _spawned_children(pid: int) -> list[int]:
 def test_sigterm_stops_the_running_case_too(tmp_path):
     """SIGTERM to `gausem bench slam` while a run's process works: both end (the run's process is not orphaned)."""
     suite = tiny_suite(tmp_path, [{"name": "full", "overrides": TINY}])
-    command = [sys.executable, "-c", "import sys; from gausem_core.cli import main; sys.exit(main())", "bench",
-               "slam", "--suite", str(suite), "--frames", "180", "--out", str(tmp_path / "res"), "--work",
+    command = [sys.executable, str(ROOT / "benchmarks" / "bench.py"), "slam", "--suite", str(suite), "--frames", "180", "--out", str(tmp_path / "res"), "--work",
                str(tmp_path / "work"), "--quiet", "--threads", "1"]
     harness = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -235,19 +234,17 @@ def test_missing_open3d_gives_an_install_hint(monkeypatch):
         import_open3d()
 
 
-def test_gausem_core_does_not_import_open3d():
-    code = ("import sys, gausem_core.cli; gausem_core.cli.build_parser('bench'); "
+def test_the_harness_does_not_import_open3d_until_a_baseline_runs():
+    code = ("import sys, gausem_bench.cli as cli, argparse; cli.add_arguments(argparse.ArgumentParser()); "
             "import gausem_bench.slam, gausem_bench.worker, gausem_bench.tables; assert 'open3d' not in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT / "benchmarks")
+
+
+def test_the_library_does_not_know_the_harness():
+    """No arrow up the layers: every `gausem` command's parser builds without importing gausem_bench."""
+    code = ("import sys, gausem_core.cli as cli; [cli.build_parser(name) for name in cli.COMMANDS]; "
+            "assert 'bench' not in cli.COMMANDS and not any(m.startswith('gausem_bench') for m in sys.modules)")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
-
-
-def test_bench_without_a_checkout_says_where_the_harness_lives(tmp_path):
-    """An installed library has no benchmarks/gausem_bench: `gausem bench` fails clearly, the other commands work."""
-    code = ("import sys, pathlib, gausem_core.tools.bench as bench; bench.BENCHMARKS = pathlib.Path('/nonexistent'); "
-            "from gausem_core.cli import build_parser, main; build_parser('info').parse_args(['info']); "
-            "sys.exit(main(['bench', 'slam', '--dry-run']))")
-    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)
-    assert done.returncode == 2 and "benchmarks/gausem_bench" in done.stderr and "pip install -e" in done.stderr
 
 
 @pytest.mark.parametrize("method", ["open3d_odometry", "open3d_slam"])

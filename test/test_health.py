@@ -14,7 +14,7 @@ from gausem_core.data import open_dataset
 from gausem_core.eval.health import PlantedFailure, flag_scores, relative_errors
 from gausem_core.geometry import invert_pose, make_pose, so3_exp, so3_log
 from gausem_core.pipeline import Pipeline
-from gausem_core.slam.health import HealthMonitor, condition, image_signals
+from gausem_core.slam.health import SIGNALS, HealthMonitor, condition, image_signals, thresholds
 from gausem_core.slam.system import GauSemSLAM
 
 SLOT = 10  # the planted failure's frame
@@ -47,6 +47,19 @@ def test_image_signals_decide_lost_and_degraded():
     assert monitor.assess(0.1, dict(GOOD, condition=math.inf), at(0), None, None).status == "degraded"
     little_map = monitor.assess(0.1, dict(GOOD, coverage=0.2), at(0), None, None)
     assert little_map.status == "degraded" and little_map.reasons == ("coverage",) and little_map.coverage == 0.2
+
+
+def test_every_level_threshold_of_the_config_is_in_the_table_under_its_own_field():
+    """Each ``degraded_*`` / ``lost_*`` field of HealthConfig is read, for its own level and signal: a field the table
+    missed, or read under another name, would silently turn its check off."""
+    fields = {name for name in vars(HealthConfig()) if name.startswith(("degraded_", "lost_"))}
+    assert len(fields) == 9
+    for name in fields:
+        level, signal = name.split("_", 1)
+        assert signal in SIGNALS
+        cfg = replace(HealthConfig(), **{name: 12345.0})
+        assert thresholds(cfg)[level][signal] == 12345.0
+    assert sum(len(limits) for limits in thresholds(HealthConfig()).values()) == len(fields)
 
 
 def test_image_signals_measure_the_map_in_view_and_the_share_it_explains():

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from gausem_core.config import RENAMED, from_flat
-from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
+from gausem_core.data import SYNTHETIC_CLASSES
 from gausem_core.geometry import invert_pose, so3_log
 from gausem_core.slam.allocation import Decision
 from gausem_core.slam.loop import LoopDetector
@@ -21,17 +21,7 @@ SETTINGS = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iteratio
             "submaps.boundary_iterations": 2, "submaps.memory_budget_mb": 0.0, "refinement.enabled": False}
 SWITCH_AT = (6, 12, 18)  # frames that start a new submap: three submaps when saved, the first two on disk; one more
 SAVED, NEXT = 16, 4
-
-
-@pytest.fixture(scope="module")
-def sequence():
-    """Every 2nd frame of the default synthetic sequence at 80x60 and its world poses (first frame = identity)."""
-    data = SyntheticDataset("default", resolution=(80, 60), stride=2)
-    frames = [data[i] for i in range(len(data))]
-    first = torch.tensor(frames[0].gt_pose)
-    observations = [Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
-                                             f.timestamp) for f in frames]
-    return observations, [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]
+SEQUENCE_STRIDE = 2  # the conftest's `sequence`: every 2nd frame
 
 
 class ScriptedPolicy:

@@ -255,7 +255,7 @@ def _wait_sets_per_message(domain_id: int, default_event_handlers: bool) -> floa
     thread = threading.Thread(target=camera)
     try:
         thread.start()
-        spin_until(executor, lambda: len(received) >= 150, 15.0)  # about 2 s at 30 Hz; longer on a loaded machine
+        arrived = spin_until(executor, lambda: len(received) >= 150, 120.0)  # about 5 s at 30 Hz
     finally:
         stop.set()
         thread.join()
@@ -263,7 +263,7 @@ def _wait_sets_per_message(domain_id: int, default_event_handlers: bool) -> floa
         node.destroy_node()
         source.destroy_node()
         rclpy.shutdown(context=context)
-    assert len(received) >= 30, f"{len(received)} messages in 15 s"  # enough for the ratio (81 on a loaded CI run)
+    assert arrived, f"{len(received)} of 150 messages"
     return executor.asked / len(received)
 
 
@@ -465,8 +465,7 @@ def test_executor_shutdown_waits_for_the_callbacks_and_leaves_no_failed_task(cap
         node.create_timer(0.005, slow, callback_group=MutuallyExclusiveCallbackGroup())
     executor.add_node(node)
     try:
-        assert spin_until(executor, lambda: bool(started), 5.0)
-        spin_for(executor, 0.1)  # more handlers queue behind the busy threads
+        assert spin_until(executor, lambda: len(started) >= 2, 30.0)  # both threads busy: the third handler queues
         executor.shutdown()
         assert len(finished) == len(started) >= 2  # every callback that started ran to its end before shutdown returned
     finally:

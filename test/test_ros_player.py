@@ -73,6 +73,7 @@ def test_player_replays_a_ros1_bag_with_tum_topic_names_and_never_ground_truth(t
 
 
 def test_player_paces_frames_at_the_recorded_rate(tmp_path):
+    """No frame goes out before its recorded time over the rate (a loaded machine may only delay them)."""
     _tum_bag(tmp_path / "tum.bag", 4)  # 3 intervals of 1/30 s -> 0.1 s at rate 1, 1 s at rate 0.1
     with ros_session(112) as (ctx, executor):
         player = Player(open_source(str(tmp_path / "tum.bag")), rate=0.1, context=ctx)
@@ -83,8 +84,8 @@ def test_player_paces_frames_at_the_recorded_rate(tmp_path):
             recorder.node.get_clock().now().nanoseconds / 1e9), IMAGE_QOS)
         executor.add_node(player)
         executor.add_node(recorder.node)
-        assert spin_until(executor, lambda: len(arrivals) == 4, 10.0)
-    assert 0.95 <= arrivals[-1] - arrivals[0] <= 1.6  # the upper bound leaves room for a loaded machine
+        assert spin_until(executor, lambda: len(arrivals) == 4, 30.0)
+    assert player.published == 4 and arrivals[-1] - arrivals[0] >= 0.95  # rate 1 or 0 would take 0.1 s or none
 
 
 def test_gausem_bag_writes_a_ros2_bag_the_player_replays(tmp_path):

@@ -25,19 +25,9 @@ CHEAP = {"backend": "torch", "loop.enabled": False, "mapping.iterations": 2, "ma
          "mapping.init_samples_fraction": 0.25, "submaps.boundary_iterations": 2,
          # the oracle's poses are right; the thin maps of these settings would be judged lost
          "health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0}
+SEQUENCE_STRIDE = 5  # the conftest's `sequence`: every 5th frame
 DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(),
                                                                                      reason="needs CUDA")])]
-
-
-@pytest.fixture(scope="module")
-def sequence():
-    """Every 5th frame of the default synthetic sequence at 80x60: observations and world poses (first frame = I)."""
-    data = SyntheticDataset("default", resolution=(80, 60), stride=5)
-    frames = [data[i] for i in range(len(data))]
-    first = torch.tensor(frames[0].gt_pose)
-    observations = [Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
-                                             f.timestamp) for f in frames]
-    return observations, [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]
 
 
 class OracleTracker:

@@ -1,4 +1,4 @@
-"""``gausem bench <target>``: benchmarks written as JSON plus Markdown tables, one module per target.
+"""``python benchmarks/bench.py <target>``: benchmarks written as JSON plus Markdown tables, one module per target.
 
 ``render`` (:mod:`gausem_bench.render`): renderer timing and memory. ``slam`` (:mod:`gausem_bench.slam`): the offline
 pipeline and the Open3D baselines over sequences x configurations. Each target module exposes
@@ -6,6 +6,7 @@ pipeline and the Open3D baselines over sequences x configurations. Each target m
 """
 from __future__ import annotations
 
+import argparse
 import importlib
 
 TARGETS = {
@@ -22,5 +23,9 @@ def add_arguments(parser) -> None:
         importlib.import_module(module).add_arguments(p)
 
 
-def main(args) -> int:
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="benchmarks/bench.py", description="GauSem's benchmarks, written as JSON "
+                                     "and Markdown in benchmarks/results")
+    add_arguments(parser)
+    args = parser.parse_args(argv)
     return int(importlib.import_module(args._bench_module).main(args) or 0)

@@ -1,4 +1,4 @@
-"""``gausem bench render``: renderer timing and memory, written as JSON plus a Markdown table.
+"""``python benchmarks/bench.py render``: renderer timing and memory, written as JSON plus a Markdown table.
 
 Forward and forward+backward of :func:`gausem_core.render.render` on a synthetic room (wall at 4 m,
 floor, sphere) whose Gaussians are back-projected from the room's depth with a screen radius of 1 px at 320x240
@@ -196,7 +196,7 @@ def main(args) -> int:
     stem = f"render_{env['device']}"
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{stem}.json").write_text(json.dumps({**env, "target": "render", "results": rows}, indent=1) + "\n")
-    header = (f"# `gausem bench render` on {env['device_name']} ({env['threads']} threads), torch "
+    header = (f"# `python benchmarks/bench.py render` on {env['device_name']} ({env['threads']} threads), torch "
               f"{env['torch']}, commit {env['git_commit'][:10]}\n\nMedian wall-clock times.\n\n")
     (args.out / f"{stem}.md").write_text(header + render_table(rows) + "\n")
     print(f"wrote {args.out / stem}.json and .md")

@@ -1,4 +1,4 @@
-"""``gausem bench slam``: GauSem's offline pipeline and the Open3D baselines over sequences x configurations.
+"""``python benchmarks/bench.py slam``: GauSem's offline pipeline and the Open3D baselines over sequences x configurations.
 
 Sequences and configurations come from a suite file (:mod:`gausem_bench.suite`, default
 ``benchmarks/suites/paper.yaml``) or from ``--dataset``. Each run executes in a fresh process, so peak memory is per
@@ -128,8 +128,8 @@ def summary(record: dict) -> str:
 
 
 def command_line(args: argparse.Namespace) -> str:
-    """The ``gausem bench slam`` command that repeats this one (every option spelt out)."""
-    words = ["gausem", "bench", "slam"]
+    """The ``python benchmarks/bench.py slam`` command that repeats this one (every option spelt out)."""
+    words = ["python", "benchmarks/bench.py", "slam"]
     for key, value in vars(args).items():
         flag = "--" + key.replace("_", "-")
         if key.startswith("_") or key in ("command", "target") or value in (None, False, []):
@@ -158,7 +158,7 @@ def write_results(out: Path, name: str, document: dict) -> tuple[Path, Path]:
                 "(GauSem). The Open3D baselines have no rendering, semantics or loop closure.")
     json_path, md_path = out / f"slam_{name}.json", out / f"slam_{name}.md"
     json_path.write_text(json.dumps(document, indent=1, allow_nan=False) + "\n")
-    md_path.write_text(markdown_report(document["runs"], f"`gausem bench slam`: {name}", preamble))
+    md_path.write_text(markdown_report(document["runs"], f"`python benchmarks/bench.py slam`: {name}", preamble))
     return json_path, md_path
 
 
@@ -179,7 +179,7 @@ def _run_suite(args: argparse.Namespace) -> int:
                      lpips_weights=str(args.lpips_weights) if args.lpips_weights else None, threads=args.threads,
                      progress=not args.quiet)
     except SuiteError as exc:
-        print(f"gausem bench slam: error: {exc}", file=sys.stderr)
+        print(f"python benchmarks/bench.py slam: error: {exc}", file=sys.stderr)
         return 2
     print(listing(cases), flush=True)
     if args.dry_run:

@@ -36,6 +36,17 @@ SIGNALS = ("inlier_fraction", "residual_z", "condition", "jump", "valid_depth", 
 LOW_IS_BAD = ("inlier_fraction", "valid_depth", "coverage")  # signals whose small values are the bad ones
 
 
+def thresholds(cfg: HealthConfig) -> dict[str, dict[str, float]]:
+    """The thresholds of each level by signal; a signal a level does not list never fires it."""
+    return {
+        "lost": {"inlier_fraction": cfg.lost_inlier_fraction, "jump": cfg.lost_jump,
+                 "valid_depth": cfg.lost_valid_depth},
+        "degraded": {"inlier_fraction": cfg.degraded_inlier_fraction, "residual_z": cfg.degraded_residual_z,
+                     "condition": cfg.degraded_condition, "jump": cfg.degraded_jump,
+                     "valid_depth": cfg.degraded_valid_depth, "coverage": cfg.degraded_coverage},
+    }
+
+
 @dataclass(frozen=True)
 class TrackingHealth:
     """A frame's status and the signals it was judged from; ``reasons`` names the rules that fired."""
@@ -140,15 +151,10 @@ class HealthMonitor:
         self.motions = deque((tuple(m) for m in state["motions"]), maxlen=self.cfg.window)
 
     def _fired(self, signals: dict[str, float], level: str) -> list[str]:
-        """Names of the signals past their ``<level>_`` threshold (below it for fractions, above for the rest)."""
-        fired = []
-        for name, value in signals.items():
-            threshold = getattr(self.cfg, f"{level}_{name}", None)
-            if threshold is None:
-                continue
-            if (value < threshold) if name in LOW_IS_BAD else (value > threshold):
-                fired.append(name)
-        return fired
+        """Names of the signals past their ``level`` threshold (below it for fractions, above for the rest)."""
+        limits = thresholds(self.cfg)[level]
+        return [name for name, value in signals.items() if name in limits
+                and ((value < limits[name]) if name in LOW_IS_BAD else (value > limits[name]))]
 
     def _residual_z(self, loss: float) -> float:
         if len(self.residuals) < self.cfg.min_history:

@@ -15,7 +15,7 @@ from sensor_msgs.msg import Image
 
 import msg_adapters as ma
 from gausem_core.config import SlamConfig
-from gausem_core.pipeline import resolve_device
+from gausem_core.runtime import resolve_device
 from gausem_core.semantics import Segmenter, segmenter_from_config
 
 from ..qos import IMAGE_QOS, INPUT_QOS_HINT, input_qos, subscribe_camera

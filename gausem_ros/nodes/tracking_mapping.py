@@ -107,7 +107,7 @@ from gausem_core.data.undistortion import Undistortion
 from gausem_core.geometry import PinholeCamera, rigid_float64
 from gausem_core.io.ply import write_gaussian_ply
 from gausem_core.io.trajectory import Trajectory, write_tum_trajectory
-from gausem_core.pipeline import resolve_device
+from gausem_core.runtime import resolve_device, smallest_image_side
 from gausem_core.semantics.source import UNLABELLED_PALETTE
 from gausem_core.slam.events import FrameEvents, KeyframeState, SubmapChange
 from gausem_core.slam.health import TrackingHealth
@@ -155,16 +155,9 @@ NO_LABELS_HINT = ("; use_labels is true but no semantic/labels arrived: a bag th
                   "-p use_labels:=false, or run the segmentation node (semantics.segmenter: dinov2)")
 
 
-def _pyramid_minimum(cfg: SlamConfig) -> int:
-    """The smallest image side the image pyramids can take (each level halves it and must keep a pixel): tracking's,
-    and loop registration's at the keyframe resolution divided by ``loop.registration.downsample``."""
-    reg = cfg.loop.registration
-    return max(2 ** (cfg.tracking.gauss_newton.pyramid_levels - 1), reg.downsample * 2 ** (reg.pyramid_levels - 1))
-
-
 def _check_size_limits(cfg: SlamConfig, min_image_size: int, max_image_pixels: int) -> None:
     """ValueError naming the parameter to change when the size limits cannot work together."""
-    least = _pyramid_minimum(cfg)
+    least = smallest_image_side(cfg)
     if min_image_size < least:
         raise ValueError(f"tracking_mapping: min_image_size {min_image_size} is below {least} pixels, the smallest "
                          "side the image pyramids (tracking.gauss_newton.pyramid_levels, "
