@@ -361,6 +361,10 @@ def test_tum_class_tables_from_json_and_palette(tmp_path):
     assert table.names == ("floor", "wall", "chair") and table.colors[1].tolist() == [10, 20, 30]
     (root / "classes.json").write_text('["floor", "wall", "chair", "table"]')
     assert TumDataset(root).class_table.names == ("floor", "wall", "chair", "table")
+    (root / "classes.json").write_text('{"1": {"name": "wall", "color": [10, 20, 30]}, "0": "floor", '
+                                       '"2": {"name": "chair"}}')  # an object keyed by class id
+    table = TumDataset(root).class_table
+    assert table.names == ("floor", "wall", "chair") and table.colors[1].tolist() == [10, 20, 30]
     (root / "classes.json").unlink()
     (root / "palette.txt").write_text("# r g b\n0 0 0\n255 0 0\n0 255 0\n")
     ds = TumDataset(root)

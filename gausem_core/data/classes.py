@@ -111,9 +111,9 @@ def generic_table(count: int) -> ClassTable:
 
 def load_class_table(path: str | Path) -> ClassTable:
     """A class table from ``classes.txt`` (``id name r g b`` lines), a ``.json`` file (a list of names, or of
-    ``{"name": ..., "color": [r, g, b]}`` objects with optional ``id`` keys 0..C-1, possibly under ``"classes"``;
-    missing colours are generic) or a palette (``palette.txt``: one ``r g b`` line per class id, names
-    ``class_<id>``)."""
+    ``{"name": ..., "color": [r, g, b]}`` objects with optional ``id`` keys 0..C-1, possibly under ``"classes"``; or an
+    object keyed by id, ``{"0": {"name": ..., "color": [...]}, "1": "wall", ...}``; missing colours are generic) or a
+    palette (``palette.txt``: one ``r g b`` line per class id, names ``class_<id>``)."""
     path = Path(path)
     if path.suffix == ".json":
         return _json_table(path)
@@ -124,6 +124,8 @@ def load_class_table(path: str | Path) -> ClassTable:
 
 def _json_table(path: Path) -> ClassTable:
     doc = json.loads(path.read_text())
+    if isinstance(doc, dict) and doc and all(key.isdigit() for key in doc):  # keyed by class id
+        doc = [_with_id(entry, int(key)) for key, entry in doc.items()]
     entries = doc.get("classes") if isinstance(doc, dict) else doc
     if not isinstance(entries, list) or not entries:
         raise ValueError(f"{path}: expected a non-empty list of classes (or {{\"classes\": [...]}})")
@@ -137,6 +139,13 @@ def _json_table(path: Path) -> ClassTable:
     fallback = generic_colors(len(entries))
     colors = [e.get("color", e.get("colour", fallback[i])) for i, e in enumerate(entries)]
     return ClassTable(tuple(str(e["name"]) for e in entries), np.array(colors, dtype=np.int64).reshape(-1, 3))
+
+
+def _with_id(entry, class_id: int):
+    """An entry of a table keyed by id (a name or an object) as a list entry with its ``id``; others as they are."""
+    if isinstance(entry, str):
+        return {"name": entry, "id": class_id}
+    return {**entry, "id": class_id} if isinstance(entry, dict) else entry
 
 
 def _palette_table(path: Path) -> ClassTable:

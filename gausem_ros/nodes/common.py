@@ -20,7 +20,8 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.signals import SignalHandlerOptions
 
 from gausem_core.config import RENAMED, SlamConfig, flatten, from_flat
-from gausem_core.data.classes import NYU40_CLASSES, SCANNET20_CLASSES, SYNTHETIC_CLASSES, ClassTable
+from gausem_core.data.classes import (NYU40_CLASSES, SCANNET20_CLASSES, SYNTHETIC_CLASSES, ClassTable,
+                                      load_class_table)
 from msg_adapters import make_header
 
 from ..executor import NodeExecutor, exit_now
@@ -61,11 +62,12 @@ def declare_parameters(node, defaults: dict) -> SimpleNamespace:
 
 
 def class_table(name: str) -> ClassTable:
-    """A built-in table (synthetic, nyu40, scannet20) or a class-table file (``id name r g b`` lines)."""
+    """A built-in table (synthetic, nyu40, scannet20) or a class-table file in any format the datasets read
+    (:func:`~gausem_core.data.classes.load_class_table`: ``id name r g b`` lines, JSON, a palette)."""
     if name in CLASS_TABLES:
         return CLASS_TABLES[name]
     try:
-        return ClassTable.load(name)
+        return load_class_table(name)
     except FileNotFoundError:
         raise ValueError(f"classes {name!r} is neither a built-in table ({', '.join(CLASS_TABLES)}) "
                          "nor an existing class-table file") from None
