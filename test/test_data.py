@@ -370,7 +370,10 @@ def test_tum_class_tables_from_json_and_palette(tmp_path):
     ds = TumDataset(root)
     assert ds.class_table.names == ("class_0", "class_1", "class_2") and "from palette.txt" in ds.description
     (root / "classes.json").write_text('[{"id": 0, "name": "a"}, {"id": 2, "name": "b"}]')
-    with pytest.raises(ValueError, match="ids must be 0..1"):
+    with pytest.warns(UserWarning, match=r"no class has the ids \[1\]"):
+        assert TumDataset(root).class_table.names == ("a", "class_1", "b")  # the gap assumed, and said
+    (root / "classes.json").write_text('[{"id": 0, "name": "a"}, {"id": 0, "name": "b"}]')
+    with pytest.raises(ValueError, match="each needs its own id"):
         TumDataset(root)
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import colorsys
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -111,9 +112,10 @@ def generic_table(count: int) -> ClassTable:
 
 def load_class_table(path: str | Path) -> ClassTable:
     """A class table from ``classes.txt`` (``id name r g b`` lines), a ``.json`` file (a list of names, or of
-    ``{"name": ..., "color": [r, g, b]}`` objects with optional ``id`` keys 0..C-1, possibly under ``"classes"``; or an
-    object keyed by id, ``{"0": {"name": ..., "color": [...]}, "1": "wall", ...}``; missing colours are generic) or a
-    palette (``palette.txt``: one ``r g b`` line per class id, names ``class_<id>``)."""
+    ``{"name": ..., "color": [r, g, b]}`` objects with optional ``id`` keys, possibly under ``"classes"``; or an
+    object keyed by id, ``{"0": {"name": ..., "color": [...]}, "1": "wall", ...}``; missing colours are generic, ids
+    missing below the largest are assumed as ``class_<id>`` with a warning) or a palette (``palette.txt``: one
+    ``r g b`` line per class id, names ``class_<id>``)."""
     path = Path(path)
     if path.suffix == ".json":
         return _json_table(path)
@@ -133,9 +135,14 @@ def _json_table(path: Path) -> ClassTable:
     if not all(isinstance(e, dict) and "name" in e for e in entries):
         raise ValueError(f"{path}: each class must be a name or an object with a \"name\"")
     if any("id" in e for e in entries):
-        entries = sorted(entries, key=lambda e: e.get("id", -1))
-        if [e.get("id") for e in entries] != list(range(len(entries))):
-            raise ValueError(f"{path}: class ids must be 0..{len(entries) - 1}, each once")
+        ids = [e.get("id") for e in entries]
+        if not all(isinstance(i, int) and i >= 0 for i in ids) or len(set(ids)) != len(ids):
+            raise ValueError(f"{path}: when classes have ids, each needs its own id >= 0, got {ids}")
+        missing = sorted(set(range(max(ids) + 1)) - set(ids))
+        if missing:
+            warnings.warn(f"{path}: no class has the ids {missing}; they are assumed, named class_<id>", stacklevel=3)
+        by_id = {e["id"]: e for e in entries}
+        entries = [by_id.get(i, {"name": f"class_{i}"}) for i in range(max(ids) + 1)]
     fallback = generic_colors(len(entries))
     colors = [e.get("color", e.get("colour", fallback[i])) for i, e in enumerate(entries)]
     return ClassTable(tuple(str(e["name"]) for e in entries), np.array(colors, dtype=np.int64).reshape(-1, 3))
