@@ -7,7 +7,7 @@ them to its surface; the median point-to-plane distance of the matches (those un
 that relative pose aligns the two surfaces. Closer to the truth aligns better, down to the depth's own errors (noise,
 the intrinsics, the lens), which every trajectory shares. With motion capture (TUM) the reference should win.
 
-    .venv/bin/python benchmarks/depth_consistency.py --dataset tum:../shared/data/7scenes_redkitchen \\
+    .venv/bin/python benchmarks/depth_consistency.py --dataset "tum:${GAUSEM_SHARED_DATA:-../shared/data}/7scenes_redkitchen" \\
         out/bench/paper_b/7scenes_redkitchen/{gausem,open3d_slam}/trajectory.txt \\
         --reference out/bench/paper_b/7scenes_redkitchen/gausem/trajectory_gt.txt
 """

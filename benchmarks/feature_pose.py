@@ -16,14 +16,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gausem_bench.data import SHARED_DATA
 from gausem_core.config import BowConfig
 from gausem_core.data import open_dataset
 from gausem_core.io.metrics import git_commit
 from gausem_core.slam.features import extract_features, feature_pose
 from gausem_core.tools.run import parse_size
 
-SEQUENCES = ["synthetic:loop", "synthetic:loop_noisy", "tum:../shared/data/tum_fr1_rpy",
-             "tum:../shared/data/7scenes_redkitchen"]
+SEQUENCES = ["synthetic:loop", "synthetic:loop_noisy", f"tum:{SHARED_DATA / 'tum_fr1_rpy'}",
+             f"tum:{SHARED_DATA / '7scenes_redkitchen'}"]
 
 
 def pose_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:

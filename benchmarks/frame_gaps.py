@@ -4,7 +4,7 @@ node slower than its camera sees and reports them; equal bounds: a node steadily
 variant (``--variants``: comma-separated SLAM parameter overrides, "" for the defaults); loop closure and the global
 refinement off, so the ATE is tracking's. Reports ATE, tracking status counts and seconds a frame. Run from the
 repository root, e.g.
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/frame_gaps.py --source tum:../shared/data/tum_fr1_rpy \
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/frame_gaps.py --source "tum:${GAUSEM_SHARED_DATA:-../shared/data}/tum_fr1_rpy" \
         --max-gap 3 --variants tracking.gauss_newton.search=never "" --out benchmarks/results/frame_gaps_tum_fr1_rpy.md
 """
 from __future__ import annotations

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gausem_bench.data import SHARED_DATA
 from gausem_core.config import load_config
 from gausem_core.data import open_dataset
 from gausem_core.eval.health import PlantedFailure, flag_scores, relative_errors
@@ -97,7 +98,7 @@ def main() -> None:
     parser.add_argument("--slot", type=int, default=20, help="synthetic: the frame whose images are swapped out")
     parser.add_argument("--source", type=int, default=40, help="synthetic: the frame whose images are swapped in")
     parser.add_argument("--noisy", default="synthetic:default_noisy", help="a noisy synthetic sequence (dataset spec)")
-    parser.add_argument("--tum", default="../shared/data/tum_fr1_rpy")
+    parser.add_argument("--tum", default=str(SHARED_DATA / "tum_fr1_rpy"))
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/health_160x120.md"))
     args = parser.parse_args()
     results, skipped = [], []

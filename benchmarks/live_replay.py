@@ -11,7 +11,7 @@ Reported per run: frames processed (and released, superseded), T, latency median
 age, tracking losses and the ATE of the processed frames. Writes ``benchmarks/results/live_replay_<name>.{json,md}``.
 
     .venv/bin/python benchmarks/live_replay.py --dataset synthetic:loop --name synthetic_loop_160x120
-    .venv/bin/python benchmarks/live_replay.py --dataset tum:../shared/data/tum_fr1_rpy --name tum_fr1_rpy_160x120
+    .venv/bin/python benchmarks/live_replay.py --dataset "tum:${GAUSEM_SHARED_DATA:-../shared/data}/tum_fr1_rpy" --name tum_fr1_rpy_160x120
 """
 from __future__ import annotations
 

@@ -29,6 +29,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from test_loop_e2e import ate_rmse, drifting_run, integrate_odometry, revisit_frames, timestamps  # noqa: E402
 
+from gausem_bench.data import SHARED_DATA  # noqa: E402
 from gausem_core.config import load_config  # noqa: E402
 from gausem_core.data.tum import TumDataset  # noqa: E402
 from gausem_core.eval.loops import DEFAULT_PROTOCOL, loop_scores, view_overlap  # noqa: E402
@@ -40,7 +41,7 @@ from gausem_core.slam.observation import Observation  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
-TUM = Path("/work/shared/data/tum_fr1_rpy")
+TUM = SHARED_DATA / "tum_fr1_rpy"
 MIN_OVERLAP = 0.5
 # (place recognition, labelled, revisit pan in degrees)
 SYNTHETIC = [("descriptor", True, 0.0), ("auto", True, 0.0), ("descriptor", False, 0.0), ("auto", False, 0.0),

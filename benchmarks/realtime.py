@@ -7,7 +7,7 @@ Recorded per run: frames in, processed, dropped by reason, pending, latency medi
 arrival to its pose's publication), the player's playback time, and the ATE of the processed frames (none with fewer
 than 3); written to ``benchmarks/results/realtime_<name>.{json,md}``.
 
-    .venv/bin/python benchmarks/realtime.py [--source tum:../shared/data/tum_fr1_rpy] [--size 160x120]
+    .venv/bin/python benchmarks/realtime.py [--source "tum:${GAUSEM_SHARED_DATA:-../shared/data}/tum_fr1_rpy"] [--size 160x120]
         [--params params/tum.yaml] [--name tum_fr1_rpy_160x120] [--rates 1 0.1] [-- ROS_ARGS...]
 """
 from __future__ import annotations
@@ -22,6 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from gausem_bench.data import SHARED_DATA
 from gausem_core.io.metrics import git_commit
 
 REPO = Path(__file__).resolve().parents[1]
@@ -65,7 +66,7 @@ def main() -> None:
     argv = sys.argv[1:]
     ros_args = argv[argv.index("--") + 1:] if "--" in argv else []
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--source", default="tum:../shared/data/tum_fr1_rpy")
+    parser.add_argument("--source", default=f"tum:{SHARED_DATA / 'tum_fr1_rpy'}")
     parser.add_argument("--size", default="160x120")
     parser.add_argument("--params", default="params/tum.yaml")
     parser.add_argument("--name", default="tum_fr1_rpy_160x120")

@@ -3,7 +3,7 @@
     python benchmarks/submap_allocation.py   # submap_allocation.{json,md} in benchmarks/results/
 
 For each sequence (synthetic 'default' and 'loop' with labels; TUM fr1_rpy and 7-Scenes redkitchen from
-/work/shared/data, without labels) and each overlap measure (``submaps.overlap``: ``view`` = |F n V| / |F|, the
+$GAUSEM_SHARED_DATA, without labels) and each overlap measure (``submaps.overlap``: ``view`` = |F n V| / |F|, the
 measure before this change; ``iou`` = |F n V| / |F u V|), the policy (params/synthetic.yaml's submaps section, with that
 measure) runs over the keyframes (every 5th frame, 160x120, ground-truth poses). At every keyframe both measures are
 taken on the same submap volume, with the overlap of the previous keyframe's frustum alone, |V| / |F| and the class KL.
@@ -18,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from gausem_bench.data import SHARED_DATA
 from gausem_core.config import flatten, load_config
 from gausem_core.data import open_dataset
 from gausem_core.io.metrics import write_metrics_json
@@ -27,9 +28,8 @@ from gausem_core.slam.allocation import (FrustumUnion, SubmapExtent, depth_range
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
-DATA = Path("/work/shared/data")
 SEQUENCES = {"synthetic default": "synthetic:default", "synthetic loop": "synthetic:loop",
-             "tum fr1_rpy": f"tum:{DATA / 'tum_fr1_rpy'}", "7-scenes redkitchen": f"tum:{DATA / '7scenes_redkitchen'}"}
+             "tum fr1_rpy": f"tum:{SHARED_DATA / 'tum_fr1_rpy'}", "7-scenes redkitchen": f"tum:{SHARED_DATA / '7scenes_redkitchen'}"}
 SIZE, EVERY = (160, 120), 5
 
 

@@ -1,17 +1,15 @@
 """Shared fixtures: deterministic seeds, the shared data folder (tests that need it skip without it), a short synthetic
 sequence as observations."""
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from gausem_bench.data import SHARED_DATA, VARIABLE
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.geometry import invert_pose
 from gausem_core.slam.observation import Observation
-
-SHARED_DATA = Path(os.environ.get("GAUSEM_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
 @pytest.fixture(autouse=True)
@@ -23,7 +21,7 @@ def _seed():
 @pytest.fixture
 def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
-        pytest.skip(f"shared data folder {SHARED_DATA} is absent")
+        pytest.skip(f"shared data folder {SHARED_DATA} is absent (set {VARIABLE})")
     return SHARED_DATA
 
 

@@ -17,6 +17,7 @@ import yaml
 from gausem_bench import tables
 from gausem_bench.baselines import import_open3d
 from gausem_bench.color_registration import ColorCalibration, ColorRegistered
+from gausem_bench.data import SHARED_DATA
 from gausem_bench.suite import SuiteError, baseline_parameters, gausem_parameters, load_suite, parse_suite, plan
 from gausem_bench.cli import main
 from gausem_core.data import SyntheticDataset
@@ -294,3 +295,20 @@ def test_color_resampling_undoes_a_known_colour_camera():
     error_after = np.abs(resampled.rgb.astype(float) - frame.rgb)[inner].mean()
     assert error_after < 0.5 * error_before and resampled.camera == frame.camera
     assert np.array_equal(resampled.depth, frame.depth) and math.isclose(resampled.timestamp, frame.timestamp)
+
+
+# --- the shared data setting ----------------------------------------------------------------------------------------
+def test_suites_name_the_shared_sequences_through_the_one_setting():
+    suite = parse_suite({"sequences": [{"dataset": "tum:$GAUSEM_SHARED_DATA/tum_fr1_rpy"}],
+                         "configurations": [{"name": "g"}]}, "s")
+    assert [s.dataset for s in suite.sequences] == [f"tum:{SHARED_DATA / 'tum_fr1_rpy'}"]
+    assert all("$GAUSEM_SHARED_DATA/" in path.read_text() for path in SUITES if "tum:" in path.read_text())
+
+
+def test_no_tracked_file_names_an_absolute_path_of_this_machine():
+    tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    found = [name for name in tracked if not name.startswith("benchmarks/results/")  # records of past runs
+             and name != "test/test_bench_slam.py"  # this test names the prefixes
+             and (ROOT / name).is_file() and any(prefix in (ROOT / name).read_text(errors="ignore")
+                                                 for prefix in ("/work/", "/home/", "/Users/"))]
+    assert found == []

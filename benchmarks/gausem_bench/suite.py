@@ -5,7 +5,7 @@ A suite file (``benchmarks/suites/*.yaml``)::
     name: paper                         # results are written as slam_<name>.json / .md
     defaults: {size: 160x120}           # sequence keys applied where a sequence does not set them
     sequences:
-      - {name: tum_fr1_rpy, dataset: "tum:../shared/data/tum_fr1_rpy", frames: 200}
+      - {name: tum_fr1_rpy, dataset: "tum:$GAUSEM_SHARED_DATA/tum_fr1_rpy", frames: 200}
     configurations:
       - {name: gausem}                                    # method gausem, parameters from params/<kind>.yaml
       - {name: motion_submaps, overrides: {submaps.policy: motion}, note: "LoopSplat's submap rule"}
@@ -36,6 +36,7 @@ from typing import Any
 import yaml
 
 from gausem_bench.baselines import BASELINES
+from gausem_bench.data import expand
 from gausem_bench.color_registration import ColorCalibration
 from gausem_core.config import SlamConfig, flatten, load_config, reject_renamed
 from gausem_core.tools.run import default_params_file, parse_size
@@ -166,6 +167,7 @@ def sequence_from_dict(entry: dict, defaults: dict | None = None) -> SequenceSpe
     values = {**(defaults or {}), **entry}
     if "dataset" not in values:
         raise SuiteError(f"{where}: 'dataset' is required (e.g. synthetic:default or tum:PATH)")
+    values["dataset"] = expand(values["dataset"])
     values.setdefault("name", sequence_name(values["dataset"]))
     values["size"] = suite_size(values.get("size"))
     values["open3d"] = flatten_names(values.get("open3d"))
