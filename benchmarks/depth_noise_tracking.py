@@ -49,7 +49,7 @@ def motion_ratios(variant: str, frames: list[int]) -> list[float]:
     if variant.endswith("filtered"):
         keyframe = filter_observation(keyframe, replace(cfg.depth_filter, enabled=True))
     mapper = Mapper(cfg.mapping, cfg.backend, cfg.seed)
-    cloud, _ = mapper.optimise(mapper.initialise(keyframe, pose(0)), [Keyframe(0, keyframe, pose(0), fixed=True)],
+    cloud, _ = mapper.optimise(mapper.strategy.initial(keyframe, pose(0)), [Keyframe(0, keyframe, pose(0), fixed=True)],
                                cfg.mapping.init_iterations)
     tracker, ratios = Tracker(cfg.tracking, cfg.backend), []
     for i in frames:

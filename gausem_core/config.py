@@ -133,6 +133,8 @@ class MappingConfig:
     densify_depth_margin: float = 0.05  # metres; new Gaussians where rendered depth lies this far behind the measurement
     prune_opacity: float = 0.005
     prune_radius: float = 0.5  # metres
+    density_width: int = 0  # new Gaussians as dense as in an image this wide: spawned width / density_width pixels
+    # apart, that many pixels' footprint in radius (slam.densification); 0: one per pixel at any size (the paper)
 
 
 @dataclass

@@ -11,7 +11,8 @@ from gausem_core.data.classes import SYNTHETIC_CLASSES
 from gausem_core.data.synthetic import SyntheticDataset
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, se3_exp, se3_log
-from gausem_core.slam.mapper import Keyframe, gaussians_from_pixels
+from gausem_core.slam.densification import gaussians_from_pixels
+from gausem_core.slam.mapper import Keyframe
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.submap import Submap
 

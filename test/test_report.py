@@ -16,7 +16,8 @@ from gausem_core.io.trajectory import read_tum_trajectory
 from gausem_core.pipeline import Pipeline, RunResult
 from gausem_core.report import format_summary, loop_metrics, nearest_palette_class, write_outputs
 from gausem_core.slam.loop_closure import LoopRecord
-from gausem_core.slam.mapper import Keyframe, gaussians_from_pixels
+from gausem_core.slam.densification import gaussians_from_pixels
+from gausem_core.slam.mapper import Keyframe
 from gausem_core.slam.submap import Submap
 from gausem_core.slam.system import GauSemSLAM
 

@@ -11,7 +11,8 @@ from gausem_core.data.sensor import vignetting
 from gausem_core.geometry import invert_pose, project_to_se3, se3_exp, so3_log
 from gausem_core.pipeline import Pipeline
 from gausem_core.render import render
-from gausem_core.slam.mapper import Keyframe, Mapper, semantic_sample
+from gausem_core.slam.densification import semantic_sample
+from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.tracker import Tracker, constant_velocity, repeat_motion
 from gausem_core.tools.run import default_params_file
 
@@ -26,7 +27,7 @@ def map_and_frames(cfg: SlamConfig, size: tuple[int, int], backend: str):
     truths = [torch.tensor(origin @ dataset[i].gt_pose, dtype=torch.float32) for i in range(3)]
     mapper = Mapper(cfg.mapping, backend, seed=0)
     keyframe = Keyframe(0, observations[0], torch.eye(4), fixed=True)
-    initial = mapper.initialise(observations[0], torch.eye(4))
+    initial = mapper.strategy.initial(observations[0], torch.eye(4))
     cloud, losses = mapper.optimise(initial, [keyframe], cfg.mapping.init_iterations)
     return cloud, observations, truths, losses
 
@@ -105,7 +106,7 @@ def test_gauss_newton_tracking_on_local_contrast_is_not_pulled_by_vignetting_and
     seen = dataclasses.replace(observations[2], rgb=(observations[2].rgb * falloff * torch.tensor([1.0, 1.2, 1.4]))
                                .clamp(0, 1))
     mapper = Mapper(cfg.mapping, "torch", seed=0)
-    cloud, _ = mapper.optimise(mapper.initialise(mapped, torch.eye(4)), [Keyframe(0, mapped, torch.eye(4), fixed=True)],
+    cloud, _ = mapper.optimise(mapper.strategy.initial(mapped, torch.eye(4)), [Keyframe(0, mapped, torch.eye(4), fixed=True)],
                                cfg.mapping.init_iterations)
     motion = float((truths[2][:3, 3] - truths[0][:3, 3]).norm())
     width = cfg.tracking.gauss_newton.color_normalisation_width

@@ -182,7 +182,7 @@ class BackEnd:
             submap.keyframes.append(kf)
             self._anchor_record(record, submap, kf)
         submap.extent.add(obs, pose)
-        submap.cloud = self.mapper.densify(submap.cloud, obs, pose)
+        submap.cloud = self.mapper.strategy.grow(submap.cloud, obs, pose)
         window = submap.keyframes[-self.cfg.mapping.window:]
         submap.cloud, losses = self.mapper.optimise(submap.cloud, window, self.cfg.mapping.iterations)
         return losses[-1] if losses else None
@@ -224,7 +224,7 @@ class BackEnd:
         eye = torch.eye(4, device=self.device)
         kf = Keyframe(frame_id, obs, eye, fixed=True)
         opacity = self.cfg.worker.first_opacity if self.worker is not None else None
-        submap = Submap(len(self.submaps), anchor, self.mapper.initialise(obs, eye, opacity), [kf],
+        submap = Submap(len(self.submaps), anchor, self.mapper.strategy.initial(obs, eye, opacity), [kf],
                         SubmapExtent.start(obs, eye, self.num_classes), trackable=self.worker is None)
         with self.lock:
             self.submaps.append(submap)

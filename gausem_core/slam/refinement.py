@@ -92,7 +92,7 @@ def refine_submap(cloud: GaussianCloud, keyframes: list[Keyframe], observations:
         # colours are left as optimised: values beyond [0, 1] make up for partial opacity where Gaussians overlap
         # (7 % above 1 and 6 % below 0 on tum_fr1_rpy), clamping them cost 0.7 dB there; semantics are classified
         params.semantics.clamp_(0, 1)
-    return mapper.prune(params.detach()), pass_losses
+    return mapper.strategy.prune(params.detach()), pass_losses
 
 
 def align_to_global(submap, others: Sequence, cfg: RegistrationConfig, features: DescriptorExtractor | None,

@@ -1,0 +1,98 @@
+"""Where a submap gains and loses Gaussians: the densification strategy (gsplat's ``DefaultStrategy`` is the model).
+
+The mapper asks a :class:`DensificationStrategy` for a new submap's first Gaussians (semantic sampling, paper
+§III-A), for the Gaussians a keyframe adds where the map lacks them (silhouette or depth error), and to prune the
+optimised ones. New Gaussians are spawned ``spacing`` pixels apart (radius ``spacing`` pixels' footprint), where
+``spacing = max(1, width / mapping.density_width)``: the map's density, and so its size, does not grow with the image.
+"""
+from __future__ import annotations
+
+import torch
+
+from gausem_core.config import MappingConfig
+from gausem_core.gaussians import GaussianCloud
+from gausem_core.geometry import invert_pose, transform_points
+from gausem_core.render import render
+from gausem_core.slam.observation import Observation
+
+
+def semantic_sample(labels: torch.Tensor, valid: torch.Tensor, n_total: int, gamma: float,
+                    generator: torch.Generator | None = None) -> torch.Tensor:
+    """Pixel indices (flat) sampled per class: n_c = floor(N_tot * A_c^gamma / sum_k A_k^gamma), at most A_c each."""
+    flat_labels, flat_valid = labels.reshape(-1), valid.reshape(-1)
+    classes, areas = torch.unique(flat_labels[flat_valid], return_counts=True)
+    if len(classes) == 0:
+        return torch.zeros(0, dtype=torch.long, device=labels.device)
+    weights = areas.double() ** gamma
+    counts = torch.minimum(torch.floor(n_total * weights / weights.sum()).long(), areas)
+    picked = []
+    for c, n in zip(classes.tolist(), counts.tolist()):
+        pixels = torch.nonzero(flat_valid & (flat_labels == c)).squeeze(1)
+        order = torch.randperm(len(pixels), generator=generator, device="cpu")[:n].to(pixels.device)
+        picked.append(pixels[order])
+    return torch.cat(picked)
+
+
+def gaussians_from_pixels(obs: Observation, cam_to_world: torch.Tensor, pixels: torch.Tensor,
+                          opacity: float, radius_scale: float = 1.0) -> GaussianCloud:
+    """Back-project flat pixel indices into Gaussians: colour and semantics from the pixel, radius scale * d / f."""
+    depth = obs.depth.reshape(-1)[pixels]
+    rays = obs.camera.pixel_rays(obs.depth.dtype, obs.depth.device).reshape(-1, 3)[pixels]
+    means = transform_points(cam_to_world.to(depth.dtype), rays * depth[:, None])
+    radii = radius_scale * depth / obs.camera.focal
+    return GaussianCloud.from_points(means, obs.rgb.reshape(-1, 3)[pixels].clone(),
+                                     obs.semantic.reshape(-1, 3)[pixels].clone(), radii, opacity)
+
+
+def pixel_lattice(height: int, width: int, spacing: int, device: torch.device | str) -> torch.Tensor:
+    """(H, W) bool: the pixels ``spacing`` apart in both directions (the centre of each spacing x spacing block)."""
+    rows = torch.zeros(height, dtype=torch.bool, device=device)
+    cols = torch.zeros(width, dtype=torch.bool, device=device)
+    rows[spacing // 2::spacing] = True
+    cols[spacing // 2::spacing] = True
+    return rows[:, None] & cols[None, :]
+
+
+class DensificationStrategy:
+    """Initial sampling, growth and pruning of a submap's Gaussians (``mapping.*`` parameters)."""
+
+    def __init__(self, cfg: MappingConfig, backend: str = "auto", generator: torch.Generator | None = None):
+        self.cfg = cfg
+        self.backend = backend
+        self.generator = generator
+
+    def spacing(self, obs: Observation) -> int:
+        """Pixels between new Gaussians in ``obs``'s image."""
+        if self.cfg.density_width <= 0:
+            return 1
+        return max(1, round(obs.camera.width / self.cfg.density_width))
+
+    def initial(self, obs: Observation, cam_to_world: torch.Tensor, opacity: float | None = None) -> GaussianCloud:
+        """A new submap's Gaussians from one frame by semantic sampling, before any optimisation (``opacity``:
+        default ``init_opacity``)."""
+        spacing = self.spacing(obs)
+        n_total = int(self.cfg.init_samples_fraction * obs.depth.numel() / spacing ** 2)
+        pixels = semantic_sample(obs.labels, obs.valid_depth, n_total, self.cfg.sampling_gamma, self.generator)
+        return gaussians_from_pixels(obs, cam_to_world, pixels, opacity or self.cfg.init_opacity,
+                                     self.cfg.init_radius_scale * spacing)
+
+    def grow(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor) -> GaussianCloud:
+        """Add Gaussians where the map is transparent (silhouette < tau_sil) or a new surface lies in front of it."""
+        spacing = self.spacing(obs)
+        with torch.no_grad():
+            out = render(cloud, invert_pose(cam_to_world), obs.camera, backend=self.backend)
+            behind = out.expected_depth > obs.depth + self.cfg.densify_depth_margin
+            grow = obs.valid_depth & ((out.alpha < self.cfg.densify_silhouette_threshold) | behind)
+            if spacing > 1:
+                grow &= pixel_lattice(*grow.shape, spacing, grow.device)
+        pixels = torch.nonzero(grow.reshape(-1)).squeeze(1)
+        if len(pixels) == 0:
+            return cloud
+        grown = gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity,
+                                      self.cfg.init_radius_scale * spacing)
+        return GaussianCloud.cat([cloud, grown])
+
+    def prune(self, cloud: GaussianCloud) -> GaussianCloud:
+        """Drop transparent and huge Gaussians."""
+        keep = (cloud.opacities > self.cfg.prune_opacity) & (cloud.radii < self.cfg.prune_radius)
+        return cloud if bool(keep.all()) else cloud.prune(keep)
