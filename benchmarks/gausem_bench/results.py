@@ -206,7 +206,7 @@ def validate(doc) -> list[str]:
         problems.append("'reading' must be a string")
     text = json.dumps({k: v for k, v in doc.items() if k != "data"}) + json.dumps(doc.get("data"))
     if re.search(r"(?<![\w$.])/(?:work|home|Users)/", text):
-        problems.append("an absolute path of a machine (/work/, /home/, /Users/)")
+        problems.append("an absolute path of a machine (under work, home or Users)")
     return problems
 
 
