@@ -82,3 +82,23 @@ def test_no_file_names_an_absolute_path_of_a_machine():
     found = [name for name in files if (ROOT / name).is_file()
              and any(prefix in (ROOT / name).read_text(errors="ignore") for prefix in prefixes)]
     assert found == []
+
+
+def test_a_script_report_becomes_a_record(tmp_path, capsys):
+    markdown = "# heading\n\n*first*\n\n| a | b |\n|---|---|\n| 1 | x \\| y |\n\n## second\n\n| c |\n|---|\n| 2 |\n"
+    path = results.write_report(tmp_path / "thing", title="A thing", what="What it measures.", markdown=markdown,
+                                notes=["a note"], data={"params_file": "/" + "work/x/params/tum.yaml",
+                                                        "dataset": "tum:" + "/" + "work/shared/data/tum_fr1_rpy"},
+                                command="python benchmarks/thing.py", machine="m", commit="0123abc", date=None)
+    doc = results.read(path)
+    assert path.name == "thing.json" and doc["date"] is None and doc["notes"] == ["a note"]
+    assert doc["table"] == {"title": "first", "columns": ["a", "b"], "rows": [["1", "x | y"]]}
+    assert doc["tables"] == [{"title": "second", "columns": ["c"], "rows": [["2"]]}]
+    assert doc["data"] == {"params_file": "params/tum.yaml", "dataset": "tum:$GAUSEM_SHARED_DATA/tum_fr1_rpy"}
+    doc["reading"] = "Kept."
+    path.write_text(__import__("json").dumps(doc))
+    results.write(path, results.record(title="A thing", what="w", table=doc["table"], command="c", machine="m",
+                                       commit="unknown", date=None))
+    assert results.read(path)["reading"] == "Kept."
+    assert results.validate({**doc, "commit": "last week"}) and results.validate({**doc, "table": {"columns": ["a"],
+                                                                                                    "rows": [[1, 2]]}})

@@ -57,7 +57,7 @@ def table(columns, rows, title: str | None = None) -> dict:
 
 
 def _cells(line: str) -> list[str]:
-    return [c.strip() for c in re.split(r"(?<!\\)\|", line.strip().strip("|"))]
+    return [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", line.strip().strip("|"))]
 
 
 def markdown_tables(text: str) -> list[dict]:
@@ -249,3 +249,22 @@ def read(path: Path | str) -> dict:
 def all_records(folder: Path = RESULTS) -> dict[str, dict]:
     """Every record of ``folder`` by file stem, sorted."""
     return {p.stem: read(p) for p in sorted(Path(folder).glob("*.json"))}
+
+
+def write_report(path: Path | str, *, title: str, what: str, markdown: str, notes=(), data=None, **fields) -> Path:
+    """Write the record of a script that renders its results as Markdown (and print that Markdown): the Markdown's
+    tables become the record's ``table`` and ``tables``; headings and other lines are left out (put what matters in
+    ``what`` or ``notes``). ``fields``: :func:`record`'s ``reading``, ``command``, ``machine``, ``commit``, ``date``."""
+    tables = markdown_tables(markdown)
+    if not tables:
+        raise RecordError(f"{path}: the report has no table")
+    print(markdown)
+    return write(path, record(title=title, what=what, table=tables[0], tables=tables[1:], notes=notes, data=data,
+                              **fields))
+
+
+def label(spec: str) -> str:
+    """A dataset spec as a section title names it: ``synthetic:loop`` -> ``synthetic loop``, ``tum:PATH/tum_fr1_rpy``
+    -> ``tum_fr1_rpy``."""
+    kind, _, rest = spec.partition(":")
+    return f"{kind} {rest}".strip() if kind == "synthetic" else Path(rest or kind).name
