@@ -45,6 +45,8 @@ RESULTS = ROOT / "benchmarks" / "results"
 REQUIRED = ("schema", "title", "what", "command", "machine", "commit", "date", "table")
 OPTIONAL = ("tables", "notes", "reading", "data")
 UNKNOWN = "unknown"
+# a commit hash as prose would cite one (7-40 hex digits, a letter and a digit among them): only the commit field may
+HASH = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
 NOW = object()  # record()'s date: the current time
 # a git commit as the page may show it (only in the record's commit field)
 COMMIT = re.compile(r"^(unknown|[0-9a-f]{7,40}(-dirty)?( \([^()]*\))?(, [0-9a-f]{7,40}(-dirty)?( \([^()]*\))?)*)$")
@@ -204,10 +206,25 @@ def validate(doc) -> list[str]:
         problems.append("'notes' must be strings")
     if "reading" in doc and not isinstance(doc["reading"], str):
         problems.append("'reading' must be a string")
-    text = json.dumps({k: v for k, v in doc.items() if k != "data"}) + json.dumps(doc.get("data"))
+    shown = [doc.get(k) for k in ("title", "what", "reading")] + list(doc.get("notes", []))
+    for t in [doc.get("table") or {}, *doc.get("tables", [])]:
+        shown += [t.get("title")] + [c for row in t.get("rows", []) for c in row]
+    hashes = sorted({h for s in shown if isinstance(s, str) for h in HASH.findall(s)})
+    if hashes:
+        problems.append(f"commit hashes outside the commit field (the page shows no others): {', '.join(hashes)}")
+    text = json.dumps(doc, default=_plain)
     if re.search(r"(?<![\w$.])/(?:work|home|Users)/", text):
         problems.append("an absolute path of a machine (under work, home or Users)")
     return problems
+
+
+def _plain(value):
+    """numpy scalars and arrays, tuples of them, paths: as JSON has them."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    return float(value)
 
 
 class RecordError(ValueError):
@@ -231,7 +248,7 @@ def write(path: Path | str, doc: dict) -> Path:
     if problems:
         raise RecordError(f"{path}: " + "; ".join(problems))
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=1, ensure_ascii=False, allow_nan=False) + "\n")
+    path.write_text(json.dumps(doc, indent=1, ensure_ascii=False, default=_plain) + "\n")
     print(f"wrote {path} (python benchmarks/bench.py report writes docs/BENCHMARKS.md from it)")
     return path
 
