@@ -95,9 +95,9 @@ def markdown_table(t: dict) -> str:
 
 # --- where and what ran ---------------------------------------------------------------------------------------------
 _ABSOLUTE = [(re.compile(r"(?:\.\.|(?<![\w.])(?:/[\w.-]+)+)/shared/data\b"), "$GAUSEM_SHARED_DATA"),
-             (re.compile(r"/(?:work|home|Users)/[\w.-]+/(?:[\w.-]+/)*?(?=(?:params|benchmarks|out|test|gausem_core)/)"),
-              ""),
-             (re.compile(r"/(?:work|home|Users)/[\w.-]+/"), "")]
+             (re.compile(r"(?<![\w.-])/(?:work|home|Users)/[\w.-]+/(?:[\w.-]+/)*?"
+                         r"(?=(?:params|benchmarks|out|test|gausem_core)/)"), ""),
+             (re.compile(r"(?<![\w.-])/(?:work|home|Users)/[\w.-]+/"), "")]
 
 
 def relative(value):
@@ -213,7 +213,7 @@ def validate(doc) -> list[str]:
     if hashes:
         problems.append(f"commit hashes outside the commit field (the page shows no others): {', '.join(hashes)}")
     text = json.dumps(doc, default=_plain)
-    if re.search(r"(?<![\w$.])/(?:work|home|Users)/", text):
+    if re.search(r"(?<![\w$.-])/(?:work|home|Users)/", text):
         problems.append("an absolute path of a machine (under work, home or Users)")
     return problems
 
