@@ -102,3 +102,20 @@ def test_a_script_report_becomes_a_record(tmp_path, capsys):
     assert results.read(path)["reading"] == "Kept."
     assert results.validate({**doc, "commit": "last week"}) and results.validate({**doc, "table": {"columns": ["a"],
                                                                                                     "rows": [[1, 2]]}})
+
+
+def test_the_readmes_figures_are_the_paper_suites():
+    """The README's figures table quotes the paper suite's records: GauSem's ATE and fps of every row."""
+    ate, fps = set(), set()
+    for stem in ("slam_paper_a", "slam_paper_b"):
+        doc = results.read(results.RESULTS / f"{stem}.json")
+        for t in [doc["table"], *doc.get("tables", [])]:
+            if t["title"].startswith("Tracking"):
+                ate |= {c for row in t["rows"] if row[0] == "gausem" for c in row[2:]}
+            if t["title"].startswith("Runtime"):
+                fps |= {row[t["columns"].index("fps ↑")] for row in t["rows"] if row[1] == "gausem"}
+    section = (ROOT / "README.md").read_text().split("## Current figures")[1].split("\n## ")[0]
+    rows = [line.split("|")[1:-1] for line in section.splitlines() if line.startswith("| ") and " cm |" in line]
+    assert len(rows) == 6
+    assert {r[1].strip().removesuffix(" cm") for r in rows} <= ate
+    assert {r[4].strip() for r in rows} <= fps
