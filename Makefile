@@ -47,6 +47,7 @@ bench: $(STAMP)
 	$(PIP) install -q -r requirements-bench.txt -c constraints.txt
 	$(PY) benchmarks/bench.py render --out benchmarks/results
 	for suite in $(BENCH_SUITES); do $(PY) benchmarks/bench.py slam --suite $$suite --out benchmarks/results || exit 1; done
+	$(PY) benchmarks/bench.py report
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -227,7 +227,7 @@ class LoopConfig:
     keyframe_every: int = 5  # d_k: mapping keyframes whose frame index is a multiple of this enter the database
     check_every: int = 6
     # true: at the end of a run (``finish``), check the loop keyframes stored since the last check, whose turn never
-    # came (off: the loop it closed on 7-Scenes cost accuracy, its edge being centimetres off; docs/BENCHMARKS.md)
+    # came (off: the loop it closed on 7-Scenes cost accuracy, its edge being centimetres off; docs/decisions.md)
     check_at_end: bool = False
     max_descriptor_distance: float = 0.2  # loop candidates: DINOv2 CLS distance below this (paper)
     max_fallback_descriptor_distance: float = 0.35  # ... colour-layout fallback distance below this (its own scale)
@@ -306,7 +306,7 @@ class HealthConfig:
     degraded_valid_depth: float = 0.3  # degraded below this fraction of pixels with valid depth ...
     lost_valid_depth: float = 0.05  # ... lost below this one
     degraded_coverage: float = 0.3  # degraded when the map renders a silhouette over less than this fraction of the
-    # image at the pose (benchmarks/results/health_160x120.md: the worst tracked frames of the noisy walk, 0.21-0.26)
+    # image at the pose (benchmarks/results/health_160x120.json: the worst tracked frames of the noisy walk, 0.21-0.26)
     recovery_inlier_fraction: float = 0.3  # after a loss, relocalisation accepts from this inlier fraction (its own)
     recovery_residual_z: float = 20.0  # ... and only with a residual z-score (against the frames before) up to this
 
