@@ -8,6 +8,12 @@ map poses read after the same corrections (so a correction in between is no moti
 from that one (relocalised after tracking was lost, the first of a reset or loaded map) keeps the last odom pose.
 ``map -> odom`` (the map pose times the inverse odom pose) takes the rest: it jumps when the map is corrected (loop
 closures, pose-graph updates, the global refinement) and at relocalisations.
+
+With a base frame, ``odom -> base_link`` is the odom pose times the inverse extrinsic and ``base_link -> camera`` the
+extrinsic, the tree REP-105 and a URDF's robot_state_publisher give (set the same extrinsic as the URDF's; the static
+transform then repeats it). ``map`` and ``odom`` stay at the first camera pose either way, so TF, odometry, path and
+map cloud share one map frame. GauSem is then the robot's odometry source: a robot whose own odometry publishes
+``odom -> base_link`` would need GauSem to read TF (no tf2_ros on the pip path) and is not served.
 """
 from __future__ import annotations
 
