@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Build tf2_msgs/TFMessage (tools/tf2_msgs) into a venv with the ROS interface generator wheels, so that the nodes
 # publish /tf and /tf_static on the pip set-up (gausem_ros/tf.py). Usage: tools/build_tf2_msgs.sh VENV
-# Nothing to do where `import tf2_msgs` works (a ROS install, or built before). Without cmake or a C++ compiler it
+# Nothing to do where `import tf2_msgs` works (a ROS install, or built before). Without cmake or a C/C++ compiler it
 # says so and exits 0: the set-up goes on and the nodes warn that TF is unavailable (odometry and path carry the
 # poses). Any other failure (pip, configure, compile) exits non-zero.
 set -euo pipefail
