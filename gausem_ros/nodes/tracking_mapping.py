@@ -6,7 +6,12 @@ Subscribes (relative names, remappable): ``rgb/image`` (rgb8/bgr8/rgba8/bgra8), 
 ``gausem/loop_candidates`` and ``gausem/pose_graph`` (records, ``msg_adapters.records``).
 Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_frame``, stamped like the rgb image),
 ``gausem/path`` (latched, re-published after every frame with its pose appended; rebuilt from the trajectory after a
-loop correction), TF ``map_frame`` -> camera frame,
+loop correction), TF by REP-105 (:mod:`gausem_ros.frames`; needs tf2_ros or tf2_msgs, which the pip set-up builds):
+``map_frame`` -> ``odom_frame`` (the map's corrections) and ``odom_frame`` -> camera frame (the motion as tracked, never
+jumping), or with ``base_frame`` set ``odom_frame`` -> ``base_frame`` and on /tf_static ``base_frame`` -> camera frame
+(``camera_extrinsic``: x y z qx qy qz qw of the camera in the base frame), stamped like the frame and composing to its
+odometry; a correction between frames (a pose-graph answer, the global refinement) reaches TF with the next frame, as
+tf2 ignores a second transform at a stamp it holds,
 ``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/keyframes``
 (KeyframeRecord, pose in its submap frame), ``gausem/submaps`` (SubmapEvent), with ``loop_closure: nodes``
 ``gausem/place_signatures`` (PlaceSignatureRecord of each loop keyframe), ``gausem/loop_constraints``
@@ -117,6 +122,7 @@ from gausem_core.slam.observation import Observation
 from gausem_core.slam.persistence import SESSION_FILE
 from gausem_core.slam.system import GauSemSLAM
 
+from ..frames import Rep105Frames, inverse
 from ..qos import EVENT_QOS, INPUT_QOS_HINT, LATCHED_QOS, input_qos, subscribe_camera
 from ..sync import make_synchronizer
 from ..tf import make_transform_broadcaster
@@ -128,6 +134,9 @@ NODE_DEFAULTS = {
     "classes": "synthetic",      # class table of the labels: synthetic, nyu40, scannet20 or a class-table file
     "use_labels": True,          # False: no semantic/labels input (e.g. TUM), every pixel is one class
     "map_frame": "map",
+    "odom_frame": "odom",
+    "base_frame": "",            # "" = none: TF odom -> camera; else odom -> base_frame and static base_frame -> camera
+    "camera_extrinsic": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],  # with base_frame: the camera in it, x y z qx qy qz qw
     "camera_frame": "",          # "" = the rgb image's header frame_id
     "input_qos": "reliable",     # or "sensor_data" for a live camera driver
     "sync_queue_size": 10,
@@ -189,6 +198,8 @@ class TrackingMappingNode(Node):
             raise ValueError(f"tracking_mapping: loop_closure must be one of {', '.join(LOOP_CLOSURE_MODES)}, got "
                              f"{p.loop_closure!r}")
         _check_size_limits(self.cfg, p.min_image_size, p.max_image_pixels)
+        self.tf_frames = Rep105Frames(p.map_frame, p.odom_frame, p.base_frame, p.camera_extrinsic)
+        self._static_camera_frame = ""  # the camera frame the static base_frame -> camera was sent for
         self.palette = class_table(p.classes).palette if p.use_labels else UNLABELLED_PALETTE
         self.device = resolve_device(self.cfg.device)
         self.drops = DropReport(self, status=self._status, level=lambda: _HEALTH_LEVELS[self.health.status])
@@ -242,6 +253,7 @@ class TrackingMappingNode(Node):
         self._keyframe_pub = self.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
         self._submap_pub = self.create_publisher(PointCloud2, "gausem/submaps", EVENT_QOS)
         self._tf = make_transform_broadcaster(self)
+        self._tf_static = make_transform_broadcaster(self, static=True) if p.base_frame else None
         self.create_timer(p.map_publish_period, self._publish_map)
         self.create_service(Trigger, "gausem/save_map", self._on_save_map)
         self.create_service(Trigger, "gausem/reset", self._on_reset)
@@ -270,6 +282,7 @@ class TrackingMappingNode(Node):
         self._camera_frame = self.params.camera_frame or "camera"
         self._map_dirty = False
         self._path: PathMsg | None = None  # the published path (None: rebuild it from the trajectory)
+        self._tf_last: int | None = None  # the last frame (id in this map) whose transforms were sent
         self.map_age = 0  # frames between the last frame and the newest keyframe of the map it was tracked against
         self._loop_answers.clear()
         self._new_map = True  # the next place signature is the map's first (loop_detection starts over)
@@ -494,13 +507,29 @@ class TrackingMappingNode(Node):
         self.frames_processed += 1
         self._in_progress = False
         self.latencies.append(time.monotonic() - arrived)
-        self._tf.sendTransform(ma.matrix_to_transform(pose, header, self._camera_frame))
+        self._send_transforms(result, pose, obs.timestamp)
         if self._corrected(result.events):
             self._path = None  # rebuilt from the corrected trajectory
         self._publish_path((obs.timestamp, pose))
         self._publish_events(result.events, header)
         self._map_dirty = True
         self.drops.publish()
+
+    def _send_transforms(self, result, pose: np.ndarray, stamp: float) -> None:
+        """A published frame's ``map -> odom -> camera`` (or ``-> base``), with the motion since the last frame sent
+        from both frames' map poses as they are now (none for a relocalised frame); the static ``base -> camera``
+        once per camera frame name."""
+        motion = None
+        if self._tf_last is not None and result.relocalisation is None:
+            with self.slam.lock:  # both poses after the same corrections (the mapping worker corrects in parallel)
+                last, current = (rigid_float64(self.slam.frames[i].cam_to_world).numpy()
+                                 for i in (self._tf_last, result.frame_id))
+            motion = inverse(last) @ current
+        self._tf_last = result.frame_id
+        self._tf.sendTransform(self.tf_frames.transforms(stamp, self._camera_frame, pose, motion))
+        if self._tf_static is not None and self._static_camera_frame != self._camera_frame:
+            self._static_camera_frame = self._camera_frame
+            self._tf_static.sendTransform(self.tf_frames.static_transforms(stamp, self._camera_frame))
 
     def _relocalised(self, reloc, stamp: float) -> bool:
         """Report a relocalisation against a loaded map; whether it placed the frame."""
