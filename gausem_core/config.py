@@ -37,8 +37,13 @@ class GaussNewtonTrackingConfig:
 
     pyramid_levels: int = 3  # at least this many image pyramid levels, ...
     coarsest_width: int = 80  # ... and more while the coarsest is wider than this (pixels): 640 wide, 4 levels
-    renders_per_level: int = 2  # model re-renders per pyramid level
-    level_iterations: int = 8  # Gauss-Newton iterations per render
+    renders_per_level: int = 2  # model re-renders per pyramid level ("per_level" model views) ...
+    level_iterations: int = 8  # ... each followed by this many Gauss-Newton iterations (per_frame: both per level)
+    # "per_level": the model rendered at the estimate renders_per_level times on every pyramid level; "per_frame": once
+    # at the start, at full resolution, its pyramid made by downsampling, re-rendered at the estimate only when that
+    # moved rerender_motion (translation / median model depth + rotation in radians) from where it was rendered
+    model_views: str = "per_level"
+    rerender_motion: float = 0.02
     # more starts on the coarsest level: the prediction moved this far (metres) along each camera axis, both ways,
     # and turned this far (degrees) about each. search: "gaps" after skipped or lost frames (a live node slower than
     # its camera), "always", or "never"

@@ -86,7 +86,8 @@ CHAPTERS = [
     ("Following a camera", [
         "live_replay_synthetic_loop_160x120", "live_replay_tum_fr1_rpy_160x120", "first_frame_synthetic_loop_160x120",
         "keyframe_policy_tum_fr1_rpy_160x120", "frame_gaps_tum_fr1_rpy", "frame_gaps_synthetic",
-        "frame_gaps_synthetic_step4", "feature_pose"]),
+        "frame_gaps_synthetic_step4", "feature_pose", "tracking_step_tum_fr1_rpy_160x120",
+        "tracking_step_synthetic_loop_160x120"]),
     ("ROS 2", ["realtime_tum_fr1_rpy_160x120", "ros_overhead", "checkpoint_cost_synthetic_loop_160x120",
                "checkpoint_cost_tum_fr1_rpy_160x120"]),
     ("Renderer", ["render_cpu", "render_cuda"]),
