@@ -120,9 +120,10 @@ class Viewer:
         rec.set_time("frame", sequence=result.frame_id)
         rec.set_time("time", duration=obs.timestamp)
         self._log_images(obs)
+        pose = result.cam_to_world.detach().cpu().double().numpy()
         dropped = result.relocalisation is not None and not result.relocalisation.accepted
-        if not dropped and (result.health is None or result.health.status != "lost"):
-            pose = result.cam_to_world.detach().cpu().double().numpy()
+        lost = result.health is not None and result.health.status == "lost"
+        if not (dropped or lost) and np.isfinite(pose).all():
             rec.log("world/camera", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
             self._positions.append(pose[:3, 3])
         corrected = any(e.loop is not None and e.loop.correction for e in (result.events, *result.mapped))
