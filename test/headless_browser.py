@@ -75,18 +75,25 @@ class Page:
         self.ws = _WebSocket(websocket_url)
         self._id = 0
 
-    def call(self, method: str, **params) -> dict:
+    def call(self, method: str, until: str | None = None, **params) -> dict:
+        """The answer to ``method``, after the event ``until`` too when given (other events are passed over)."""
         self._id += 1
         self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
-        while True:
-            answer = json.loads(self.ws.receive())
-            if answer.get("id") == self._id:
-                if "error" in answer:
-                    raise RuntimeError(f"{method}: {answer['error']}")
-                return answer["result"]
+        result, waiting = None, until
+        while result is None or waiting:
+            message = json.loads(self.ws.receive())
+            if message.get("id") == self._id:
+                if "error" in message:
+                    raise RuntimeError(f"{method}: {message['error']}")
+                result = message["result"]
+            elif message.get("method") == waiting:
+                waiting = None
+        return result
 
     def open(self, url: str) -> None:
-        self.call("Page.navigate", url=url)
+        """Navigate to ``url`` and wait for its load event."""
+        self.call("Page.enable")
+        self.call("Page.navigate", until="Page.loadEventFired", url=url)
 
     def screenshot(self) -> bytes:
         return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
