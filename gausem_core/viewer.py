@@ -53,6 +53,7 @@ def to_uint8(colors) -> np.ndarray:
 
 
 def free_port() -> int:
+    """A TCP port free on this machine now."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -63,7 +64,7 @@ class Viewer:
     or a spawned native viewer. ``palette`` (C, 3) in [0, 1] and ``names``: the class table. Call :meth:`frame` after
     each processed frame, :meth:`finish` after the system's ``finish``, then :meth:`close`."""
 
-    def __init__(self, path: str | Path, palette,  names: tuple[str, ...] | None = None,
+    def __init__(self, path: str | Path, palette, names: tuple[str, ...] | None = None,
                  mode: str = "record", colors: str = "rgb", map_every: int = 10, max_points: int = 100_000,
                  web_port: int = 9090):
         if mode not in MODES or colors not in COLORINGS:
@@ -72,20 +73,19 @@ class Viewer:
         if map_every < 1 or max_points < 1:
             raise ValueError(f"viewer: map_every and max_points must be >= 1, got {map_every}, {max_points}")
         self.rr = rr = import_rerun()
-        self.path, self.mode, self.colors = Path(path), mode, colors
+        self.path, self.colors = Path(path), colors
         self.map_every, self.max_points = map_every, max_points
         self.palette = palette  # (C, 3) tensor
         self.url: str | None = None
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rec = rr.RecordingStream("gausem", make_default=False)
         sinks = [rr.FileSink(str(self.path))]
-        port = free_port()
-        grpc = f"rerun+http://127.0.0.1:{port}/proxy"
-        if mode == "web":
-            sinks.append(rr.GrpcServerSink(port=port))
-        elif mode == "native":
-            rr.spawn(port=port, connect=False)
-            sinks.append(rr.GrpcSink(grpc))
+        if mode != "record":
+            port = free_port()
+            grpc = f"rerun+http://127.0.0.1:{port}/proxy"
+            if mode == "native":
+                rr.spawn(port=port, connect=False)  # returns once the viewer listens
+            sinks.append(rr.GrpcServerSink(port=port) if mode == "web" else rr.GrpcSink(grpc))
         self.rec.set_sinks(*sinks)
         if mode == "web":
             rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=grpc)
