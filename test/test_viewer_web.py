@@ -14,11 +14,10 @@ import pytest
 from gausem_core.data import SYNTHETIC_CLASSES
 from gausem_core.viewer import TRAJECTORY_COLOR, free_port
 from headless_browser import headless_page
+from test_viewer import FAST
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 REPO = Path(__file__).resolve().parents[1]
-FAST = ["--set", "mapping.init_iterations=60", "--set", "mapping.iterations=5", "--set", "device=cpu", "--quiet",
-        "--size", "80x60"]
 POLLS = 30  # screenshots, one a second, until the viewer has drawn the recording
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium for the headless-browser "
