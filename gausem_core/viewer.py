@@ -23,7 +23,10 @@ position a frame.
 """
 from __future__ import annotations
 
+import os
 import socket
+import sys
+import warnings
 from pathlib import Path
 from urllib.parse import quote
 
@@ -72,6 +75,10 @@ class Viewer:
                              f"{colors!r}")
         if map_every < 1 or max_points < 1:
             raise ValueError(f"viewer: map_every and max_points must be >= 1, got {map_every}, {max_points}")
+        if mode == "native" and sys.platform == "linux" and not (os.environ.get("DISPLAY")
+                                                                  or os.environ.get("WAYLAND_DISPLAY")):
+            raise ValueError("viewer: native needs a display (DISPLAY and WAYLAND_DISPLAY are unset); use web and "
+                             "open the page it names, or record and open the recording with `rerun FILE.rrd`")
         self.rr = rr = import_rerun()
         self.path, self.colors = Path(path), colors
         self.map_every, self.max_points = map_every, max_points
@@ -146,8 +153,11 @@ class Viewer:
         self._log_map(slam.global_cloud())
 
     def close(self) -> None:
-        """Flush and close the recording (and stop serving)."""
-        self.rec.flush()
+        """Flush and close the recording (and stop serving); a native viewer closed before is only warned of."""
+        try:
+            self.rec.flush()
+        except RuntimeError as err:  # the gRPC sink's viewer is gone; the file sink has its data all the same
+            warnings.warn(f"viewer: {err}", stacklevel=2)
         self.rec.disconnect()
 
     def _log_images(self, obs) -> None:

@@ -102,3 +102,11 @@ def test_a_run_without_the_viewer_never_imports_rerun(tmp_path, monkeypatch, cap
     assert not (tmp_path / "gausem.rrd").exists() and "viewer:" not in capsys.readouterr().out
     with pytest.raises(ImportError, match="pip install rerun-sdk"):
         Viewer(tmp_path / "view.rrd", SYNTHETIC_CLASSES.palette)
+
+
+def test_the_native_viewer_without_a_display_is_refused_before_the_run(tmp_path, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    with pytest.raises(ValueError, match="native needs a display"):
+        Viewer(tmp_path / "view.rrd", SYNTHETIC_CLASSES.palette, mode="native")
