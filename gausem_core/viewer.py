@@ -65,7 +65,10 @@ def free_port() -> int:
 class Viewer:
     """Logs a run to a Rerun recording at ``path`` and, by ``mode``, to a web viewer served on ``web_port`` (:attr:`url`)
     or a spawned native viewer. ``palette`` (C, 3) in [0, 1] and ``names``: the class table. Call :meth:`frame` after
-    each processed frame, :meth:`finish` after the system's ``finish``, then :meth:`close`."""
+    each processed frame, :meth:`finish` after the system's ``finish``, then :meth:`close`.
+
+    The web page and its data server listen on every interface (Rerun's default); from another machine, open
+    :attr:`url` with this machine's address in place of both ``127.0.0.1``."""
 
     def __init__(self, path: str | Path, palette, names: tuple[str, ...] | None = None,
                  mode: str = "record", colors: str = "rgb", map_every: int = 10, max_points: int = 100_000,
@@ -188,9 +191,10 @@ class Viewer:
         n = len(cloud)
         if n == 0:
             return
-        keep = np.linspace(0, n - 1, min(n, self.max_points)).round().astype(np.int64)
-        means = cloud.means.detach()[keep].cpu().numpy()
-        radii = cloud.radii.detach()[keep].cpu().numpy()
-        class_ids = cloud.class_ids(self.palette)[keep].cpu().numpy().astype(np.uint16)
-        colors = to_uint8(cloud.colors[keep]) if self.colors == "rgb" else None
-        self.rec.log("world/map", self.rr.Points3D(means, radii=radii, colors=colors, class_ids=class_ids))
+        keep = cloud.means.new_zeros(n).bool()
+        keep[np.linspace(0, n - 1, min(n, self.max_points)).round().astype(np.int64)] = True  # evenly spread
+        cloud = cloud.prune(keep).to("cpu")
+        class_ids = cloud.class_ids(self.palette).numpy().astype(np.uint16)
+        colors = to_uint8(cloud.colors) if self.colors == "rgb" else None
+        self.rec.log("world/map", self.rr.Points3D(cloud.means.numpy(), radii=cloud.radii.numpy(), colors=colors,
+                                                   class_ids=class_ids))
