@@ -53,15 +53,16 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                              "processing the newest each time and skipping the rest; the mapping runs on its own "
                              "thread (worker.mode async) unless --set worker.mode=sync")
     parser.add_argument("--viewer", nargs="?", const="record", choices=MODES,
-                        help="a live 3D view in Rerun (needs rerun-sdk): record (the default) saves the recording, "
-                             "web also serves it to a browser (and after the run, until Ctrl-C), native opens the "
-                             "desktop viewer")
+                        help="a live 3D view in Rerun (needs rerun-sdk): record (what --viewer alone means) saves "
+                             "the recording, web also serves it to a browser (and after the run, until Ctrl-C), "
+                             "native opens the desktop viewer")
     parser.add_argument("--viewer-out", type=Path, metavar="FILE", help=f"the recording (default: OUT/{RECORDING})")
     parser.add_argument("--viewer-colors", choices=COLORINGS, default="rgb",
                         help="the map's points coloured by their RGB or their class (default: %(default)s)")
     parser.add_argument("--viewer-map-every", type=int, default=10, metavar="N",
                         help="log the map every N frames (default: %(default)s)")
-    parser.add_argument("--viewer-port", type=int, default=9090, help="the web viewer's port (default: %(default)s)")
+    parser.add_argument("--viewer-port", type=int, default=9090, metavar="PORT",
+                        help="the web viewer's port (default: %(default)s)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
