@@ -89,6 +89,12 @@ Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
   only while loop_detection and pose_graph subscribe; 0: no wait, answers are applied when they arrive), as
   ``gausem run`` applies them within the keyframe's call: a lock-step replay gives the same loops, but for the check
   of the last loop keyframes at the end of a run (``loop.check_at_end``, off by default), which only ``core`` makes.
+
+A live 3D view (``gausem_core.viewer``, needs rerun-sdk): ``viewer`` ``record`` logs every processed frame, the
+trajectory, the loops and the map to a Rerun recording (``viewer_path``, default ``output_dir/gausem.rrd``), ``web``
+also serves it to a browser on ``viewer_port`` (the URL is logged), ``native`` opens the desktop viewer; ``off`` (the
+default) imports nothing. ``viewer_colors``: the map's points by ``rgb`` or ``class``; ``viewer_map_every``: the map
+every this many frames.
 """
 from __future__ import annotations
 
@@ -155,6 +161,11 @@ NODE_DEFAULTS = {
     # checkpoints go there (and gausem/load_map reads it)
     "checkpoint_keyframes": 5,   # with map_path: checkpoint the session every this many new keyframes (0: never) ...
     "checkpoint_period": 60.0,   # ... or this many seconds after the last checkpoint, at the next frame (0: never)
+    "viewer": "off",             # or record, web, native: a live 3D view (see the module docstring)
+    "viewer_path": "",           # the recording ("" = output_dir/gausem.rrd)
+    "viewer_colors": "rgb",      # the map's points coloured by rgb or class
+    "viewer_map_every": 10,      # frames between the map's updates in the view
+    "viewer_port": 9090,         # viewer web: the web page's port
 }
 LOOP_CLOSURE_MODES = ("core", "nodes")
 SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched",
@@ -224,6 +235,7 @@ class TrackingMappingNode(Node):
                                    "run: one to two minutes)")
         self.frames_processed = 0  # the input accounting's (kept across load_map, cleared by gausem/reset)
         self._reset_state()
+        self._viewer = self._open_viewer()
 
         inputs = [("rgb", Image, "rgb/image"), ("depth", Image, "depth/image")] + (
             [("labels", Image, "semantic/labels")] if p.use_labels else [])
@@ -266,6 +278,23 @@ class TrackingMappingNode(Node):
                 raise ValueError(f"tracking_mapping: cannot load map_path {p.map_path!r}: {err}") from err
         elif p.map_path:
             self.get_logger().info(f"no session in map_path {p.map_path} yet: a new map, checkpointed there")
+
+    def _open_viewer(self):
+        """The ``viewer`` parameter's :class:`~gausem_core.viewer.Viewer`; None when off (nothing imported)."""
+        p = self.params
+        if p.viewer == "off":
+            return None
+        from gausem_core.viewer import RECORDING, Viewer
+
+        try:
+            viewer = Viewer(p.viewer_path or Path(p.output_dir) / RECORDING, self.palette,
+                            class_table(p.classes).names if p.use_labels else None, p.viewer, p.viewer_colors,
+                            p.viewer_map_every, web_port=p.viewer_port)
+        except (ImportError, ValueError) as err:
+            raise ValueError(f"tracking_mapping: viewer {p.viewer!r}: {err}") from err
+        self.get_logger().info(f"viewer: recording to {viewer.path}" + (f", web viewer at {viewer.url}"
+                                                                          if viewer.url else ""))
+        return viewer
 
     @property
     def loop_nodes(self) -> bool:
@@ -478,6 +507,8 @@ class TrackingMappingNode(Node):
 
     def _track_and_publish(self, obs: Observation, image_frame: str, arrived: float, skipped: int) -> None:
         result = self.slam.process(obs, skipped)
+        if self._viewer is not None:
+            self._viewer.frame(obs, result, self.slam)
         self._last_stamp = obs.timestamp
         self.map_age = result.map_age
         self._publish_mapped(result.mapped)
@@ -755,6 +786,8 @@ class TrackingMappingNode(Node):
         self._publish_path()
         self._map_dirty = True
         self._publish_map()  # now: a caller that finishes may stop spinning (the map timer) right after
+        if self._viewer is not None:
+            self._viewer.finish(self.slam)
 
     # --- services -----------------------------------------------------------------------------------------------
     def save_map(self, folder: str | Path) -> tuple[Path, Path]:
@@ -847,6 +880,8 @@ class TrackingMappingNode(Node):
             except OSError as err:
                 self.get_logger().error(f"save_on_exit: could not write to {self.params.output_dir}: {err}")
         self.slam.close()  # deletes spilled submaps now (a command-line process skips the interpreter's teardown)
+        if self._viewer is not None:
+            self._viewer.close()
         super().destroy_node()
 
 
