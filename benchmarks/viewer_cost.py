@@ -2,16 +2,16 @@
 ``--viewer`` (record: the Rerun recording only, no viewer attached), each in its own process; reports the process's
 CPU time (user + system, every thread: Rerun's logging threads too), the pipeline's wall time (metrics.json
 ``seconds``: tracking, mapping, the viewer's logging, the global refinement), the process's wall time and the
-recording's size. On shared cores the wall times follow the other work; the CPU time much less. Writes ``benchmarks/results/viewer_cost_<name>.{json,md}``.
+recording's size. On shared cores the wall times follow the other work; the CPU time much less. Writes the record
+``benchmarks/results/viewer_cost_<name>.json``.
 
-    .venv/bin/python benchmarks/viewer_cost.py --frames 30 --size 160x120
+    python benchmarks/viewer_cost.py --frames 30 --size 160x120
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -19,9 +19,13 @@ import tempfile
 import time
 from pathlib import Path
 
-from gausem_core.io.metrics import git_commit
+from gausem_bench import results
 
 REPO = Path(__file__).resolve().parents[1]
+WHAT = ("`gausem run` without and with `--viewer` (record: the Rerun recording only, no viewer attached), each in its "
+        "own process: the process's CPU time (every thread, Rerun's too), the pipeline's wall time, the process's "
+        "wall time and the recording's size. On shared cores the wall times follow the other work, the CPU time much "
+        "less.")
 
 
 def run(args: argparse.Namespace, out: Path, viewer: bool) -> dict:
@@ -55,24 +59,16 @@ def main() -> None:
         rows = [run(args, Path(tmp) / name, viewer) for name, viewer in (("off", False), ("record", True))]
     off, on = rows
     ratio = {key: on[key] / off[key] for key in ("cpu_s", "pipeline_s", "wall_s")}
-    doc = {"command": ".venv/bin/python benchmarks/viewer_cost.py " + " ".join(sys.argv[1:]),
-           "machine": f"{platform.node()} ({os.cpu_count()} CPU cores, shared with other work; no GPU)",
-           "commit": git_commit(), "dataset": args.dataset, "size": args.size, "frames": args.frames,
-           "ratio": ratio, "table": rows}
-    lines = [f"# The viewer's cost: {args.dataset}, {args.frames} frames at {args.size}", "",
-             f"`{doc['command']}` at commit {doc['commit']} on {doc['machine']}.", "",
-             f"With `--viewer` (record) / without, one run each: CPU time x{ratio['cpu_s']:.3f}, pipeline time "
-             f"x{ratio['pipeline_s']:.3f}, process wall time x{ratio['wall_s']:.3f}.", "",
-             "| viewer | load before | CPU (s) | pipeline (s) | median frame (ms) | process (s) | recording (MB) |",
-             "|---|---|---|---|---|---|---|"]
-    lines += [f"| {'record' if r['viewer'] else 'off'} | {r['load_before']:.1f} | {r['cpu_s']:.1f} | "
-              f"{r['pipeline_s']:.1f} | {r['frame_ms_median']:.0f} | {r['wall_s']:.1f} | {r['recording_mb'] or 0:.1f} |"
-              for r in rows]
-    results = REPO / "benchmarks" / "results"
-    (results / f"viewer_cost_{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (results / f"viewer_cost_{args.name}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-
+    columns = ["viewer", "load before", "CPU (s)", "pipeline (s)", "median frame (ms)", "process (s)",
+               "recording (MB)"]
+    table = [["record" if r["viewer"] else "off", round(r["load_before"], 1), round(r["cpu_s"], 1),
+              round(r["pipeline_s"], 1), round(r["frame_ms_median"]), round(r["wall_s"], 1),
+              round(r["recording_mb"] or 0, 1)] for r in rows]
+    results.write(results.RESULTS / f"viewer_cost_{args.name}", results.record(
+        title=f"The live view's cost: {args.dataset}, {args.frames} frames at {args.size}",
+        what=WHAT + f" With `--viewer` (record) over without, one run each: CPU time x{ratio['cpu_s']:.3f}, "
+                    f"pipeline time x{ratio['pipeline_s']:.3f}, process wall time x{ratio['wall_s']:.3f}.",
+        table=results.table(columns, table), data={"rows": rows, "ratio": ratio}))
 
 if __name__ == "__main__":
     main()

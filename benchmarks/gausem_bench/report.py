@@ -90,6 +90,7 @@ CHAPTERS = [
         "tracking_step_synthetic_loop_160x120"]),
     ("ROS 2", ["realtime_tum_fr1_rpy_160x120", "ros_overhead", "checkpoint_cost_synthetic_loop_160x120",
                "checkpoint_cost_tum_fr1_rpy_160x120"]),
+    ("The live view", ["viewer_cost_synthetic_160x120"]),
     ("Renderer", ["render_cpu", "render_cuda"]),
     ("GPU", ["gpu_synthetic_640x480_h200"]),
 ]
