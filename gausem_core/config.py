@@ -489,7 +489,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
         for node_name, body in doc.items():
             if not isinstance(body, dict) or "ros__parameters" not in body:
                 raise ValueError(f"{path}: '{node_name}' has no 'ros__parameters' section (ROS 2 params layout expected)")
-            values.update(_flatten_dict(body["ros__parameters"]))
+            values.update(dotted_names(body["ros__parameters"]))
         values = {k: v for k, v in values.items() if k.split(".")[0] in _sections()}
     values.update(overrides or {})
     return from_flat(values)
@@ -499,11 +499,12 @@ def _sections() -> set[str]:
     return {f.name for f in dataclasses.fields(SlamConfig)}
 
 
-def _flatten_dict(d: dict, prefix: str = "") -> dict[str, Any]:
+def dotted_names(d: dict, prefix: str = "") -> dict[str, Any]:
+    """A nested parameter tree's leaves by their dotted names (``{"a": {"b": 1}}`` -> ``{"a.b": 1}``)."""
     out: dict[str, Any] = {}
     for k, v in d.items():
         if isinstance(v, dict):
-            out.update(_flatten_dict(v, f"{prefix}{k}."))
+            out.update(dotted_names(v, f"{prefix}{k}."))
         else:
             out[f"{prefix}{k}"] = v
     return out

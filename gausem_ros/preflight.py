@@ -9,7 +9,7 @@ from pathlib import Path
 
 import yaml
 
-from gausem_core.config import load_config
+from gausem_core.config import dotted_names, load_config
 from gausem_core.slam.persistence import SESSION_FILE, SessionError, read_document
 
 from .bags import BagError, bag_topics
@@ -29,7 +29,7 @@ def ros_parameters(params_file: str | None, ros_args: list[str], node: str = TRA
         for name in ("/**", node, f"/{node}"):
             body = doc.get(name) if isinstance(doc, dict) else None
             if isinstance(body, dict):
-                values.update(_dotted(body.get("ros__parameters") or {}))
+                values.update(dotted_names(body.get("ros__parameters") or {}))
     for flag, assignment in zip(ros_args, ros_args[1:]):
         if flag not in ("-p", "--param"):
             continue
@@ -40,16 +40,6 @@ def ros_parameters(params_file: str | None, ros_args: list[str], node: str = TRA
         if target in ("", node):
             values[name] = yaml.safe_load(raw)
     return values
-
-
-def _dotted(tree: dict, prefix: str = "") -> dict[str, object]:
-    out: dict[str, object] = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            out.update(_dotted(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 def check_parameters(params_file: str | None, ros_args: list[str]) -> list[str]:
