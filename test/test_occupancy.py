@@ -39,7 +39,7 @@ def _depth() -> torch.Tensor:
 
 def _cloud(platform: bool = False) -> tuple[GaussianCloud, torch.Tensor]:
     """Opaque Gaussians on the floor (class 1), the box's sides and top and, with ``platform``, a wide platform off
-    to the side that outnumbers the floor's (class 2); their class ids."""
+    to the side that holds over 1 / LOWEST_SUPPORT times the floor's (class 2); their class ids."""
     g = torch.arange(-3.0, 3.0, 0.05)
     x, z = torch.meshgrid(g, g + 3.0, indexing="ij")
     floor = torch.stack([x.ravel(), torch.full_like(x.ravel(), FLOOR_Y), z.ravel()], -1)
@@ -52,7 +52,7 @@ def _cloud(platform: bool = False) -> tuple[GaussianCloud, torch.Tensor]:
                                                           z0 + (z1 - z0) * v], -1)])
     parts, ids = [floor, box], [torch.full((len(floor),), 1), torch.zeros(len(box), dtype=torch.long)]
     if platform:
-        px, pz = torch.meshgrid(torch.arange(3.5, 9.0, 0.04), torch.arange(0.0, 6.0, 0.04), indexing="ij")
+        px, pz = torch.meshgrid(torch.arange(3.5, 9.0, 0.02), torch.arange(0.0, 6.0, 0.02), indexing="ij")
         parts.append(torch.stack([px.ravel(), torch.full_like(px.ravel(), PLATFORM_Y), pz.ravel()], -1))
         ids.append(torch.full((px.numel(),), 2))
     means = torch.cat(parts)

@@ -2,9 +2,9 @@
 
 GauSem's map frame is its first camera's (optical axes: x right, y down, z forward), so the floor is a plane to find,
 not z = 0. The floor class's Gaussians give it when the map has class ids and enough of them are opaque; otherwise
-the dominant plane whose normal lies within ``max_tilt_deg`` of the keyframes' mean image-up direction (their -y
-axis: a hand-held or robot camera is held roughly level) and that lies below the cameras. Either way a RANSAC fit on
-the Gaussians' centres, refined by least squares on its inliers.
+the lowest well-supported level plane (normal within ``max_tilt_deg`` of the keyframes' mean image-up direction,
+their -y axis: a hand-held or robot camera is held roughly level) below the cameras. Either way RANSAC on the
+Gaussians' centres, refined by least squares on the inliers.
 """
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import torch
 SOURCES = ("class", "plane")  # where a floor came from: the floor class's Gaussians, or the dominant level plane
 HYPOTHESES = 512  # RANSAC planes tried
 MAX_POINTS = 5000  # Gaussians scored per hypothesis (a random subset of larger maps)
+LOWEST_SUPPORT = 0.3  # the floor: a plane below one with this fraction of its points is lower still
 MIN_FLOOR_GAUSSIANS = 50  # fewer opaque floor-class Gaussians: the plane fit over all of them instead
 
 
@@ -75,25 +76,43 @@ def fit_floor(means: torch.Tensor, floor_mask: torch.Tensor | None, cameras: tor
 
 def _ransac(points: torch.Tensor, up: torch.Tensor, centres: torch.Tensor, max_tilt_deg: float, threshold: float,
             generator: torch.Generator) -> tuple[np.ndarray, float, int] | None:
-    """(normal, offset, inliers) of the plane with the most points within ``threshold`` among random ones whose
-    normal, turned up, lies within ``max_tilt_deg`` of ``up`` and below every camera centre; None when none does."""
-    if len(points) < 3:
-        return None
+    """(normal, offset, inliers) of the lowest well-supported level plane below the cameras: the plane holding the
+    most points, then, while the points below it hold a plane with at least :data:`LOWEST_SUPPORT` of its points,
+    that one (a sofa seat or a table top may hold more than the floor in view); refined by least squares on its
+    inliers. None when no level plane lies below the cameras."""
     if len(points) > MAX_POINTS:
         points = points[torch.randperm(len(points), generator=generator, device=points.device)[:MAX_POINTS]]
+    cos_tilt = math.cos(math.radians(max_tilt_deg))
+    plane = _dominant_plane(points, up, centres, cos_tilt, threshold, generator)
+    while plane is not None:
+        normal, offset, support = plane
+        lower = _dominant_plane(points[points @ normal + offset < -threshold], up, centres, cos_tilt, threshold,
+                                generator)
+        if lower is None or lower[2] < LOWEST_SUPPORT * support:
+            break
+        plane = lower
+    if plane is None:
+        return None
+    normal, offset, _ = plane
+    inliers = points[(points @ normal + offset).abs() < threshold]
+    centre = inliers.mean(0)
+    normal = torch.linalg.svd(inliers - centre, full_matrices=False).Vh[-1]
+    normal = normal if normal @ up >= 0 else -normal
+    return normal.double().cpu().numpy(), float(-(normal @ centre)), len(inliers)
+
+
+def _dominant_plane(points: torch.Tensor, up: torch.Tensor, centres: torch.Tensor, cos_tilt: float, threshold: float,
+                    generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, int] | None:
+    """(normal turned up, offset, points within ``threshold``) of the plane through random triples of ``points``
+    that holds the most, among those within the tilt of ``up`` and below every camera centre; None if none is."""
+    if len(points) < 3:
+        return None
     triples = points[torch.randint(len(points), (HYPOTHESES, 3), generator=generator, device=points.device)]
     normals = torch.linalg.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
     normals = normals / normals.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     normals = normals * torch.where(normals @ up < 0, -1.0, 1.0)[:, None]
     offsets = -(normals * triples[:, 0]).sum(-1)
-    level = normals @ up >= math.cos(math.radians(max_tilt_deg))
-    below = ((centres @ normals.T + offsets) > threshold).all(0)
-    support = ((points @ normals.T + offsets).abs() < threshold).sum(0) * (level & below)
+    valid = (normals @ up >= cos_tilt) & ((centres @ normals.T + offsets) > threshold).all(0)
+    support = ((points @ normals.T + offsets).abs() < threshold).sum(0) * valid
     best = int(support.argmax())
-    if support[best] < 3:
-        return None
-    inliers = points[(points @ normals[best] + offsets[best]).abs() < threshold]
-    centre = inliers.mean(0)
-    normal = torch.linalg.svd(inliers - centre, full_matrices=False).Vh[-1]  # least squares on the inliers
-    normal = normal if normal @ up >= 0 else -normal
-    return normal.double().cpu().numpy(), float(-(normal @ centre)), len(inliers)
+    return (normals[best], offsets[best], int(support[best])) if support[best] >= 3 else None
