@@ -1,11 +1,13 @@
 """The occupancy grid (gausem_core.maps): floor plane, occupied and free cells on a hand-made scene, the map_server
 files, and the grid of the embedded synthetic walk against the room's known layout."""
+import json
 import math
 
 import numpy as np
 import pytest
 import torch
 
+from gausem_core.cli import main
 from gausem_core.config import GridConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera
@@ -127,3 +129,22 @@ def test_map_server_files_read_back_as_the_grid(tmp_path):
     assert origin == pytest.approx(grid.origin, abs=1e-6)
     text = meta.read_text()
     assert "mode: trinary" in text and "floor_frame:" in text
+
+
+@pytest.mark.slow
+def test_gausem_run_writes_the_grid_and_it_matches_the_synthetic_rooms_layout(tmp_path):
+    """The first 12 frames of the embedded walk (160x120, fast mapping, about a minute on a shared CPU): the grid of
+    the sofa corner they see. Measured (this test's commit): IoU 0.83 of the occupied cells (precision 0.92, recall
+    0.90), 5 % of the free cells truly occupied; the bounds leave a margin."""
+    out = tmp_path / "run"
+    assert main(["run", "--dataset", "synthetic", "--frames", "12", "--size", "160x120", "--quiet", "--eval-every",
+                 "100", "--set", "device=cpu", "--set", "mapping.init_iterations=60", "--set", "mapping.iterations=5",
+                 "--set", "refinement.enabled=false", "--out", str(out)]) == 0
+    cells, resolution, _ = read_map_server(out / "grid.yaml")
+    grid = json.loads((out / "metrics.json").read_text())["metrics"]["grid"]
+    assert grid["floor"] == "class" and resolution == GridConfig().resolution
+    assert grid["cells"] == {"occupied": int((cells == OCCUPIED).sum()), "free": int((cells == FREE).sum()),
+                             "unknown": int((cells == UNKNOWN).sum())}
+    layout = grid["layout"]
+    assert layout["iou"] > 0.75 and layout["precision"] > 0.85 and layout["recall"] > 0.8
+    assert layout["free_truly_occupied"] < 0.1 and layout["coverage"] > 0.8
