@@ -2,8 +2,9 @@
 
 The grid lies in the floor frame (:mod:`gausem_core.maps.floor`). A cell is occupied (100) where the centre of a
 Gaussian at least ``grid.occupied_opacity`` opaque lies between ``grid.min_height`` and ``grid.max_height`` above the
-floor; free (0) where a keyframe's depth ray crossed it between those heights (up to one cell before the ray's end,
-and at most ``grid.max_range`` along it); unknown (-1) elsewhere. Occupied wins over free. The lattice is the floor
+floor; free (0) where a keyframe's depth ray (every ``grid.pixel_stride``-th pixel) crossed it between those heights
+(up to one cell before the ray's end, and at most ``grid.max_range`` along it; of each keyframe's rays in one
+bearing, the one that clears farthest); unknown (-1) elsewhere. Occupied wins over free. The lattice is the floor
 frame's (cell (i, j) spans [i, i + 1) x [j, j + 1) cells of ``grid.resolution``), so successive grids of one floor line
 up cell for cell.
 """
@@ -71,8 +72,8 @@ def depth_rays(depth: torch.Tensor, camera: PinholeCamera, stride: int) -> torch
 def build_grid(cloud: GaussianCloud, views: list[RayView], cfg: GridConfig,
                floor_mask: torch.Tensor | None = None) -> OccupancyGrid:
     """The occupancy grid of a world-frame ``cloud`` and keyframe rays ``views``; ``floor_mask`` (N,) marks the floor
-    class's Gaussians (None: no class ids, the floor is the dominant level plane). ValueError without views or a
-    floor."""
+    class's Gaussians (None: no class ids; see :func:`~gausem_core.maps.floor.fit_floor`). ValueError without views
+    or a floor."""
     if not views:
         raise ValueError("an occupancy grid needs at least one keyframe")
     if cfg.resolution <= 0 or cfg.pixel_stride < 1 or not cfg.min_height < cfg.max_height:
@@ -91,12 +92,12 @@ def build_grid(cloud: GaussianCloud, views: list[RayView], cfg: GridConfig,
         ends.append(view.points.to(means) @ pose[:3, :3].T + pose[:3, 3])
         origins.append(pose[:3, 3].expand_as(ends[-1]))
         owners.append(torch.full((len(ends[-1]),), k, device=means.device))
-    starts, stops = free_segments(torch.cat(origins), torch.cat(ends), torch.cat(owners), cfg)
+    starts, stops = _free_segments(torch.cat(origins), torch.cat(ends), torch.cat(owners), cfg)
     return _rasterise(occupied, starts, stops, cfg.resolution, floor)
 
 
-def free_segments(origins: torch.Tensor, ends: torch.Tensor, owners: torch.Tensor,
-                  cfg: GridConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def _free_segments(origins: torch.Tensor, ends: torch.Tensor, owners: torch.Tensor,
+                   cfg: GridConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """Floor-frame (x, y) starts and stops (S, 2) of the free parts of rays ``origins`` -> ``ends`` (R, 3, floor
     frame) of the keyframes ``owners`` (R,): where they pass between the band's heights, before the last cell before
     their end and within ``max_range``; of each keyframe's rays in one bearing (bins of ``resolution / max_range``
