@@ -284,6 +284,7 @@ class TrackingMappingNode(Node):
         self._map_dirty = False
         self._grid_dirty = False  # keyframes or corrections since the last grid
         self._rays = KeyframeRays(self.cfg.grid.pixel_stride)  # the map's keyframe rays, for its grids
+        self._grid_floor: str | None = None  # where the last grid's floor came from (logged when it changes)
         self._path: PathMsg | None = None  # the published path (None: rebuild it from the trajectory)
         self.map_age = 0  # frames between the last frame and the newest keyframe of the map it was tracked against
         self._loop_answers.clear()
@@ -668,6 +669,10 @@ class TrackingMappingNode(Node):
         except ValueError as err:
             self.get_logger().warning(f"no occupancy grid yet: {err}", once=True)
             return
+        if grid.floor.source != self._grid_floor:
+            self._grid_floor = grid.floor.source
+            where = "the floor class" if grid.floor.source == "class" else "the lowest level plane"
+            self.get_logger().info(f"occupancy grid: the floor from {where} ({grid.floor.inliers} Gaussians)")
         header = ma.make_header(max(self._last_stamp, 0.0), self.params.map_frame)
         self._grid_pub.publish(ma.grid_to_occupancy_grid(grid, header))
 
