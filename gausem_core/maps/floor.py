@@ -77,22 +77,23 @@ def fit_floor(means: torch.Tensor, floor_mask: torch.Tensor | None, cameras: tor
 def _ransac(points: torch.Tensor, up: torch.Tensor, centres: torch.Tensor, max_tilt_deg: float, threshold: float,
             generator: torch.Generator) -> tuple[np.ndarray, float, int] | None:
     """(normal, offset, inliers) of the lowest well-supported level plane below the cameras: the plane holding the
-    most points, then, while the points below it hold a plane with at least :data:`LOWEST_SUPPORT` of its points,
-    that one (a sofa seat or a table top may hold more than the floor in view); refined by least squares on its
-    inliers. None when no level plane lies below the cameras."""
+    most points, then, while the points below it (and below every plane before it) hold a plane with at least
+    :data:`LOWEST_SUPPORT` of its points, that one (a sofa seat or a table top may hold more than the floor in view);
+    refined by least squares on its inliers. None when no level plane lies below the cameras."""
     if len(points) > MAX_POINTS:
         points = points[torch.randperm(len(points), generator=generator, device=points.device)[:MAX_POINTS]]
     cos_tilt = math.cos(math.radians(max_tilt_deg))
     plane = _dominant_plane(points, up, centres, cos_tilt, threshold, generator)
-    while plane is not None:
+    if plane is None:
+        return None
+    below = points
+    while True:  # the points left shrink at every step: it ends
         normal, offset, support = plane
-        lower = _dominant_plane(points[points @ normal + offset < -threshold], up, centres, cos_tilt, threshold,
-                                generator)
+        below = below[below @ normal + offset < -threshold]
+        lower = _dominant_plane(below, up, centres, cos_tilt, threshold, generator)
         if lower is None or lower[2] < LOWEST_SUPPORT * support:
             break
         plane = lower
-    if plane is None:
-        return None
     normal, offset, _ = plane
     inliers = points[(points @ normal + offset).abs() < threshold]
     centre = inliers.mean(0)
