@@ -25,6 +25,7 @@ from gausem_core.eval.occupancy import layout_cells, occupancy_scores
 from gausem_core.io.metrics import git_commit
 from gausem_core.maps.slam_grid import KeyframeRays, floor_class_id, slam_grid
 from gausem_core.pipeline import Pipeline
+from gausem_core.report import estimated_trajectory, ground_truth_trajectory, trajectory_metrics
 from gausem_core.tools.run import parse_override
 
 REPO = Path(__file__).resolve().parents[1]
@@ -71,11 +72,14 @@ def main() -> None:
            "machine": f"{platform.node()} ({os.cpu_count()} CPU cores, no GPU)", "commit": git_commit(),
            "dataset": args.dataset, "size": args.size, "frames": len(result.frame_ids),
            "keyframes": sum(len(s.keyframes) for s in slam.submaps), "gaussians": len(slam.global_cloud()),
-           "frame_ms_median": 1e3 * statistics.median(result.frame_seconds), "grid": vars(grid_cfg), "table": rows}
+           "ate_rmse_cm": trajectory_metrics(estimated_trajectory(result), ground_truth_trajectory(result))[0][
+               "ate_rmse_cm"], "frame_ms_median": 1e3 * statistics.median(result.frame_seconds),
+           "grid": vars(grid_cfg), "table": rows}
     lines = [f"# Occupancy grid: {args.dataset} at {args.size}, {doc['frames']} frames", "",
              f"`{doc['command']}` at commit {doc['commit']} on {doc['machine']}.", "",
-             f"{doc['keyframes']} keyframes, {doc['gaussians']} Gaussians; median frame (tracking and mapping): "
-             f"{doc['frame_ms_median']:.0f} ms. Scores over the cells the keyframes saw (eval/occupancy.py).", "",
+             f"ATE RMSE {doc['ate_rmse_cm']:.2f} cm; {doc['keyframes']} keyframes, {doc['gaussians']} Gaussians; median "
+             f"frame (tracking and mapping): {doc['frame_ms_median']:.0f} ms. Scores over the cells the keyframes saw "
+             "(eval/occupancy.py).", "",
              "| floor from | tilt (deg) | height error (cm) | IoU | precision | recall | coverage | free cells truly "
              "occupied | first grid (ms) | rebuild (ms) |", "|---|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['floor']} ({r['source']}) | {r['floor_tilt_deg']:.2f} | {100 * r['floor_height_error_m']:.1f} | "
