@@ -134,8 +134,9 @@ def test_map_server_files_read_back_as_the_grid(tmp_path):
 @pytest.mark.slow
 def test_gausem_run_writes_the_grid_and_it_matches_the_synthetic_rooms_layout(tmp_path):
     """The first 12 frames of the embedded walk (160x120, fast mapping, about a minute on a shared CPU): the grid of
-    the sofa corner they see. Measured (this test's commit): IoU 0.83 of the occupied cells (precision 0.92, recall
-    0.90), 5 % of the free cells truly occupied; the bounds leave a margin."""
+    the sofa corner they see. Measured with these settings (commit 63b9819): IoU 0.83 of the occupied cells (precision
+    0.92, recall 0.90), 5 % of the free cells truly occupied; the bounds leave a margin. The whole walk:
+    benchmarks/results/occupancy_synthetic_default_160x120.md."""
     out = tmp_path / "run"
     assert main(["run", "--dataset", "synthetic", "--frames", "12", "--size", "160x120", "--quiet", "--eval-every",
                  "100", "--set", "device=cpu", "--set", "mapping.init_iterations=60", "--set", "mapping.iterations=5",
