@@ -12,11 +12,12 @@ DEMO_OUT ?= out/demo
 
 setup: $(STAMP)
 
-$(STAMP): requirements.txt requirements-dev.txt constraints.txt setup.py
+$(STAMP): requirements.txt requirements-dev.txt requirements-tf.txt constraints.txt setup.py tools/build_tf2_msgs.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q "$(TORCH_SPEC)"
 	$(PIP) install -q -r requirements-dev.txt -c constraints.txt
 	$(PIP) install -q --no-deps --no-build-isolation -e .
+	tools/build_tf2_msgs.sh $(VENV)  # /tf on the pip path: tf2_msgs/TFMessage, unless importable (15-35 s)
 	$(VENV)/bin/gausem info  # also compiles the C++ CPU renderer (once per machine)
 	touch $@
 
@@ -47,6 +48,7 @@ bench: $(STAMP)
 	$(PIP) install -q -r requirements-bench.txt -c constraints.txt
 	$(PY) benchmarks/bench.py render --out benchmarks/results
 	for suite in $(BENCH_SUITES); do $(PY) benchmarks/bench.py slam --suite $$suite --out benchmarks/results || exit 1; done
+	$(PY) benchmarks/bench.py report
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

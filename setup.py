@@ -26,6 +26,7 @@ setup(
         "dinov2": ["transformers"],
         "cuda": ["gsplat"],
         "bags": ["rosbags"],
+        "viewer": ["rerun-sdk>=0.41,<0.42"],  # gausem_core.viewer; Rerun's API changes between minor versions
     },
     zip_safe=True,
     entry_points={

@@ -1,30 +1,29 @@
 """What does a crash-safe checkpoint cost the tracking node? Runs a sequence in ``sync`` mode, checkpointing into one
 folder at every ``--every``-th keyframe as the node does (``gausem_core.slam.checkpoint``), and reports each
 checkpoint's write time and the session's size on disk against the run's median frame time. Writes
-``benchmarks/results/checkpoint_cost_<name>.{json,md}``.
+``benchmarks/results/checkpoint_cost_<name>.json`` (a results record).
 
     .venv/bin/python benchmarks/checkpoint_cost.py --dataset tum:../shared/data/tum_fr1_rpy --frames 100 --name tum_fr1_rpy_160x120
 """
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 from gausem_core.config import load_config
 from gausem_core.data import open_dataset
-from gausem_core.io.metrics import git_commit
 from gausem_core.pipeline import Pipeline
 from gausem_core.slam.checkpoint import Checkpointer
 from gausem_core.slam.system import GauSemSLAM
 
+from gausem_bench import results
+
 REPO = Path(__file__).resolve().parents[1]
+WHAT = ("`benchmarks/checkpoint_cost.py`: what writing a session checkpoint (`map_path`, every "
+        "`checkpoint_keyframes` keyframes) costs as the map grows, `sync` mode.")
 
 
 def main() -> None:
@@ -56,21 +55,17 @@ def main() -> None:
                              "size_mb": size / 2**20})
                 print(rows[-1], flush=True)
     frame_ms = 1e3 * statistics.median(frame_seconds)
-    doc = {"command": ".venv/bin/python benchmarks/checkpoint_cost.py " + " ".join(sys.argv[1:]),
-           "machine": f"{platform.node()} ({os.cpu_count()} CPU cores, no GPU)", "commit": git_commit(),
-           "dataset": args.dataset, "size": args.size, "frame_ms_median": frame_ms,
+    doc = {"dataset": args.dataset, "size": args.size, "frame_ms_median": frame_ms,
            "checkpoint_ms_median": 1e3 * statistics.median(r["seconds"] for r in rows) if rows else None,
-           "table": rows}
-    lines = [f"# Checkpoint cost: {args.dataset} at {args.size}", "", f"`{doc['command']}` at commit {doc['commit']} "
-             f"on {doc['machine']}.", "", f"Median frame (tracking and mapping, sync): {frame_ms:.0f} ms; median "
-             f"checkpoint: {doc['checkpoint_ms_median'] or 0:.0f} ms.", "",
-             "| after frame | frames | submaps | Gaussians | write (ms) | size (MB) |", "|---|---|---|---|---|---|"]
+           "rows": rows}
+    note = (f"Median frame (tracking and mapping, sync): {frame_ms:.0f} ms; median checkpoint: "
+            f"{doc['checkpoint_ms_median'] or 0:.0f} ms.")
+    lines = ["| after frame | frames | submaps | Gaussians | write (ms) | size (MB) |", "|---|---|---|---|---|---|"]
     lines += [f"| {r['frame']} | {r['frames']} | {r['submaps']} | {r['gaussians']} | {1e3 * r['seconds']:.0f} | "
               f"{r['size_mb']:.1f} |" for r in rows]
-    results = REPO / "benchmarks" / "results"
-    (results / f"checkpoint_cost_{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (results / f"checkpoint_cost_{args.name}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    results.write_report(results.RESULTS / f"checkpoint_cost_{args.name}",
+                         title=f"Checkpoint cost: {results.label(args.dataset)}", what=WHAT,
+                         markdown="\n".join(lines), notes=[note], data=doc)
 
 
 if __name__ == "__main__":

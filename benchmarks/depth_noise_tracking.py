@@ -7,24 +7,23 @@ are then tracked against it from the constant-velocity prediction of their true 
 the estimated displacement from the keyframe projected on the true one over the true one (1: exact, < 1: the motion
 comes out too short, the trajectory shrinks). In both noisy variants the tracked frames are the raw noisy ones, so
 the rows differ only in the map. Writes
-benchmarks/results/<name>.{json,md}. From the repository root:
+benchmarks/results/<name>.json (a results record). From the repository root:
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/depth_noise_tracking.py
 """
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from gausem_bench import results
 from gausem_core.config import SensorConfig, load_config
 from gausem_core.data import SyntheticDataset
 from gausem_core.data.sensor import COLOR_EFFECTS, DEPTH_EFFECTS
-from gausem_core.io.metrics import git_commit
 from gausem_core.pipeline import Pipeline
 from gausem_core.slam.depth_filter import filter_observation
 from gausem_core.slam.mapper import Keyframe, Mapper
@@ -32,6 +31,10 @@ from gausem_core.slam.tracker import Tracker, constant_velocity
 from gausem_core.tools.run import default_params_file
 
 ROOT = Path(__file__).resolve().parents[1]
+WHAT = ("`benchmarks/depth_noise_tracking.py` builds a one-keyframe map from frame 0 at its true pose (clean depth, depth "
+        "with the axial noise alone, or that noisy depth filtered) and tracks frames 2-14 against it from the "
+        "constant-velocity prediction of their true poses; the motion ratio is the estimated displacement from the "
+        "keyframe over the true one (1: exact, < 1: too short). Synthetic walk at 160x120.")
 AXIAL_NOISE = SensorConfig(**{name: name == "axial_noise" for name in DEPTH_EFFECTS + COLOR_EFFECTS})
 VARIANTS = ("clean", "noisy", "noisy, filtered")
 
@@ -68,19 +71,14 @@ def main() -> None:
     args = parser.parse_args()
     torch.manual_seed(0)
     rows = {variant: motion_ratios(variant, args.frames) for variant in VARIANTS}
-    document = {"commit": git_commit(), "frames": args.frames, "sensor": "axial_noise only", "rows": rows}
-    results = ROOT / "benchmarks" / "results"
-    (results / f"{args.name}.json").write_text(json.dumps(document, indent=2) + "\n")
+    document = {"frames": args.frames, "sensor": "axial_noise only", "rows": rows}
     lines = ["| Map built from | " + " | ".join(f"frame {i}" for i in args.frames) + " | median |",
              "|---|" + "---|" * (len(args.frames) + 1)]
     for variant, ratios in rows.items():
         lines.append(f"| {variant} depth | " + " | ".join(f"{r:.3f}" for r in ratios)
                      + f" | **{np.median(ratios):.3f}** |")
-    summary = (f"# Motion ratio against a one-keyframe map (commit {(document['commit'] or 'unknown')[:10]})\n\n"
-               f"`benchmarks/depth_noise_tracking.py`: estimated over true displacement from the keyframe (1: exact, "
-               f"< 1: too short). Synthetic walk at 160x120, axial depth noise only.\n\n" + "\n".join(lines) + "\n")
-    (results / f"{args.name}.md").write_text(summary)
-    print(summary)
+    results.write_report(results.RESULTS / args.name, title="Why noisy depth shrinks the trajectory", what=WHAT,
+                         markdown="\n".join(lines), data=document)
 
 
 if __name__ == "__main__":

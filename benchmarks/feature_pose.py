@@ -2,24 +2,22 @@
 tracking after a gap, and loop verification's seed for registration)? Per sequence and frame gap g: frame pairs
 (i, i + g), i every ``--every`` frames, each pair's pose against the ground truth, for each ``depth_noise`` (0: PnP on
 reprojection alone; > 0: the query's depth joins the last refinement). Reports the pairs found and the median
-rotation and translation errors. Writes benchmarks/results/feature_pose.{md,json}. Run from the repository root:
+rotation and translation errors. Writes benchmarks/results/feature_pose.json (a results record). Run from the repository root:
 
     .venv/bin/python benchmarks/feature_pose.py
 """
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from gausem_bench import results
 from gausem_bench.data import SHARED_DATA
 from gausem_core.config import BowConfig
 from gausem_core.data import open_dataset
-from gausem_core.io.metrics import git_commit
 from gausem_core.slam.features import extract_features, feature_pose
 from gausem_core.tools.run import parse_size
 
@@ -60,9 +58,12 @@ def evaluate(spec: str, size, frames: int, gaps: list[int], every: int, noises: 
     return rows
 
 
-def markdown(rows: list[dict], command: str, commit: str | None) -> str:
-    lines = ["# Feature pose accuracy", "", f"`{command}` at commit {commit}.", "",
-             "| sequence | gap (frames) | depth_noise | pairs found / missed | rotation deg (median) | "
+WHAT = ("`benchmarks/feature_pose.py`: frame pairs g frames apart (one every 20 frames), the RANSAC PnP pose from ORB "
+        "matches against the ground truth, per `depth_noise` of its last refinement (0: reprojection alone).")
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["| sequence | gap (frames) | depth_noise | pairs found / missed | rotation deg (median) | "
              "translation cm (median) |", "|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['sequence']} | {r['gap']} | {r['depth_noise']:g} | {r['found']} / {r['missed']} | "
@@ -86,12 +87,8 @@ def main() -> None:
             print(f"skipping {spec}: folder not found")
             continue
         rows += evaluate(spec, args.size, args.frames, args.gaps, args.every, args.depth_noise)
-    command = " ".join([".venv/bin/python benchmarks/feature_pose.py", *sys.argv[1:]])
-    report = markdown(rows, command, git_commit())
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(report)
-    args.out.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
-    print(report)
+    results.write_report(args.out, title="The feature pose with the frame's depth", what=WHAT,
+                         markdown=markdown(rows), data=rows)
 
 
 if __name__ == "__main__":

@@ -2,32 +2,30 @@
 first ``process`` call (the whole initialisation), in ``async`` until the first submap's first publication (the
 worker's first ``worker.publish_every`` steps). Also the first 10 frames' ATE against the truth, so that the faster
 start is seen not to cost accuracy. Median of ``--repeats`` runs per mode, each in this process after a warm-up.
-Writes ``benchmarks/results/first_frame_<name>.{json,md}``.
+Writes ``benchmarks/results/first_frame_<name>.json`` (a results record).
 
     .venv/bin/python benchmarks/first_frame.py --dataset synthetic:loop --name synthetic_loop_160x120
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from gausem_core.config import load_config
 from gausem_core.data import open_dataset
-from gausem_core.io.metrics import git_commit
 from gausem_core.pipeline import Pipeline
 from gausem_core.slam.system import GauSemSLAM
 from gausem_core.tools.run import default_params_file, parse_size
 
-REPO = Path(__file__).resolve().parents[1]
+from gausem_bench import results
+
+WHAT = ("`benchmarks/first_frame.py`: how long until the second frame can be tracked, synthetic loop, first 10 "
+        "frames, loop closure and refinement off.")
 
 
 def first_frame(pipeline: Pipeline, cfg, frames: int) -> tuple[float, float]:
@@ -69,18 +67,12 @@ def main() -> None:
                      "seconds": [r[0] for r in runs], "worst_error_cm": statistics.median(r[1] for r in runs),
                      "init_iterations": cfg.mapping.init_iterations, "publish_every": cfg.worker.publish_every})
         torch.set_num_threads(os.cpu_count() or 1)  # async set the tracker's share; the next mode starts afresh
-    doc = {"command": ".venv/bin/python benchmarks/first_frame.py " + " ".join(sys.argv[1:]),
-           "machine": f"{platform.node()} ({os.cpu_count()} CPU cores, no GPU)", "commit": git_commit(),
-           "dataset": args.dataset, "size": f"{args.size[0]}x{args.size[1]}", "table": rows}
-    lines = [f"# The first frame: {args.dataset} at {doc['size']}", "", f"`{doc['command']}` at commit "
-             f"{doc['commit']} on {doc['machine']}.", "",
-             f"| mode | until the second frame can be tracked (s, median of {args.repeats}) | worst error of the first "
+    doc = {"dataset": args.dataset, "size": f"{args.size[0]}x{args.size[1]}", "rows": rows}
+    lines = [f"| mode | until the second frame can be tracked (s, median of {args.repeats}) | worst error of the first "
              f"{args.frames} frames (cm) |", "|---|---|---|"]
     lines += [f"| {r['mode']} | {r['seconds_median']:.2f} | {r['worst_error_cm']:.2f} |" for r in rows]
-    results = REPO / "benchmarks" / "results"
-    (results / f"first_frame_{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
-    (results / f"first_frame_{args.name}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    results.write_report(results.RESULTS / f"first_frame_{args.name}", title="The map's first frame", what=WHAT,
+                         markdown="\n".join(lines), data=doc)
 
 
 if __name__ == "__main__":

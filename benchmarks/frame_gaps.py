@@ -5,26 +5,27 @@ variant (``--variants``: comma-separated SLAM parameter overrides, "" for the de
 refinement off, so the ATE is tracking's. Reports ATE, tracking status counts and seconds a frame. Run from the
 repository root, e.g.
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/frame_gaps.py --source "tum:${GAUSEM_SHARED_DATA:-../shared/data}/tum_fr1_rpy" \
-        --max-gap 3 --variants tracking.gauss_newton.search=never "" --out benchmarks/results/frame_gaps_tum_fr1_rpy.md
+        --max-gap 3 --variants tracking.gauss_newton.search=never "" --out benchmarks/results/frame_gaps_tum_fr1_rpy
 """
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
-import subprocess
 import time
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
+from gausem_bench import results
 from gausem_core.config import load_config
 from gausem_core.data import open_dataset
 from gausem_core.io.trajectory import Trajectory
 from gausem_core.pipeline import Pipeline
 from gausem_core.report import trajectory_metrics
 from gausem_core.tools.run import default_params_file, parse_override, parse_size
+
+WHAT = ("Live-like patterns offline: seeded gaps, true stamps, the skipped frames counted as the tracking node counts "
+        "the frames it drops; each variant's overrides in its row.")
 
 
 class SkippedFrames:
@@ -80,7 +81,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--variants", nargs="+", default=[""],
                         help='SLAM parameter overrides per run, "K=V,K=V" ("": the defaults)')
-    parser.add_argument("--out", type=Path, default=None, help="write a markdown table here (and .json beside it)")
+    parser.add_argument("--out", type=Path, default=None, help="write the results record OUT.json")
     args = parser.parse_args()
     source = open_dataset(args.source, size=parse_size(args.size), max_frames=args.frames)
     dataset = SkippedFrames(source, live_positions(len(source), args.min_gap, args.max_gap, args.seed))
@@ -89,20 +90,19 @@ def main() -> None:
         start = time.perf_counter()
         rows.append(run(args.source, dataset, variant))
         print(f"{rows[-1]['variant']}: {rows[-1]} ({time.perf_counter() - start:.0f} s)", flush=True)
-    commit = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True).stdout.strip()
-    header = (f"Frame gaps: {args.source} at {args.size}, {len(dataset)} of {len(source)} frames, steps {args.min_gap}-"
-              f"{args.max_gap} (seed {args.seed}); loop closure and refinement off; commit {commit}, "
-              f"{datetime.date.today()}\n\n")
+    what = (f"Frame gaps: {results.label(args.source)} at {args.size}, {len(dataset)} of {len(source)} frames, steps "
+            f"{args.min_gap}-{args.max_gap} (seed {args.seed}); loop closure and refinement off. {WHAT}")
     table = "| variant | frames | ATE cm | ok | degraded | lost | s/frame |\n|---|---|---|---|---|---|---|\n" + "".join(
         f"| {r['variant']} | {r['frames']} | {r['ate_rmse_cm']} | {r['ok']} | {r['degraded']} | {r['lost']} | "
         f"{r['seconds_per_frame']} |\n" for r in rows)
-    print(header + table)
-    if args.out:
-        args.out.write_text(header + table)
-        args.out.with_suffix(".json").write_text(json.dumps({"source": args.source, "size": args.size,
-                                                             "min_gap": args.min_gap, "max_gap": args.max_gap, "seed": args.seed,
-                                                             "positions": dataset.positions, "commit": commit,
-                                                             "rows": rows}, indent=1))
+    if not args.out:
+        print(table)
+        return
+    results.write_report(args.out, title=f"Frame gaps: {results.label(args.source)}, steps of {args.min_gap}-"
+                         f"{args.max_gap} frames", what=what, markdown=table,
+                         data={"source": args.source, "size": args.size, "min_gap": args.min_gap,
+                               "max_gap": args.max_gap, "seed": args.seed, "positions": dataset.positions,
+                               "rows": rows})
 
 
 if __name__ == "__main__":

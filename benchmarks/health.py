@@ -9,15 +9,11 @@ those of the poses as tracked, which the status judges (and a live subscriber ge
 poses, which loop closure and the global refinement moved later (by submap, so their errors jump where submaps
 meet). Frames dropped by a failed relocalisation have no pose and are counted as flags, not ranked. Run from the
 repository root, e.g.
-    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/health.py --frames 120 --out benchmarks/results/health_160x120.md
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/health.py --frames 120 --out benchmarks/results/health_160x120
 """
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
-import os
-import subprocess
 import sys
 import time
 from collections import Counter
@@ -25,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gausem_bench import results as records
 from gausem_bench.data import SHARED_DATA
 from gausem_core.config import load_config
 from gausem_core.data import open_dataset
@@ -65,30 +62,33 @@ def evaluate(name: str, spec: str, dataset) -> dict:
                           for f, t, r in zip(result.frame_ids, translation, rotation)]}
 
 
-def markdown(results: list[dict], command: str, skipped: list[str]) -> str:
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    lines = ["# Tracking health: does the status predict per-frame pose error?", "",
-             f"Written by `{command}` on {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%dT%H:%M}Z, commit "
-             f"{commit}, {os.cpu_count()} CPU cores, device cpu. Error: relative pose error frame i-1 to i against "
-             "ground truth, of the poses as tracked (what the status judged; frames at which loop closure "
-             "corrected the map left out, as their step is the correction) or of the final ones (moved later by loop "
-             "closure and the global refinement); flagged: degraded or lost; false-flag rate: flagged frames among "
-             "those outside the 5 % worst. Median and worst RPE below: poses as tracked.", ""]
-    lines += [f"Skipped: {s}" for s in skipped] + ([""] if skipped else [])
-    lines += ["| Sequence | Frames | ok / degraded / lost | Poses, error ranked by | Worst 1 % flagged | Worst 5 % flagged "
+WHAT = ("`benchmarks/health.py`: the per-frame status (ok / degraded / lost) against each frame's relative pose error "
+        "(frame i-1 to i against ground truth), for a planted failure, the noisy walk and TUM fr1/rpy. Error of the "
+        "poses as tracked (what the status judged; frames at which loop closure corrected the map left out, as their "
+        "step is the correction) or of the final ones (moved later by loop closure and the global refinement); "
+        "flagged: degraded or lost; false-flag rate: flagged frames among those outside the 5 % worst. Median and "
+        "worst RPE in the notes: poses as tracked.")
+
+
+def markdown(results: list[dict]) -> str:
+    lines = ["| Sequence | Frames | ok / degraded / lost | Poses, error ranked by | Worst 1 % flagged | Worst 5 % flagged "
               "| False-flag rate |", "|---|---|---|---|---|---|---|"]
     for r in results:
         counts = " / ".join(str(r["statuses"].get(s, 0)) for s in ("ok", "degraded", "lost"))
         for by, s in r["scores"].items():
             lines.append(f"| {r['name']} | {r['frames']} | {counts} | {by} | {s['worst_1%_flagged']:.0%} | "
                          f"{s['worst_5%_flagged']:.0%} | {s['false_flag_rate']:.1%} |")
-    lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def notes(results: list[dict], skipped: list[str]) -> list[str]:
+    lines = [f"Skipped: {s}" for s in skipped]
     for r in results:
         frame, t, rot, status = r["worst_frame"]
-        lines.append(f"- {r['name']}: median RPE {r['rpe_median'][0]:.2f} cm / {r['rpe_median'][1]:.2f} deg; worst "
+        lines.append(f"{r['name']}: median RPE {r['rpe_median'][0]:.2f} cm / {r['rpe_median'][1]:.2f} deg; worst "
                      f"frame {frame} ({t:.2f} cm, {rot:.2f} deg) was {status}; rules fired: {r['reasons'] or 'none'};"
                      f" loop corrections at frames {r['corrected_frames'] or 'none'}; {r['seconds']} s.")
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def main() -> None:
@@ -99,7 +99,8 @@ def main() -> None:
     parser.add_argument("--source", type=int, default=40, help="synthetic: the frame whose images are swapped in")
     parser.add_argument("--noisy", default="synthetic:default_noisy", help="a noisy synthetic sequence (dataset spec)")
     parser.add_argument("--tum", default=str(SHARED_DATA / "tum_fr1_rpy"))
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/health_160x120.md"))
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/health_160x120"),
+                        help="the results record (OUT.json)")
     args = parser.parse_args()
     results, skipped = [], []
     synthetic = open_dataset("synthetic", size=args.size, max_frames=args.frames)
@@ -114,14 +115,8 @@ def main() -> None:
     else:
         skipped.append(f"{args.tum} (not found)")
         print(f"skipping the TUM sequence: {args.tum} not found", file=sys.stderr)
-    threads = os.environ.get("OMP_NUM_THREADS")
-    command = (f"OMP_NUM_THREADS={threads} " if threads else "") + ".venv/bin/python benchmarks/health.py " + \
-        " ".join(sys.argv[1:])
-    report = markdown(results, command, skipped)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(report)
-    args.out.with_suffix(".json").write_text(json.dumps(results, indent=1) + "\n")
-    print(report)
+    records.write_report(args.out, title="Tracking health: does the status predict per-frame error?", what=WHAT,
+                         markdown=markdown(results), notes=notes(results, skipped), data=results)
 
 
 if __name__ == "__main__":

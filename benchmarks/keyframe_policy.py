@@ -7,26 +7,23 @@ fresh processes on the same parameters:
    every d_map-th *processed* frame is then a keyframe far apart in the camera's time, one by need where the view moved.
 
 Reported per run: frames processed, keyframes, tracking losses, ATE of the processed frames, wall time. Writes
-``benchmarks/results/keyframe_policy_<name>.{json,md}``.
+``benchmarks/results/keyframe_policy_<name>.json`` (a results record).
 
     .venv/bin/python benchmarks/keyframe_policy.py --dataset tum:../shared/data/tum_fr1_rpy --name tum_fr1_rpy_160x120
 """
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import statistics
-import sys
 import tempfile
 from pathlib import Path
 
-from live_replay import REPO, gausem_run  # noqa: E402  (benchmarks/ is the script's folder)
-
-from gausem_core.io.metrics import git_commit
+from gausem_bench import results
+from gausem_bench.runs import add_run_arguments, gausem_run
 
 POLICIES = ("every", "motion")
+WHAT = ("`benchmarks/keyframe_policy.py`: keyframes every `mapping.every`-th frame against keyframes chosen by the "
+        "view's motion, lock-step and under `--realtime`.")
 
 
 def summary(mode: str, policy: str, runs: list[dict]) -> dict:
@@ -42,9 +39,7 @@ def summary(mode: str, policy: str, runs: list[dict]) -> dict:
 
 def markdown(doc: dict) -> str:
     fmt = lambda v, d=1: "-" if v is None else (f"{v:.{d}f}" if isinstance(v, float) else str(v))  # noqa: E731
-    lines = [f"# Keyframe policy: {doc['dataset']} at {doc['size']}", "", f"`{doc['command']}` at commit "
-             f"{doc['commit']} on {doc['machine']}.", "",
-             "| mode | policy | runs | processed | keyframes | submaps | lost | ATE (cm) | wall time (s) |",
+    lines = ["| mode | policy | runs | processed | keyframes | submaps | lost | ATE (cm) | wall time (s) |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in doc["table"]:
         lines.append(f"| {r['mode']} | {r['policy']} | {r['runs']} | {fmt(r['frames_processed'])} | "
@@ -55,13 +50,9 @@ def markdown(doc: dict) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--dataset", default="synthetic:loop")
-    parser.add_argument("--size", default="160x120")
-    parser.add_argument("--frames", type=int, help="at most this many frames (default: all)")
-    parser.add_argument("--name", default="synthetic_loop_160x120")
+    add_run_arguments(parser)
     parser.add_argument("--rate", type=float, default=0.25, help="the live camera's pace, times the recorded one")
     parser.add_argument("--repeats", type=int, default=3, help="real-time runs per policy")
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="passed to every run")
     args = parser.parse_args()
     table = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -72,17 +63,11 @@ def main() -> None:
             live = [gausem_run(args, Path(tmp) / f"live_{policy}_{i}", [*chosen, "--realtime", str(args.rate)])
                     for i in range(args.repeats)]
             table.append(summary(f"async --realtime {args.rate:g}", policy, live))
-            print(markdown({"command": "", "commit": "", "machine": "", "dataset": args.dataset, "size": args.size,
-                            "table": table}), flush=True)
-    command = "benchmarks/keyframe_policy.py " + " ".join(sys.argv[1:])
-    doc = {"command": f".venv/bin/python {command}", "machine": f"{platform.node()} ({os.cpu_count()} CPU cores, "
-           "no GPU)", "commit": git_commit(), "dataset": args.dataset, "size": args.size, "rate": args.rate,
-           "table": table}
-    results = REPO / "benchmarks" / "results"
-    (results / f"keyframe_policy_{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
-    text = markdown(doc)
-    (results / f"keyframe_policy_{args.name}.md").write_text(text)
-    print(text)
+            print(markdown({"table": table}), flush=True)
+    doc = {"dataset": args.dataset, "size": args.size, "rate": args.rate, "rows": table}
+    results.write_report(results.RESULTS / f"keyframe_policy_{args.name}",
+                         title=f"Keyframes by need (`mapping.keyframes: motion`), {results.label(args.dataset)}",
+                         what=WHAT, markdown=markdown({"table": table}), data=doc)
 
 
 if __name__ == "__main__":

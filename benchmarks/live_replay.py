@@ -8,7 +8,7 @@
    10 % (the camera thread reading frames beside it), T becomes that cost and the run is repeated (the one reported).
 
 Reported per run: frames processed (and released, superseded), T, latency median / p95, the worker's lag and the map's
-age, tracking losses and the ATE of the processed frames. Writes ``benchmarks/results/live_replay_<name>.{json,md}``.
+age, tracking losses and the ATE of the processed frames. Writes ``benchmarks/results/live_replay_<name>.json`` (a results record).
 
     .venv/bin/python benchmarks/live_replay.py --dataset synthetic:loop --name synthetic_loop_160x120
     .venv/bin/python benchmarks/live_replay.py --dataset "tum:${GAUSEM_SHARED_DATA:-../shared/data}/tum_fr1_rpy" --name tum_fr1_rpy_160x120
@@ -16,33 +16,15 @@ age, tracking losses and the ATE of the processed frames. Writes ``benchmarks/re
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
+from gausem_bench import results
+from gausem_bench.runs import add_run_arguments, gausem_run
 
-from gausem_core.io.metrics import git_commit
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def gausem_run(args, out: Path, extra: list[str]) -> dict:
-    """One ``gausem run`` in a fresh process; its metrics.json and the recorded frame interval."""
-    cmd = [str(Path(sys.executable).parent / "gausem"), "run", "--dataset", args.dataset, "--size", args.size,
-           "--quiet", "--out", str(out), *(["--frames", str(args.frames)] if args.frames else []), *extra,
-           *(x for s in args.set for x in ("--set", s))]
-    result = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
-    if result.returncode:
-        raise SystemExit(f"{' '.join(cmd)} failed ({result.returncode}):\n{result.stderr[-3000:]}")
-    metrics = json.loads((out / "metrics.json").read_text())["metrics"]
-    stamps = np.loadtxt(out / "trajectory.txt", usecols=0, ndmin=1)
-    metrics["interval_s"] = float(np.median(np.diff(stamps))) if len(stamps) > 1 else None
-    return metrics
+WHAT = ("`benchmarks/live_replay.py`: three `gausem run` processes per sequence: `sync` lock-step, `async` "
+        "lock-step, and `--realtime` releasing one frame every 1.5 T on the wall clock (T: the tracker's median cost "
+        "per frame). No ROS.")
 
 
 def row(mode: str, metrics: dict) -> dict:
@@ -62,15 +44,10 @@ def row(mode: str, metrics: dict) -> dict:
 
 def markdown(doc: dict) -> str:
     fmt = lambda v, d=1: "-" if v is None else (f"{v:.{d}f}" if isinstance(v, float) else str(v))  # noqa: E731
-    lines = [f"# Live replay: {doc['dataset']} at {doc['size']}", "", f"`{doc['command']}` at commit {doc['commit']} "
-             f"on {doc['machine']}.", "", f"Tracker cost T: {fmt(doc['T_ms'])} ms (async lock-step median "
-             f"{fmt(doc.get('T_lockstep_ms'))} ms); camera "
-             f"interval in the real-time run {fmt(doc['camera_interval_ms'])} ms (rate {doc['rate']:.4f} of the "
-             f"recorded pace).", "",
-             "| mode | processed | released | superseded | T median / p95 (ms) | latency median / p95 (ms) "
+    lines = ["| mode | processed | released | superseded | T median / p95 (ms) | latency median / p95 (ms) "
              "| duration (s) | lost | keyframes superseded | worker lag median / max | map age median / p95 | ATE (cm) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in doc["table"]:
+    for r in doc["rows"]:
         lines.append(f"| {r['mode']} | {r['frames_processed']} | {fmt(r['frames_released'])} | "
                      f"{fmt(r['frames_superseded'])} | {fmt(r['tracker_ms_median'], 0)} / {fmt(r['tracker_ms_p95'], 0)} "
                      f"| {fmt(r['latency_ms_median'], 0)} / {fmt(r['latency_ms_p95'], 0)} | {fmt(r['duration_s'])} | "
@@ -79,14 +56,17 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def note(doc: dict) -> str:
+    fmt = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
+    return (f"Tracker cost T: {fmt(doc['T_ms'])} ms (async lock-step median {fmt(doc.get('T_lockstep_ms'))} ms); camera "
+            f"interval in the real-time run {fmt(doc['camera_interval_ms'])} ms (rate {doc['rate']:.4f} of the "
+            f"recorded pace).")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--dataset", default="synthetic:loop")
-    parser.add_argument("--size", default="160x120")
-    parser.add_argument("--frames", type=int, help="at most this many frames (default: all)")
-    parser.add_argument("--name", default="synthetic_loop_160x120")
+    add_run_arguments(parser)
     parser.add_argument("--interval-factor", type=float, default=1.5, help="camera interval in units of T")
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="passed to every run")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         sync = gausem_run(args, Path(tmp) / "sync", ["--set", "worker.mode=sync"])
@@ -98,16 +78,12 @@ def main() -> None:
             t_s = live["frame_ms_median"] / 1e3  # beside it): again at the interval factor of its live cost
             rate = sync["interval_s"] / (args.interval_factor * t_s)
             live = gausem_run(args, Path(tmp) / "live", ["--realtime", f"{rate:.6f}"])
-    command = "benchmarks/live_replay.py " + " ".join(sys.argv[1:])
-    doc = {"command": f".venv/bin/python {command}", "machine": f"{platform.node()} ({os.cpu_count()} CPU cores, "
-           "no GPU)", "commit": git_commit(), "dataset": args.dataset, "size": args.size,
+    doc = {"dataset": args.dataset, "size": args.size,
            "T_ms": 1e3 * t_s, "T_lockstep_ms": lockstep["frame_ms_median"], "camera_interval_ms": 1e3 * args.interval_factor * t_s, "rate": rate,
-           "table": [row("sync lock-step", sync), row("async lock-step", lockstep), row("async --realtime", live)]}
-    results = REPO / "benchmarks" / "results"
-    (results / f"live_replay_{args.name}.json").write_text(json.dumps(doc, indent=1) + "\n")
-    text = markdown(doc)
-    (results / f"live_replay_{args.name}.md").write_text(text)
-    print(text)
+           "rows": [row("sync lock-step", sync), row("async lock-step", lockstep), row("async --realtime", live)]}
+    results.write_report(results.RESULTS / f"live_replay_{args.name}",
+                         title=f"Following a camera: the mapping worker, {results.label(args.dataset)}", what=WHAT,
+                         markdown=markdown(doc), notes=[note(doc)], data=doc)
 
 
 if __name__ == "__main__":

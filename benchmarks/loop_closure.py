@@ -1,12 +1,11 @@
 """Loop-closure benchmark: SGR timing (coarse vs fine) and accuracy on synthetic submaps, the registration ablation
 of the paper's Tab. VI (coarse only, fine only, both), ATE with and without loop closure on the drifting synthetic
-loop run of test/test_loop_e2e.py, loop precision/recall/F1 with the paper's ground-truth-loop protocol. Writes benchmarks/results/loop_closure.{json,md}. Run from the repository root:
+loop run of test/test_loop_e2e.py, loop precision/recall/F1 with the paper's ground-truth-loop protocol. Writes benchmarks/results/loop_closure.json (a results record). Run from the repository root:
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/loop_closure.py
 """
 from __future__ import annotations
 
-import json
 import os
 import statistics
 import sys
@@ -20,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from loop_scene import make_submap, perturbation, pose_error  # noqa: E402
 from test_loop_e2e import ate_rmse, drifting_run, integrate_odometry, timestamps  # noqa: E402
 
+from gausem_bench import results  # noqa: E402
 from gausem_core.config import RegistrationConfig  # noqa: E402
 from gausem_core.eval.loops import DEFAULT_PROTOCOL, loop_scores  # noqa: E402
 from gausem_core.geometry import invert_pose  # noqa: E402
@@ -28,7 +28,10 @@ from gausem_core.semantics.descriptors import make_descriptor  # noqa: E402
 from gausem_core.slam.registration import (fine_registration, fine_views, is_acceptable,  # noqa: E402
                                            semantic_guided_registration)
 
-OUT = Path(__file__).resolve().parent / "results"
+OUT = results.RESULTS
+WHAT = ("`benchmarks/loop_closure.py`: SGR on hand-made submaps of the synthetic loop (Gaussians back-projected at the "
+        "true poses), coarse only / fine only / both, from two drifts, and its time; the drifting loop of "
+        "`test/test_loop_e2e.py` with the default place recognition, revisits of 16-40 frames and none.")
 # processed frames walked again after the loop
 REVISITS = (16, 20, 24, 40)
 
@@ -137,10 +140,8 @@ def main() -> None:
                 "protocol": DEFAULT_PROTOCOL, "sgr": [sgr_timing(2), sgr_timing(1)],
                 "registration": registration_ablation(),
                 "e2e": [e2e(revisit, loop) for revisit in REVISITS for loop in (False, True)] + [e2e(0, True)]}
-    OUT.mkdir(exist_ok=True)
-    (OUT / "loop_closure.json").write_text(json.dumps(document, indent=2, default=float) + "\n")
-    (OUT / "loop_closure.md").write_text(markdown(document))
-    print(markdown(document))
+    results.write_report(OUT / "loop_closure", title="Registration (Tab. VI shape) and the drifting loop", what=WHAT,
+                         markdown=markdown(document), data=document)
 
 
 def markdown(doc: dict) -> str:

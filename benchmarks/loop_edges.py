@@ -10,7 +10,7 @@ it turns down are left out) and keyframe alignment (``registration.align_keyfram
 the verified pose), with each variant's ``loop.registration`` settings; then the acceptance test (overlap and
 fitness). Per variant: the accepted pairs and the median and 90th-percentile error of the measured relative pose
 (translation cm, rotation degrees), with the verified PnP pose's for comparison. Writes
-benchmarks/results/<name>.{json,md}.
+benchmarks/results/<name>.json (a results record).
 
     PYTHONPATH=$PWD OMP_NUM_THREADS=1 .venv/bin/python benchmarks/loop_edges.py \\
         --variant w_depth_0.5:w_depth=0.5
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import sys
 from pathlib import Path
@@ -30,11 +29,11 @@ from tqdm import tqdm
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
+from gausem_bench import results as records  # noqa: E402
 from gausem_bench.suite import gausem_parameters, load_suite, open_sequence  # noqa: E402
 from gausem_core.config import from_flat  # noqa: E402
 from gausem_core.eval.loops import view_overlap  # noqa: E402
 from gausem_core.geometry import invert_pose, se3_log  # noqa: E402
-from gausem_core.io.metrics import git_commit  # noqa: E402
 from gausem_core.pipeline import Pipeline  # noqa: E402
 from gausem_core.slam.depth_filter import filter_observation  # noqa: E402
 from gausem_core.slam.features import extract_features  # noqa: E402
@@ -152,17 +151,15 @@ def main() -> None:
             results[name] = run_sequence(name, suite, variants, args.min_frame_gap, args.min_overlap)
         except FileNotFoundError as exc:
             print(f"{name}: skipped ({exc})")
-    commit = git_commit() or "unknown"
-    out = ROOT / "benchmarks" / "results"
-    (out / f"{args.name}.json").write_text(json.dumps({"commit": commit, "min_frame_gap": args.min_frame_gap,
-                                                       "min_overlap": args.min_overlap, "results": results},
-                                                      indent=1) + "\n")
-    text = (f"# Loop-edge accuracy (commit {commit[:10]})\n\n`benchmarks/loop_edges.py`: keyframe pairs on the loop "
-            f"grid at least {args.min_frame_gap} frames apart whose ground-truth view overlap is at least "
-            f"{args.min_overlap}; errors of the accepted pairs' measured relative pose (keyframe alignment from the "
-            f"verified PnP pose) and of that PnP pose.\n\n" + "\n".join(table(results)) + "\n")
-    (out / f"{args.name}.md").write_text(text)
-    print(text)
+    what = (f"`benchmarks/loop_edges.py`: keyframe pairs on the loop grid at least {args.min_frame_gap} frames apart "
+            f"whose ground-truth view overlap is at least {args.min_overlap}, run through the intra-submap loop's steps "
+            "as the system does (PnP verification, keyframe alignment from the verified pose, acceptance); errors of "
+            "the accepted pairs' measured relative pose and of that PnP pose, per variant of the registration's "
+            "settings (defaults: `loop.registration.w_depth` 5).")
+    records.write_report(records.RESULTS / args.name, title="Loop edges: how far a loop's measurement lies from the "
+                         "truth", what=what, markdown="\n".join(table(results)),
+                         data={"min_frame_gap": args.min_frame_gap, "min_overlap": args.min_overlap,
+                               "results": results})
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Place recognition and loop closure with and without weights (issue #23): per sequence, loops detected / accepted /
 true, precision and recall on the paper's protocol, revisits closed, ATE with and without loop closure, submaps and
-the time in loop closure by phase. Writes benchmarks/results/place_recognition.{json,md}; each part replaces its own
+the time in loop closure by phase. Writes benchmarks/results/place_recognition.json (a results record); each part replaces its own
 rows. Run from the repository root (one thread; the TUM part runs the real tracker, minutes per run):
 
     PYTHONPATH=$PWD OMP_NUM_THREADS=1 .venv/bin/python benchmarks/place_recognition.py --part synthetic
@@ -17,7 +17,6 @@ the real tracker at 160x120 without labels (params/tum.yaml), run with and witho
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -29,6 +28,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from test_loop_e2e import ate_rmse, drifting_run, integrate_odometry, revisit_frames, timestamps  # noqa: E402
 
+from gausem_bench import results  # noqa: E402
 from gausem_bench.data import SHARED_DATA  # noqa: E402
 from gausem_core.config import load_config  # noqa: E402
 from gausem_core.data.tum import TumDataset  # noqa: E402
@@ -39,7 +39,12 @@ from gausem_core.semantics.source import UNLABELLED_PALETTE  # noqa: E402
 from gausem_core.report import estimated_trajectory, ground_truth_trajectory, trajectory_metrics  # noqa: E402
 from gausem_core.slam.observation import Observation  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "results"
+OUT = results.RESULTS
+WHAT = ("`benchmarks/place_recognition.py` (definitions in its docstring): a drifting walk of the synthetic loop (80x60, "
+        "every 3rd frame, odometry biased by 2 mm and 0.08° per frame, then the first places again, optionally "
+        "panned) and the real TUM frames. *true*: the loop's keyframes see each other's view with ≥ 0.5 overlap under "
+        "the ground truth; *protocol*: the paper's; *revisits closed*: runs of keyframes that see an earlier place and "
+        "hold an accepted loop.")
 ROOT = Path(__file__).resolve().parents[1]
 TUM = SHARED_DATA / "tum_fr1_rpy"
 MIN_OVERLAP = 0.5
@@ -148,12 +153,10 @@ def main() -> None:
         without, with_loops = tum(args.tum_frames, False), tum(args.tum_frames, True)
         rows = [{**with_loops, "ate_rmse_m_without": without["ate_rmse_m"], "ate_rmse_m_with": with_loops["ate_rmse_m"],
                  "seconds_without": without["seconds"]}]
-    document = json.loads(path.read_text()) if path.exists() else {}  # read now: the other part may have run meanwhile
+    document = results.read(path)["data"] if path.exists() else {}  # read now: the other part may have run meanwhile
     document[args.part] = {**started, "rows": rows}
-    OUT.mkdir(exist_ok=True)
-    path.write_text(json.dumps(document, indent=2, default=float) + "\n")
-    (OUT / "place_recognition.md").write_text(markdown(document))
-    print(markdown(document))
+    results.write_report(path, title="Place recognition without labels or weights", what=WHAT,
+                         markdown=markdown(document), data=document)
 
 
 def markdown(document: dict) -> str:
@@ -167,7 +170,7 @@ def markdown(document: dict) -> str:
              "Loop closure time: describe (descriptors, ORB) + detect + verify + register + correct, wall clock, one "
              "thread on a shared 2-core machine.", ""]
     for part, data in document.items():
-        lines += [f"## {part} (commit {data['commit'][:10]}, load average {data['load_average'][0]:.1f})", "",
+        lines += [f"## {part} (load average {data['load_average'][0]:.1f})", "",
                   "| sequence | labels | place recognition | submaps | detected / accepted / true accepted | "
                   "rejected by verification | protocol P / R | revisits closed | ATE m without / with loop closure "
                   "| loop closure s (share of run) | describe / detect / verify / register / correct s |",

@@ -5,7 +5,7 @@ processed, the reference) and once per ``--rates`` value at that fraction of the
 the newest frame and drops what it cannot keep up with; the run ends once its pending frame is processed).
 Recorded per run: frames in, processed, dropped by reason, pending, latency median and p95 (a synchronised frame's
 arrival to its pose's publication), the player's playback time, and the ATE of the processed frames (none with fewer
-than 3); written to ``benchmarks/results/realtime_<name>.{json,md}``.
+than 3); written to ``benchmarks/results/realtime_<name>.json`` (a results record).
 
     .venv/bin/python benchmarks/realtime.py [--source "tum:${GAUSEM_SHARED_DATA:-../shared/data}/tum_fr1_rpy"] [--size 160x120]
         [--params params/tum.yaml] [--name tum_fr1_rpy_160x120] [--rates 1 0.1] [-- ROS_ARGS...]
@@ -15,17 +15,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from gausem_bench import results
 from gausem_bench.data import SHARED_DATA
-from gausem_core.io.metrics import git_commit
 
 REPO = Path(__file__).resolve().parents[1]
+WHAT = ("`benchmarks/realtime.py`: the frames played to the node suite (`gausem-ros`) in lock-step (the node in `sync`) "
+        "and at the given rates of their recorded pace (the node in `async`); ROS arguments after `--`.")
 BIN = Path(sys.executable).parent
 LOCKSTEP = ["--lockstep", "--rate", "0", "--timeout", "600"]
 
@@ -48,11 +49,7 @@ def run(mode: str, args, ros_args: list[str], out: Path) -> dict:
 
 
 def markdown(rows: list[dict], args, ros_args: list[str]) -> str:
-    lines = [f"# Real-time replay: {args.source} at {args.size}", "",
-             f"`.venv/bin/python benchmarks/realtime.py --source {args.source} --size {args.size} --params "
-             f"{args.params} --name {args.name}{' -- ' + ' '.join(ros_args) if ros_args else ''}` at commit "
-             f"{git_commit()} on {platform.node()} ({os.cpu_count()} CPU cores, no GPU).", "",
-             "| mode | frames in | processed | dropped (by reason) | pending | latency median / p95 (ms) | playback (s) "
+    lines = ["| mode | frames in | processed | dropped (by reason) | pending | latency median / p95 (ms) | playback (s) "
              "| ATE (cm, processed frames) |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         dropped = ", ".join(f"{k} {v}" for k, v in r["dropped"].items()) or "none"
@@ -75,11 +72,9 @@ def main() -> None:
     modes = ["lock-step", *(f"rate {r:g}" for r in args.rates)]
     with tempfile.TemporaryDirectory() as tmp:
         rows = [run(mode, args, ros_args, Path(tmp) / mode.replace(" ", "_")) for mode in modes]
-    results = REPO / "benchmarks" / "results"
-    (results / f"realtime_{args.name}.json").write_text(json.dumps(rows, indent=2) + "\n")
-    text = markdown(rows, args, ros_args)
-    (results / f"realtime_{args.name}.md").write_text(text)
-    print(text)
+    results.write_report(results.RESULTS / f"realtime_{args.name}",
+                         title=f"The node suite in real time: {results.label(args.source)}", what=WHAT,
+                         markdown=markdown(rows, args, ros_args), data=rows)
 
 
 if __name__ == "__main__":

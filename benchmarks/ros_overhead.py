@@ -5,7 +5,7 @@ process, the player in lock-step on the same dataset spec, evaluated with ``--re
 wall time, its CPU time (user + system, all threads; less disturbed than wall time by other jobs on a shared machine)
 and the SLAM loop time from its metrics.json (``seconds``: offline the frame loop, ROS the first frame's arrival to the
 last frame's end, so message conversion, publishing and the loop-detection/pose-graph nodes count). The medians, their
-ratios and the largest pose difference between the two trajectories go to ``benchmarks/results/ros_overhead.{json,md}``.
+ratios and the largest pose difference between the two trajectories go to ``benchmarks/results/ros_overhead.json`` (a results record).
 
     .venv/bin/python benchmarks/ros_overhead.py [--frames 30] [--size 160x120] [--repeats 3] [--set NAME=VALUE ...]
 """
@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gausem_bench import results
 from gausem_core.io.metrics import git_commit
 from gausem_core.io.trajectory import read_tum_trajectory
 from gausem_core.tools.run import parse_size
@@ -34,6 +35,9 @@ REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 TARGET = 1.10  # issue 6: ROS wall time at most 10 % above the offline CLI's
 KEYS = ("loop_s", "cpu_s", "wall_s")
+WHAT = ("`benchmarks/ros_overhead.py`: `gausem-ros` in lock-step against `gausem run` on the same synthetic frames, "
+        "median of 3 each, one thread per process. Loop: offline, the frame loop of `gausem run`; ROS, from the first "
+        "frame's arrival at tracking_mapping to the end of the last frame. Process CPU and wall: the whole command.")
 
 
 def commands(args, out: Path) -> dict[str, list[str]]:
@@ -89,8 +93,7 @@ def markdown(result: dict) -> str:
     return "\n".join([
         f"# ROS path vs offline CLI, synthetic {result['frames']} frames at {result['size'][0]}x{result['size'][1]}",
         "",
-        f"`benchmarks/ros_overhead.py`, commit {(result['git_commit'] or 'unknown')[:10]}, torch {result['torch']}, "
-        f"1 thread per process, {result['cpu_count']} cores. {result['machine_note']}",
+        f"`benchmarks/ros_overhead.py`, torch {result['torch']}, 1 thread per process, {result['cpu_count']} cores. {result['machine_note']}",
         "",
         f"Parameters: `{result['params_file']}`" + (f" with {result['overrides']}" if result['overrides'] else "")
         + f"; median of {result['repeats']} runs each, alternating order.",
@@ -137,10 +140,9 @@ def main(argv=None) -> int:
             for run in runs[-2:]:
                 run["max_pose_difference_m"] = difference
     result = summarise(runs, args)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "ros_overhead.json").write_text(json.dumps(result, indent=1) + "\n")
-    (args.out / "ros_overhead.md").write_text(markdown(result))
-    print(markdown(result))
+    text = markdown(result)
+    results.write_report(args.out / "ros_overhead", title="The ROS path's overhead", what=WHAT, markdown=text,
+                         notes=[line for line in text.splitlines() if line.startswith("Overhead")], data=result)
     return 0
 
 

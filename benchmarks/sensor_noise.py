@@ -5,7 +5,7 @@ loop closure as there; ``--set`` overrides go to every variant): "clean", "noisy
 (only the depth effects), "colour" (only the colour effects), "only_<effect>" and "without_<effect>" (one sensor
 effect alone, or all but one). Per variant: ATE RMSE after SE(3) alignment, the
 Sim(3) scale of the estimate and the ATE after it, PSNR and depth L1 of the final map against the (noisy) input, fps.
-Writes benchmarks/results/<name>.{json,md} and the runs' outputs under out/sensor_noise/<name>/. From the root:
+Writes benchmarks/results/<name>.json (a results record) and the runs' outputs under out/sensor_noise/<name>/. From the root:
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/sensor_noise.py --sequence default --variants clean noisy
 """
@@ -15,11 +15,11 @@ import argparse
 import json
 from pathlib import Path
 
+from gausem_bench import results
 from gausem_core.config import SensorConfig, load_config
 from gausem_core.data import SyntheticDataset
 from gausem_core.data.sensor import COLOR_EFFECTS, DEPTH_EFFECTS
 from gausem_core.eval.trajectory import absolute_trajectory_error, associate_trajectories
-from gausem_core.io.metrics import git_commit
 from gausem_core.io.trajectory import read_tum_trajectory
 from gausem_core.pipeline import Pipeline
 from gausem_core.report import write_outputs
@@ -80,20 +80,15 @@ def main() -> None:
         rows[variant] = run_variant(args.sequence, VARIANTS[variant], args.size, args.frames, overrides,
                                     ROOT / "out" / "sensor_noise" / name / variant)
         print(variant, json.dumps(rows[variant]), flush=True)
-    document = {"commit": git_commit(), "sequence": args.sequence, "size": list(args.size), "frames": args.frames,
-                "overrides": overrides, "rows": rows}
-    results = ROOT / "benchmarks" / "results"
-    results.mkdir(exist_ok=True)
-    (results / f"{name}.json").write_text(json.dumps(document, indent=2) + "\n")
-    commit = (document["commit"] or "unknown")[:10]
-    summary = (f"# Sensor noise: synthetic {args.sequence} at {args.size[0]}x{args.size[1]} (commit {commit})\n\n"
-               f"`benchmarks/sensor_noise.py --sequence {args.sequence} --variants {' '.join(args.variants)}"
-               + (f" --frames {args.frames}" if args.frames else "")
-               + "".join(f" --set {k}={v}" for k, v in overrides.items()) + "`; params/synthetic.yaml, loop "
-               "closure on. Sim(3) scale > 1: the estimate is too small. Open3D baselines not run here.\n\n"
-               + table(rows) + "\n")
-    (results / f"{name}.md").write_text(summary)
-    print(summary)
+    document = {"sequence": args.sequence, "size": list(args.size), "frames": args.frames, "overrides": overrides,
+                "rows": rows}
+    what = (f"`benchmarks/sensor_noise.py`: `gausem run`'s pipeline on the synthetic {args.sequence} sequence at "
+            f"{args.size[0]}x{args.size[1]}" + (f", first {args.frames} frames" if args.frames else "")
+            + "".join(f", `{k}={v}`" for k, v in overrides.items()) + " (params/synthetic.yaml, loop closure on), per "
+            "variant of the Kinect-like sensor model: " + ", ".join(args.variants) + ". Sim(3) scale > 1: the "
+            "estimate is too small.")
+    results.write_report(results.RESULTS / name, title=f"Sensor noise: {name.removeprefix('sensor_noise_')}",
+                         what=what, markdown=table(rows), data=document)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """The spatial-semantic allocation rule's inputs at every keyframe, on ground-truth poses (issue #23, part 4).
 
-    python benchmarks/submap_allocation.py   # submap_allocation.{json,md} in benchmarks/results/
+    python benchmarks/submap_allocation.py   # benchmarks/results/submap_allocation.json (a results record)
 
 For each sequence (synthetic 'default' and 'loop' with labels; TUM fr1_rpy and 7-Scenes redkitchen from
 $GAUSEM_SHARED_DATA, without labels) and each overlap measure (``submaps.overlap``: ``view`` = |F n V| / |F|, the
@@ -18,16 +18,18 @@ from pathlib import Path
 
 import torch
 
+from gausem_bench import results
 from gausem_bench.data import SHARED_DATA
 from gausem_core.config import flatten, load_config
 from gausem_core.data import open_dataset
-from gausem_core.io.metrics import write_metrics_json
 from gausem_core.pipeline import Pipeline
 from gausem_core.slam.allocation import (FrustumUnion, SubmapExtent, depth_range, frustum_iou, frustum_overlap,
                                          frustum_volume, make_allocation)
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
+WHAT = ("`benchmarks/submap_allocation.py`: on ground-truth poses, the allocation rule's inputs at every keyframe, for "
+        "the overlap measures `view` (share of the keyframe's view inside the submap's frusta) and `iou` (the "
+        "default).")
 SEQUENCES = {"synthetic default": "synthetic:default", "synthetic loop": "synthetic:loop",
              "tum fr1_rpy": f"tum:{SHARED_DATA / 'tum_fr1_rpy'}", "7-scenes redkitchen": f"tum:{SHARED_DATA / '7scenes_redkitchen'}"}
 SIZE, EVERY = (160, 120), 5
@@ -112,11 +114,9 @@ def main() -> int:
             print(name, measure, json.dumps(result[name][measure]["summary"]), flush=True)
     settings = {k: v for k, v in flatten(load_config(ROOT / "params" / "synthetic.yaml")).items()
                 if k.startswith("submaps.")}
-    stem = RESULTS / "submap_allocation"
-    write_metrics_json(stem.with_suffix(".json"), result, parameters={"command": "python benchmarks/"
-                                                                      "submap_allocation.py", **settings})
-    stem.with_suffix(".md").write_text(markdown(result, settings))
-    print(stem.with_suffix(".md").read_text())
+    results.write_report(results.RESULTS / "submap_allocation", title="Submap allocation: the rule's inputs per "
+                         "keyframe", what=WHAT, markdown=markdown(result, settings),
+                         data={"parameters": settings, "metrics": result})
     return 0
 
 

@@ -1,8 +1,8 @@
 """Submap benchmarks (issue 4) on the synthetic "default" sequence at 160x120; results in benchmarks/results/.
 
-    python benchmarks/submaps.py allocation              # submaps_allocation.{json,md}
-    python benchmarks/submaps.py slam [--set NAME=VALUE]  # submaps_slam.{json,md}
-    python benchmarks/submaps.py memory --frames 500 2000 [--set NAME=VALUE]  # submaps_memory.{json,md}
+    python benchmarks/submaps.py allocation              # benchmarks/results/submaps_allocation.json
+    python benchmarks/submaps.py slam [--set NAME=VALUE]  # benchmarks/results/submaps_slam.json
+    python benchmarks/submaps.py memory --frames 500 2000 [--set NAME=VALUE]  # benchmarks/results/submaps_memory.json
 
 allocation: the allocation policies alone on ground-truth keyframe poses (every 5th frame): boundaries, counts and
 object cohesion (fraction of each object's points in its majority submap), over the whole sequence and per visit.
@@ -24,12 +24,12 @@ from pathlib import Path
 
 import torch
 
+from gausem_bench import results
 from gausem_core.config import SubmapConfig, flatten, load_config
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.data.synthetic import SEQUENCES
 from gausem_core.eval.fragmentation import allocation_cohesion, object_instances, submap_cohesion
 from gausem_core.geometry import invert_pose, transform_points
-from gausem_core.io.metrics import write_metrics_json
 from gausem_core.pipeline import Pipeline, peak_rss_mb
 from gausem_core.slam.allocation import make_allocation, partition_keyframes
 from gausem_core.slam.system import GauSemSLAM
@@ -37,7 +37,8 @@ from gausem_core.slam.tracker import Tracker, TrackingResult
 from gausem_core.tools.run import parse_override
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
+TITLES = {"allocation": "Submap allocation: what it does to objects", "slam": "Submaps: the full system",
+          "memory": "Submaps: memory over long runs"}
 PARAMS = ROOT / "params" / "synthetic.yaml"
 SIZE = (160, 120)
 STRUCTURE = tuple(SYNTHETIC_CLASSES.id_of(n) for n in ("floor", "wall", "ceiling"))
@@ -206,16 +207,20 @@ NOTES = {
 }
 
 
-def markdown(kind: str, command: str, result: dict, cfg, poses: str) -> str:
+def description(kind: str, poses: str) -> str:
+    """What a run of ``kind`` measures (the record's ``what``)."""
     cohesion = (f"Cohesion: mean over objects of the fraction of their points in their majority submap; per visit: "
                 f"an object seen again after more than {REVISIT_GAP} keyframes out of view counts as a new object.")
     pose_note = {"estimated": "Poses: the tracker's estimates.",
                  "ground-truth": "Poses: the tracker runs (its time and memory count) but the ground-truth pose "
                                  "replaces its estimate."}[poses]
-    head = [f"# Submaps: {kind}", "", f"`{command}`", "",
-            f"Synthetic 'default' sequence ({SEQUENCES['default'].frames} frames) at {SIZE[0]}x{SIZE[1]}. "
-            + NOTES[kind] + ("" if kind == "allocation" else " " + pose_note)
-            + ("" if kind == "memory" else " " + cohesion), ""]
+    return (f"`benchmarks/submaps.py {kind}`: synthetic 'default' sequence ({SEQUENCES['default'].frames} frames) at "
+            f"{SIZE[0]}x{SIZE[1]}. " + NOTES[kind] + ("" if kind == "allocation" else " " + pose_note)
+            + ("" if kind == "memory" else " " + cohesion))
+
+
+def markdown(kind: str, result: dict, cfg) -> str:
+    head = [f"# Submaps: {kind}", ""]
     if kind == "memory":
         rows = {f"{c['frames']} frames": c for c in result["cases"]}
         body = [table(rows, [("peak_rss_mb", "peak RSS MB"), ("submaps", "submaps"), ("keyframes", "keyframes"),
@@ -250,14 +255,13 @@ def main() -> int:
     if args.kind == "memory-case":
         memory_case(args)
         return 0
-    command = "python benchmarks/submaps.py " + shlex.join(sys.argv[1:])
     result = {"allocation": allocation, "slam": slam_runs, "memory": memory}[args.kind](args)
-    stem = RESULTS / (args.name or f"submaps_{args.kind}")
     cfg = load_config(PARAMS, dict(args.overrides))
-    write_metrics_json(stem.with_suffix(".json"), result,
-                       parameters={"command": command, "poses": args.poses, **flatten(cfg)})
-    stem.with_suffix(".md").write_text(markdown(args.kind, command, result, cfg, args.poses))
-    print(stem.with_suffix(".md").read_text())
+    text = markdown(args.kind, result, cfg)
+    results.write_report(results.RESULTS / (args.name or f"submaps_{args.kind}"), title=TITLES[args.kind],
+                         what=description(args.kind, args.poses), markdown=text,
+                         notes=[line for line in text.splitlines() if line.startswith("Peak ratio")],
+                         data={"parameters": {"poses": args.poses, **flatten(cfg)}, "metrics": result})
     return 0
 
 

@@ -37,8 +37,13 @@ class GaussNewtonTrackingConfig:
 
     pyramid_levels: int = 3  # at least this many image pyramid levels, ...
     coarsest_width: int = 80  # ... and more while the coarsest is wider than this (pixels): 640 wide, 4 levels
-    renders_per_level: int = 2  # model re-renders per pyramid level
-    level_iterations: int = 8  # Gauss-Newton iterations per render
+    renders_per_level: int = 2  # model re-renders per pyramid level ("per_level" model views) ...
+    level_iterations: int = 8  # ... each followed by this many Gauss-Newton iterations (per_frame: both per level)
+    # "per_level": the model rendered at the estimate renders_per_level times on every pyramid level; "per_frame": once
+    # at the start, at full resolution, its pyramid made by downsampling, re-rendered at the estimate only when that
+    # moved rerender_motion (translation / median model depth + rotation in radians) from where it was rendered
+    model_views: str = "per_level"
+    rerender_motion: float = 0.02
     # more starts on the coarsest level: the prediction moved this far (metres) along each camera axis, both ways,
     # and turned this far (degrees) about each. search: "gaps" after skipped or lost frames (a live node slower than
     # its camera), "always", or "never"
@@ -227,7 +232,7 @@ class LoopConfig:
     keyframe_every: int = 5  # d_k: mapping keyframes whose frame index is a multiple of this enter the database
     check_every: int = 6
     # true: at the end of a run (``finish``), check the loop keyframes stored since the last check, whose turn never
-    # came (off: the loop it closed on 7-Scenes cost accuracy, its edge being centimetres off; docs/BENCHMARKS.md)
+    # came (off: the loop it closed on 7-Scenes cost accuracy, its edge being centimetres off; docs/decisions.md)
     check_at_end: bool = False
     max_descriptor_distance: float = 0.2  # loop candidates: DINOv2 CLS distance below this (paper)
     max_fallback_descriptor_distance: float = 0.35  # ... colour-layout fallback distance below this (its own scale)
@@ -306,7 +311,7 @@ class HealthConfig:
     degraded_valid_depth: float = 0.3  # degraded below this fraction of pixels with valid depth ...
     lost_valid_depth: float = 0.05  # ... lost below this one
     degraded_coverage: float = 0.3  # degraded when the map renders a silhouette over less than this fraction of the
-    # image at the pose (benchmarks/results/health_160x120.md: the worst tracked frames of the noisy walk, 0.21-0.26)
+    # image at the pose (benchmarks/results/health_160x120.json: the worst tracked frames of the noisy walk, 0.21-0.26)
     recovery_inlier_fraction: float = 0.3  # after a loss, relocalisation accepts from this inlier fraction (its own)
     recovery_residual_z: float = 20.0  # ... and only with a residual z-score (against the frames before) up to this
 
@@ -502,7 +507,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
         for node_name, body in doc.items():
             if not isinstance(body, dict) or "ros__parameters" not in body:
                 raise ValueError(f"{path}: '{node_name}' has no 'ros__parameters' section (ROS 2 params layout expected)")
-            values.update(_flatten_dict(body["ros__parameters"]))
+            values.update(dotted_names(body["ros__parameters"]))
         values = {k: v for k, v in values.items() if k.split(".")[0] in _sections()}
     values.update(overrides or {})
     return from_flat(values)
@@ -512,11 +517,12 @@ def _sections() -> set[str]:
     return {f.name for f in dataclasses.fields(SlamConfig)}
 
 
-def _flatten_dict(d: dict, prefix: str = "") -> dict[str, Any]:
+def dotted_names(d: dict, prefix: str = "") -> dict[str, Any]:
+    """A nested parameter tree's leaves by their dotted names (``{"a": {"b": 1}}`` -> ``{"a.b": 1}``)."""
     out: dict[str, Any] = {}
     for k, v in d.items():
         if isinstance(v, dict):
-            out.update(_flatten_dict(v, f"{prefix}{k}."))
+            out.update(dotted_names(v, f"{prefix}{k}."))
         else:
             out[f"{prefix}{k}"] = v
     return out

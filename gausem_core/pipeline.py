@@ -8,6 +8,7 @@ import resource
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -19,7 +20,15 @@ from gausem_core.runtime import resolve_device
 from gausem_core.semantics.source import FrameSemantics
 from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.observation import Observation
-from gausem_core.slam.system import GauSemSLAM
+from gausem_core.slam.system import FrameResult, GauSemSLAM
+
+
+class RunObserver(Protocol):
+    """Watches a run (e.g. :class:`gausem_core.viewer.Viewer`): each processed frame, then the end."""
+
+    def frame(self, obs: Observation, result: FrameResult, slam: GauSemSLAM) -> None: ...
+
+    def finish(self, slam: GauSemSLAM) -> None: ...
 
 
 def peak_rss_mb() -> float:
@@ -74,13 +83,14 @@ class Pipeline:
                                        self.palette, frame.timestamp, self.device)
 
     def run(self, slam: GauSemSLAM | None = None, save_session: Path | None = None,
-            realtime: float | None = None) -> RunResult:
+            realtime: float | None = None, observer: RunObserver | None = None) -> RunResult:
         """Process the dataset with ``slam`` (a loaded session to go on with; default: a new system). The result
         holds this run's frames, less those a loaded system could not relocalise (dropped). ``save_session``: the
         session is saved there after the last frame, before the global refinement (not timed). Source frames that the
         dataset leaves out beyond its stride (e.g. a view of the frames a live node would see) reach the system as
         skipped ones. ``realtime``: the frames come from a :class:`~gausem_core.live.LiveCamera` at that rate, the
-        newest each time, the superseded ones skipped (``RunResult.live``)."""
+        newest each time, the superseded ones skipped (``RunResult.live``). ``observer``: told of every frame after the
+        system processed it (its time counts in the run's), and of the end after the global refinement."""
         slam = slam or GauSemSLAM(self.cfg, self.device, num_classes=len(self.palette))
         first = len(slam.frames)
         gt, ids, dataset_positions, stats, health, tracked, corrected = [], [], [], [], [], [], []
@@ -93,7 +103,10 @@ class Pipeline:
             skipped = 0 if last_index is None else max((frame.index - last_index) // stride - 1, 0)
             last_index = frame.index
             began = time.perf_counter()
-            result = slam.process(self.observation(frame), skipped)
+            obs = self.observation(frame)
+            result = slam.process(obs, skipped)
+            if observer is not None:
+                observer.frame(obs, result, slam)
             done = time.perf_counter()
             frame_seconds.append(done - began)
             latencies.append(done - (began if released_at is None else released_at))
@@ -121,6 +134,8 @@ class Pipeline:
             start += time.perf_counter() - saving
         slam.finish()  # global refinement after the last frame (part of the system's time)
         seconds = time.perf_counter() - start
+        if observer is not None:
+            observer.finish(slam)
         trajectory = slam.trajectory()[first:]
         poses = np.stack([p.detach().cpu().double().numpy() for _, p in trajectory])
         return RunResult(slam, [t for t, _ in trajectory], poses, gt, ids, dataset_positions, seconds, stats,

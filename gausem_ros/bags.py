@@ -133,6 +133,18 @@ def read_bag(path: str | Path, topics: Collection[str] | None = None) -> Iterato
         raise BagError(f"bag {path} is corrupt or truncated ({type(err).__name__}: {err})") from err
 
 
+def bag_topics(path: str | Path) -> dict[str, str]:
+    """A bag's topics and their message types, read from its index (no message is read)."""
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag {path} does not exist")
+    try:
+        with AnyReader([path]) as reader:
+            return {c.topic: _ros2_typename(c.msgtype) for c in reader.connections}
+    except _READ_ERRORS as err:
+        raise BagError(f"bag {path} is corrupt or truncated ({type(err).__name__}: {err})") from err
+
+
 def _ros2_typename(msgtype: str) -> str:
     return TF_TYPE if msgtype == LEGACY_TF_TYPE else msgtype
 

@@ -11,7 +11,8 @@ or signal) and the others go on; with ``--respawn`` it is started again after ``
 each crash within 10 s of its start, at most 32x). The launcher ends when the player is done, when every node has
 ended, or on SIGINT/SIGTERM, which it forwards to every child; children still running ``--grace`` s later are killed.
 The exit code is the worst of every child process that ended, crashed ones included (a child ended by signal N
-counts as 128 + N).
+counts as 128 + N). Before anything starts, the parameters, ``map_path`` and the player's source are checked
+(``preflight``): a problem each node would meet (at every respawn) ends the launch with exit code 2 and names it.
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ import time
 from dataclasses import dataclass, field
 
 from .nodes import NODE_MODULES
+from .preflight import TRACKING_NODE, launch_problems
 
 DEFAULT_NODES = ("tracking_mapping",)  # closes loops itself (loop_closure: core); add loop_detection,pose_graph
 # for the distributed loop closure (-p loop_closure:=nodes)
@@ -182,6 +184,10 @@ def main(args=None) -> int:
                                     else ros_args) for name in ns.nodes.split(",") if name}
     except ValueError as err:
         parser.error(str(err))
+    tracking = [name for name in nodes if name == TRACKING_NODE]
+    problems = launch_problems(ns.params_file, lockstep + ros_args, ns.play) if tracking or ns.play else []
+    if problems:  # before any node starts: each would fail the same way (and again at every respawn)
+        parser.exit(2, "".join(f"gausem-launch: error: {problem}\n" for problem in problems))
     player = player_command(ns.play, ros_args) if ns.play else None
     return Launcher(nodes, player, ns.grace, ns.respawn, ns.respawn_delay).wait()
 

@@ -338,10 +338,14 @@ def add_player_arguments(parser: argparse.ArgumentParser, required: bool = True,
     parser.add_argument("--gt-out", help="write the replayed frames' ground truth here (TUM format)")
 
 
+def source_from_args(ns: argparse.Namespace) -> Iterator[PlayerFrame]:
+    """The frames :func:`add_source_arguments`' options name (a dataset opens now, a bag is read as iterated)."""
+    return open_source(ns.source, size=ns.size, stride=ns.stride, max_frames=ns.max_frames, frame_id=ns.frame_id,
+                       depth_encoding=ns.depth_encoding, topics=parse_topics(getattr(ns, "topic", [])))
+
+
 def player_from_args(ns: argparse.Namespace, **node_kwargs) -> Player:
-    frames = open_source(ns.source, size=ns.size, stride=ns.stride, max_frames=ns.max_frames, frame_id=ns.frame_id,
-                         depth_encoding=ns.depth_encoding, topics=parse_topics(getattr(ns, "topic", [])))
-    return Player(frames, rate=ns.rate, lockstep=ns.lockstep, timeout=ns.timeout,
+    return Player(source_from_args(ns), rate=ns.rate, lockstep=ns.lockstep, timeout=ns.timeout,
                   wait_subscribers=ns.wait_subscribers, finish=getattr(ns, "finish", False),
                   finish_timeout=getattr(ns, "finish_timeout", 600.0), **node_kwargs)
 

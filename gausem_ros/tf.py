@@ -3,8 +3,10 @@
 ``make_transform_broadcaster(node)`` returns, in order of preference:
 1. ``tf2_ros.TransformBroadcaster`` / ``StaticTransformBroadcaster`` (a real ROS install);
 2. a small publisher of ``tf2_msgs/TFMessage`` on ``/tf`` (keep last 100) or ``/tf_static`` (transient local),
-   the QoS tf2_ros uses, when only ``tf2_msgs`` is importable (e.g. built locally, docs/DESIGN.md §5);
-3. a broadcaster that drops transforms and logs once that TF is unavailable (PyPI wheels ship neither package);
+   the QoS tf2_ros uses, when only ``tf2_msgs`` is importable (the pip set-up builds it: tools/build_tf2_msgs.sh,
+   docs/DESIGN.md §5);
+3. a broadcaster that drops transforms and logs once that TF is unavailable (neither package: the PyPI wheels ship
+   none, and the set-up could not build tf2_msgs without cmake and a compiler);
    nodes keep publishing odometry and path, which carry the same poses.
 All three have ``sendTransform(transform_or_list)`` like tf2_ros.
 """
@@ -49,7 +51,8 @@ class UnavailableTransformBroadcaster:
         del transforms
         if not self._warned:
             self._logger.warning("TF is unavailable (neither tf2_ros nor tf2_msgs is importable): "
-                                 "transforms are not broadcast; use the odometry and path topics")
+                                 "transforms are not broadcast; use the odometry and path topics, or build "
+                                 "tf2_msgs with tools/build_tf2_msgs.sh VENV (needs cmake and g++)")
             self._warned = True
 
 

@@ -10,12 +10,12 @@ import torch
 from gausem_core.config import RENAMED, from_flat
 from gausem_core.data import SYNTHETIC_CLASSES
 from gausem_core.geometry import invert_pose, so3_log
-from gausem_core.slam.allocation import Decision
 from gausem_core.slam.loop import LoopDetector
 from gausem_core.slam.loop_closure import LoopConstraint, LoopRecord
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.persistence import SESSION_FILE, SessionError, _state_tree, _TensorWriter
 from gausem_core.slam.system import GauSemSLAM
+from scripted_policy import script_submaps
 
 SETTINGS = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 60,
             "submaps.boundary_iterations": 2, "submaps.memory_budget_mb": 0.0, "refinement.enabled": False}
@@ -24,19 +24,8 @@ SAVED, NEXT = 16, 4
 SEQUENCE_STRIDE = 2  # the conftest's `sequence`: every 2nd frame
 
 
-class ScriptedPolicy:
-    """Starts a new submap at the keyframes with the given timestamps."""
-
-    def __init__(self, timestamps):
-        self.timestamps = set(timestamps)
-
-    def should_start_new(self, extent, obs, cam_to_world) -> Decision:
-        return Decision(obs.timestamp in self.timestamps, math.nan, math.nan, "scripted")
-
-
 def scripted(slam, observations):
-    slam.back_end.allocation = ScriptedPolicy(observations[i].timestamp for i in SWITCH_AT)
-    return slam
+    return script_submaps(slam, (observations[i].timestamp for i in SWITCH_AT))
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from gausem_ros import bags  # noqa: E402
 from gausem_ros.player import bag_frames, open_source, parse_topics  # noqa: E402
 
 
-def _bag_with_labels_elsewhere(path, frames: int = 3) -> None:
+def bag_with_labels_elsewhere(path, frames: int = 3) -> None:
     camera = PinholeCamera(30.0, 30.0, 8.0, 6.0, 16, 12)
     messages = []
     for k in range(frames):
@@ -29,7 +29,7 @@ def _bag_with_labels_elsewhere(path, frames: int = 3) -> None:
 
 def test_a_labels_topic_of_another_name_is_replayed_when_mapped(tmp_path):
     path = tmp_path / "labels.bag"
-    _bag_with_labels_elsewhere(path)
+    bag_with_labels_elsewhere(path)
     unmapped = list(bag_frames(path))
     assert len(unmapped) == 3 and all("labels" not in dict(f.messages) for f in unmapped)
     mapped = list(open_source(str(path), topics=parse_topics(["labels=/camera/labels"])))

@@ -166,6 +166,7 @@ def test_gaps_in_the_publication_sequence_are_counted_as_lost():
 def test_tf_degrades_to_a_warning_once_without_tf2(monkeypatch):
     monkeypatch.setitem(sys.modules, "tf2_ros", None)
     monkeypatch.setitem(sys.modules, "tf2_msgs", None)
+    monkeypatch.setitem(sys.modules, "tf2_msgs.msg", None)  # where the set-up built it, it may be imported already
     node = FakeNode()
     broadcaster = tf.make_transform_broadcaster(node)
     transform = ma.matrix_to_transform(np.eye(4), ma.make_header(1.0, "map"), "camera")
@@ -309,6 +310,9 @@ def test_qos_profiles():
 
 
 # --- bags -------------------------------------------------------------------------------------------------------------
+TF_MESSAGE = bags._message_class(bags.TF_TYPE)  # tf2_msgs' TFMessage where importable (the set-up builds it)
+
+
 def _tum_messages(n=6):
     rng = np.random.default_rng(7)
     camera = PinholeCamera(525.0, 525.0, 320.0, 240.0, 16, 12)
@@ -321,16 +325,10 @@ def _tum_messages(n=6):
         info = ma.camera_to_camera_info(camera, ma.make_header(t, "rgb"))
         pose = np.eye(4)
         pose[:3, 3] = [i, 2.0 * i, -1.0]
-        tf_msg = bags.TFMessageStandIn([ma.matrix_to_transform(pose, ma.make_header(t, "/world"), "/kinect")])
+        tf_msg = TF_MESSAGE(transforms=[ma.matrix_to_transform(pose, ma.make_header(t, "/world"), "/kinect")])
         out += [(bags.TUM_TOPICS["rgb"], stamp, rgb), (bags.TUM_TOPICS["depth"], stamp + 2_000_000, depth),
                 (bags.TUM_TOPICS["camera_info"], stamp, info), (bags.TUM_TOPICS["tf"], stamp + 1, tf_msg)]
     return out
-
-
-def _equal(a, b) -> bool:
-    if isinstance(a, bags.TFMessageStandIn):
-        return isinstance(b, bags.TFMessageStandIn) and a.transforms == b.transforms
-    return a == b
 
 
 def _write(fmt, path, messages):
@@ -348,7 +346,7 @@ def test_bag_write_read_round_trip(tmp_path, fmt, name):
     back = list(bags.read_bag(path))
     expected = sorted(messages, key=lambda m: m[1])
     assert [(m.topic, m.stamp_ns) for m in back] == [(t, s) for t, s, _ in expected]
-    assert all(_equal(m.msg, e[2]) for m, e in zip(back, expected))
+    assert all(m.msg == e[2] for m, e in zip(back, expected))
     assert np.array_equal(ma.image_to_rgb(back[0].msg), ma.image_to_rgb(expected[0][2]))
     only_depth = list(bags.read_bag(path, topics=[bags.TUM_TOPICS["depth"]]))
     assert [m.topic for m in only_depth] == [bags.TUM_TOPICS["depth"]] * 6

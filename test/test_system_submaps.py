@@ -3,7 +3,6 @@
 Tracking is replaced by an oracle that returns the ground-truth pose (in the active submap's frame), so these tests
 exercise the submap machinery and do not depend on tracker accuracy; mapping runs for real, with tiny iteration counts.
 """
-import math
 import threading
 import time
 
@@ -13,13 +12,14 @@ import torch
 from gausem_core.config import from_flat
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.geometry import invert_pose, rigid_product, se3_exp
-from gausem_core.slam.allocation import Decision, make_allocation, partition_keyframes
+from gausem_core.slam.allocation import make_allocation, partition_keyframes
 from gausem_core.slam.depth_filter import filter_observation
 from gausem_core.slam.loop_graphs import PoseGraphUpdate
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.submap import StoredObservation
 from gausem_core.slam.system import GauSemSLAM
 from gausem_core.slam.tracker import TrackingResult
+from scripted_policy import script_submaps
 
 CHEAP = {"backend": "torch", "loop.enabled": False, "mapping.iterations": 2, "mapping.init_iterations": 5,
          "mapping.init_samples_fraction": 0.25, "submaps.boundary_iterations": 2,
@@ -41,16 +41,6 @@ class OracleTracker:
         return TrackingResult(invert_pose(self.slam.active.anchor) @ world, 0.0, 0)
 
 
-class ScriptedPolicy:
-    """Starts a new submap at the keyframes with the given timestamps."""
-
-    def __init__(self, timestamps):
-        self.timestamps = set(timestamps)
-
-    def should_start_new(self, extent, obs, cam_to_world) -> Decision:
-        return Decision(obs.timestamp in self.timestamps, math.nan, math.nan, "scripted")
-
-
 def run(sequence, count, overrides=None, switch_at=None, device="cpu", stored=None):
     """SLAM over the first ``count`` frames with oracle tracking (and a scripted policy switching at ``switch_at``);
     copies of what goes to the submap store are kept in ``stored`` when given."""
@@ -58,7 +48,7 @@ def run(sequence, count, overrides=None, switch_at=None, device="cpu", stored=No
     slam = GauSemSLAM(from_flat({**CHEAP, **(overrides or {})}), device, len(SYNTHETIC_CLASSES))
     slam.front_end.tracker = OracleTracker(slam, poses)
     if switch_at is not None:
-        slam.back_end.allocation = ScriptedPolicy(observations[i].timestamp for i in switch_at)
+        script_submaps(slam, (observations[i].timestamp for i in switch_at))
     if stored is not None:
         keep = slam.back_end.store.store
 

@@ -342,3 +342,39 @@ def test_a_segments_second_frame_gets_the_gap_measures(mode):
     truth = torch.tensor(np.linalg.inv(dataset[0].gt_pose) @ dataset[1].gt_pose, dtype=torch.float32)
     translation, _ = pose_error(tracked.cpu(), truth)
     assert (translation < 0.005) == (mode == "gaps"), translation
+
+
+def test_one_model_view_per_frame_recovers_the_motion_with_a_render_or_two(scene, monkeypatch):
+    """tracking.gauss_newton.model_views per_frame: the map rendered once at the start, its pyramid downsampled from
+    it, rendered again only when the estimate moved rerender_motion: frames 1 and 2 come out as well as with a
+    render per level and round, in far fewer renders."""
+    from gausem_core.slam import tracker as tracker_module
+
+    cfg, cloud, observations, truths, _ = scene
+    renders = {}
+    for views in ("per_level", "per_frame"):
+        calls = []
+        monkeypatch.setattr(tracker_module, "render", lambda *a, _render=render, _calls=calls, **k: (
+            _calls.append(1), _render(*a, **k))[1])
+        tracking = dataclasses.replace(cfg.tracking, gauss_newton=dataclasses.replace(cfg.tracking.gauss_newton,
+                                                                                      model_views=views))
+        for translation, rotation, motion in tracked_errors(Tracker(tracking, "torch"), cloud, observations, truths):
+            assert translation < 0.25 * motion and rotation < 0.5, (views, translation, rotation, motion)
+        renders[views] = len(calls)
+    assert renders["per_frame"] <= renders["per_level"] / 3, renders
+    with pytest.raises(ValueError, match="model_views"):
+        Tracker(dataclasses.replace(cfg.tracking, gauss_newton=dataclasses.replace(cfg.tracking.gauss_newton,
+                                                                                   model_views="sometimes")))
+
+
+def test_a_downsampled_model_view_averages_inside_the_silhouette():
+    from gausem_core.geometry import PinholeCamera
+    from gausem_core.slam.direct_alignment import ModelView
+
+    depth = torch.tensor([[1.0, 3.0, 2.0, 2.0], [1.0, 9.0, 2.0, 2.0]])
+    mask = torch.tensor([[True, True, True, False], [True, False, False, False]])
+    color = depth[..., None].repeat(1, 1, 3)
+    half = ModelView(color, color, depth, mask, PinholeCamera(4.0, 4.0, 2.0, 1.0, 4, 2)).downsampled()
+    assert half.depth.shape == (1, 2) and half.camera.width == 2 and half.camera.height == 1
+    assert half.mask.tolist() == [[True, False]]  # 3 of 4 pixels inside, then 1 of 4
+    assert float(half.depth[0, 0]) == pytest.approx(5 / 3) and float(half.color[0, 0, 1]) == pytest.approx(5 / 3)

@@ -1,7 +1,9 @@
-"""``python benchmarks/bench.py <target>``: benchmarks written as JSON plus Markdown tables, one module per target.
+"""``python benchmarks/bench.py <target>``: benchmarks written as JSON records (:mod:`gausem_bench.results`), one
+module per target.
 
 ``render`` (:mod:`gausem_bench.render`): renderer timing and memory. ``slam`` (:mod:`gausem_bench.slam`): the offline
-pipeline and the Open3D baselines over sequences x configurations. Each target module exposes
+pipeline and the Open3D baselines over sequences x configurations. ``report`` (:mod:`gausem_bench.report`): the
+results page from the records. Each target module exposes
 ``add_arguments(parser)`` and ``main(args)``; it is imported when the parser is built.
 """
 from __future__ import annotations
@@ -12,6 +14,7 @@ import importlib
 TARGETS = {
     "render": ("gausem_bench.render", "renderer forward/backward time and peak memory"),
     "slam": ("gausem_bench.slam", "the offline pipeline and baselines over a suite (the paper's tables)"),
+    "report": ("gausem_bench.report", "write docs/BENCHMARKS.md from the records in benchmarks/results"),
 }
 
 
@@ -25,7 +28,7 @@ def add_arguments(parser) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="benchmarks/bench.py", description="GauSem's benchmarks, written as JSON "
-                                     "and Markdown in benchmarks/results")
+                                     "records in benchmarks/results; `report` writes docs/BENCHMARKS.md from them")
     add_arguments(parser)
     args = parser.parse_args(argv)
     return int(importlib.import_module(args._bench_module).main(args) or 0)

@@ -20,10 +20,14 @@ from pathlib import Path
 
 import torch
 
+from gausem_bench import results
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, se3_exp
 from gausem_core.tools.run import parse_size
 
+WHAT = ("`python benchmarks/bench.py render`: forward and forward+backward of `render()` on a synthetic room, median of "
+        "the repeats, per back-end, Gaussian count and image size; peak extra memory: CUDA allocator peak on a GPU, "
+        "else the process's resident high-water mark.")
 ROOM_CAMERA = PinholeCamera(fx=262.5, fy=262.5, cx=160.0, cy=120.0, width=320, height=240)  # 1 px radius here
 
 
@@ -193,11 +197,8 @@ def main(args) -> int:
         raise ValueError(f"--repeats must be >= 1, got {args.repeats}")
     env = environment(torch.device(args.device))
     rows = run_render(args)
-    stem = f"render_{env['device']}"
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{stem}.json").write_text(json.dumps({**env, "target": "render", "results": rows}, indent=1) + "\n")
-    header = (f"# `python benchmarks/bench.py render` on {env['device_name']} ({env['threads']} threads), torch "
-              f"{env['torch']}, commit {env['git_commit'][:10]}\n\nMedian wall-clock times.\n\n")
-    (args.out / f"{stem}.md").write_text(header + render_table(rows) + "\n")
-    print(f"wrote {args.out / stem}.json and .md")
+    results.write_report(args.out / f"render_{env['device']}", title=f"Renderer on the {env['device'].upper()}",
+                         what=WHAT, markdown=render_table(rows),
+                         machine=f"{env['device_name']}, {os.cpu_count()} cores ({env['threads']} threads, torch "
+                                 f"{env['torch']})", data={**env, "target": "render", "results": rows})
     return 0

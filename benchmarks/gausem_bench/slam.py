@@ -2,8 +2,8 @@
 
 Sequences and configurations come from a suite file (:mod:`gausem_bench.suite`, default
 ``benchmarks/suites/paper.yaml``) or from ``--dataset``. Each run executes in a fresh process, so peak memory is per
-run. Results: ``<out>/slam_<name>.json`` (every run's record) and ``.md`` (the paper-shaped tables), rewritten after
-each run; each run's own outputs (trajectories, map, montage, metrics.json) go to
+run. Results: the record ``<out>/slam_<name>.json`` (:mod:`gausem_bench.results`: the paper-shaped tables, every
+run's record in its data), rewritten after each run; each run's own outputs (trajectories, map, montage, metrics.json) go to
 ``<work>/<name>/<sequence>/<configuration>/``.
 """
 from __future__ import annotations
@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from gausem_bench import results
 from gausem_bench.baselines import BASELINES
 from gausem_bench.suite import (Case, Configuration, Suite, SuiteError, load_suite, plan, sequence_from_dict)
 from gausem_bench.tables import markdown_report
@@ -147,19 +148,25 @@ def command_line(args: argparse.Namespace) -> str:
     return shlex.join(words)
 
 
-def write_results(out: Path, name: str, document: dict) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
+WHAT = ("`python benchmarks/bench.py slam`: GauSem's offline pipeline and the Open3D baselines over a suite's sequences "
+        "x configurations, each run in a fresh process. fps = processed frames / wall time of the frame loop (reading "
+        "frames included, evaluation and export excluded); peak CPU = maximum resident set of the run's own process; "
+        "peak GPU = CUDA allocator peak (GauSem).")
+
+
+def write_results(out: Path, name: str, document: dict) -> Path:
+    """The suite's results record ``slam_<name>.json``: the paper-shaped tables (the per-run provenance stays in the
+    record's data, with every run's parameters)."""
     env = document["environment"]
-    preamble = (f"Written by `{document['command']}` on {document['created']}: commit {env['git_commit'][:10]}, "
-                f"{env['device_name']} ({env['threads']} torch threads, OMP_NUM_THREADS={env['omp_num_threads']}), "
-                f"torch {env['torch']}, load average at start {env['load_average_at_start']}.\n\n"
-                "fps = processed frames / wall time of the frame loop (reading frames included, evaluation and export "
-                "excluded); peak CPU = maximum resident set of the run's own process; peak GPU = CUDA allocator peak "
-                "(GauSem). The Open3D baselines have no rendering, semantics or loop closure.")
-    json_path, md_path = out / f"slam_{name}.json", out / f"slam_{name}.md"
-    json_path.write_text(json.dumps(document, indent=1, allow_nan=False) + "\n")
-    md_path.write_text(markdown_report(document["runs"], f"`python benchmarks/bench.py slam`: {name}", preamble))
-    return json_path, md_path
+    report = markdown_report(document["runs"], f"`python benchmarks/bench.py slam`: {name}")
+    tables = [t for t in results.markdown_tables(report) if t["title"] != "Runs"]
+    machine = (f"{env['device_name']}, {os.cpu_count()} cores ({env['threads']} torch threads, "
+               f"OMP_NUM_THREADS={env['omp_num_threads']})")
+    data = {k: v for k, v in document.items() if k not in ("command", "created")}
+    return results.write(out / f"slam_{name}.json", results.record(
+        title=f"Suite {name}", what=WHAT, table=tables[0], tables=tables[1:],
+        notes=[line for line in report.splitlines() if line.startswith(("†", "‡"))], command=document["command"],
+        machine=machine, date=document["created"], data=data))
 
 
 def main(args: argparse.Namespace) -> int:
@@ -196,6 +203,5 @@ def _run_suite(args: argparse.Namespace) -> int:
         record = run_in_fresh_process(case)
         document["runs"].append(record)
         print(f"[{i}/{len(cases)}] {case.label}: {summary(record)}", flush=True)
-        json_path, md_path = write_results(args.out, suite.name, document)
-    print(f"wrote {json_path} and {md_path}")
+        write_results(args.out, suite.name, document)
     return 0 if all(r["status"] == "ok" for r in document["runs"]) else 1

@@ -170,6 +170,6 @@ def markdown_report(records: list[dict], title: str, preamble: str = "") -> str:
     notes = {UNREGISTERED: "depth not registered to colour and no colour calibration given: depth pixels used as "
                            "if aligned with colour pixels.",
              RESAMPLED: "depth not registered to colour: colour resampled into the depth camera with the suite's "
-                        "color_calibration (docs/BENCHMARKS.md)."}
+                        "color_calibration."}
     parts += [f"{mark} {text}" for mark, text in notes.items() if mark in grid.marks.values()]
     return "\n\n".join(parts) + "\n"

@@ -20,7 +20,7 @@ the submap volume V: |F n V| / (|F| + |V| - |F n V|). |F| is exact; |F n V| / |F
 scrambled-Sobol sample uniform in F's volume that lies in V, |V| the fraction of a Sobol sample of V's bounding box
 that does (deterministic: same inputs, same value). The alternative ``view`` is |F n V| / |F| alone, the fraction of
 the current view the submap already covers. Measured on ground-truth keyframe poses
-(``benchmarks/results/submap_allocation.md``), ``view`` is set by the previous keyframe: V always holds that frustum,
+(``benchmarks/results/submap_allocation.json``), ``view`` is set by the previous keyframe: V always holds that frustum,
 d_map frames back, which alone covers most of F (median 0.72 alone vs 0.73 for the whole V on the 360-frame synthetic
 loop), so r_olap < 0.5 needs a jump of about half a field of view between two keyframes: 6 of 71 keyframes of the loop
 (whose class KL exceeds 0.4 at 66), 3 submaps over the room. The IoU also falls as V grows beyond the view: below

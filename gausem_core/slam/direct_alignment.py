@@ -33,6 +33,21 @@ class ModelView:
     features: torch.Tensor | None = None
 
 
+    def downsampled(self) -> "ModelView":
+        """Half resolution: the pixels whose 2x2 block lies mostly inside the silhouette, their values averaged over
+        the block's pixels inside it."""
+        h, w = self.depth.shape[0] // 2 * 2, self.depth.shape[1] // 2 * 2
+        inside = self.mask[:h, :w, None].to(self.depth.dtype)
+        count = F.avg_pool2d(inside.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0)
+
+        def pool(t: torch.Tensor) -> torch.Tensor:  # (H, W, C) -> (H/2, W/2, C), over the silhouette
+            summed = F.avg_pool2d((t[:h, :w] * inside).permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0)
+            return summed / count.clamp_min(1e-6)
+
+        return ModelView(pool(self.color), pool(self.semantic), pool(self.depth[..., None])[..., 0], count[..., 0] > 0.6,
+                         self.camera.scaled(w // 2, h // 2), None if self.features is None else pool(self.features))
+
+
 @dataclass
 class ObservedImages:
     """One pyramid level of the observation, channels first for sampling: ``stack`` (C, H, W) is colour 3 + semantic

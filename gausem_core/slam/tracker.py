@@ -19,6 +19,7 @@ from gausem_core.slam.observation import Observation
 from gausem_core.slam.photometric import local_contrast
 
 METHODS = ("gauss_newton", "adam")
+MODEL_VIEWS = ("per_level", "per_frame")
 
 
 @dataclass
@@ -61,6 +62,16 @@ def model_view(cloud: GaussianCloud, cam_to_world: torch.Tensor, camera, cfg: Tr
     return ModelView(out.color, out.semantic, out.expected_depth, out.alpha > cfg.silhouette_threshold, camera)
 
 
+def motion_size(motion: torch.Tensor, view: ModelView) -> float:
+    """How far ``motion`` moves ``view``'s camera: translation over the view's median depth plus rotation in
+    radians (inf for an empty view)."""
+    depth = view.depth[view.mask]
+    if len(depth) == 0:
+        return math.inf
+    cos = ((motion[:3, :3].trace() - 1) / 2).clamp(-1, 1)
+    return float(motion[:3, 3].norm() / depth.median() + torch.arccos(cos))
+
+
 def inspect_pose(cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor, cfg: TrackingConfig,
                  backend: str) -> tuple[ModelView, torch.Tensor | None]:
     """The model view at ``cam_to_world`` and the Gauss-Newton Hessian (6, 6) of the full-resolution alignment
@@ -87,6 +98,9 @@ class Tracker:
     def __init__(self, cfg: TrackingConfig, backend: str = "auto"):
         if cfg.method not in METHODS:
             raise ValueError(f"tracking.method must be one of {METHODS}, got {cfg.method!r}")
+        if cfg.gauss_newton.model_views not in MODEL_VIEWS:
+            raise ValueError(f"tracking.gauss_newton.model_views must be one of {MODEL_VIEWS}, got "
+                             f"{cfg.gauss_newton.model_views!r}")
         check_gap_mode("tracking.gauss_newton.search", cfg.gauss_newton.search)
         self.cfg = cfg
         self.backend = backend
@@ -120,6 +134,9 @@ class Tracker:
         pyramid = ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera).pyramid(cfg.pyramid_levels,
                                                                                              cfg.coarsest_width)
         pyramid = [self._compared_colour(level) for level in pyramid]
+        if cfg.model_views == "per_frame":
+            with torch.no_grad():
+                return self._track_per_frame(cloud, [start.to(cloud.dtype) for start in starts], pyramid, weights)
         eye = torch.eye(4, dtype=cloud.dtype, device=cloud.means.device)
         with torch.no_grad():
             coarse = [self._align(cloud, start.to(cloud.dtype), pyramid[-1], weights, eye) for start in starts]
@@ -135,6 +152,44 @@ class Tracker:
         if initial_cost < cost:
             return TrackingResult(initial, initial_cost, iterations)
         return TrackingResult(project_to_se3(pose), cost, iterations)
+
+    def _track_per_frame(self, cloud: GaussianCloud, starts: list[torch.Tensor], pyramid: list[ObservedImages],
+                         weights: AlignmentWeights) -> TrackingResult:
+        """Coarse-to-fine Gauss-Newton, ``renders_per_level`` rounds of ``level_iterations`` per level, against one
+        model view rendered at the first start and downsampled for the coarser levels; the estimate is the view's
+        pose moved by ``motion`` (observed-from-model camera), and a round renders the view again at the estimate
+        only when that moved ``rerender_motion`` from it. The start whose first coarsest round costs least goes on;
+        it is kept if it explains the full-resolution frame better, all costs from the views already rendered."""
+        cfg = self.cfg.gauss_newton
+        base, views = starts[0], self._view_pyramid(cloud, starts[0], pyramid)
+        first = views[0]
+        begun = [invert_pose(start) @ base for start in starts]
+        coarse = [align_level(views[-1], pyramid[-1], motion, weights, cfg.level_iterations * cfg.renders_per_level)[0]
+                  for motion in begun]
+        best = min(range(len(starts)), key=lambda i: alignment_cost(views[-1], pyramid[-1], coarse[i], weights))
+        motion, renders = coarse[best], 1
+        rounds = [index for index in reversed(range(len(pyramid) - 1)) for _ in range(cfg.renders_per_level)]
+        for index in rounds:
+            if motion_size(motion, views[0]) > cfg.rerender_motion:
+                base, motion = base @ invert_pose(motion), torch.eye(4, dtype=motion.dtype, device=motion.device)
+                views, renders = self._view_pyramid(cloud, base, pyramid), renders + 1
+            motion, _ = align_level(views[index], pyramid[index], motion, weights, cfg.level_iterations)
+        cost = alignment_cost(views[0], pyramid[0], motion, weights)
+        initial_cost = alignment_cost(first, pyramid[0], begun[best], weights)
+        if initial_cost < cost:
+            return TrackingResult(starts[best], initial_cost, renders)
+        return TrackingResult(project_to_se3(base @ invert_pose(motion)), cost, renders)
+
+    def _view_pyramid(self, cloud: GaussianCloud, cam_to_world: torch.Tensor,
+                      pyramid: list[ObservedImages]) -> list[ModelView]:
+        """The model rendered once at ``cam_to_world`` at full resolution and halved to match ``pyramid``'s levels,
+        each level's colour compared as the observation's is."""
+        views = [model_view(cloud, cam_to_world, pyramid[0].camera, self.cfg, self.backend)]
+        while len(views) < len(pyramid):
+            views.append(views[-1].downsampled())
+        for view in views:
+            view.color = local_contrast(view.color, self.cfg.gauss_newton.color_normalisation_width, view.mask)
+        return views
 
     def _align(self, cloud: GaussianCloud, pose: torch.Tensor, level: ObservedImages, weights: AlignmentWeights,
                eye: torch.Tensor) -> torch.Tensor:

@@ -3,11 +3,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 import yaml
 
 from gausem_core.config import SlamConfig, from_flat, load_config
+from gausem_core.viewer import COLORINGS, MODES, RECORDING
 
 DATASET_HELP = "synthetic[:default|loop][_noisy], tum:PATH, scannet:PATH or replica:PATH"
 
@@ -50,6 +52,17 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="play the frames as a live camera at RATE times their recorded pace (1: as recorded), "
                              "processing the newest each time and skipping the rest; the mapping runs on its own "
                              "thread (worker.mode async) unless --set worker.mode=sync")
+    parser.add_argument("--viewer", nargs="?", const="record", choices=MODES,
+                        help="a live 3D view in Rerun (needs rerun-sdk): record (what --viewer alone means) saves "
+                             "the recording, web also serves it to a browser (and after the run, until Ctrl-C), "
+                             "native opens the desktop viewer")
+    parser.add_argument("--viewer-out", type=Path, metavar="FILE", help=f"the recording (default: OUT/{RECORDING})")
+    parser.add_argument("--viewer-colors", choices=COLORINGS, default="rgb",
+                        help="the map's points coloured by their RGB or their class (default: %(default)s)")
+    parser.add_argument("--viewer-map-every", type=int, default=10, metavar="N",
+                        help="log the map every N frames (default: %(default)s)")
+    parser.add_argument("--viewer-port", type=int, default=9090, metavar="PORT",
+                        help="the web viewer's port (default: %(default)s)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -101,8 +114,38 @@ def run_pipeline(args: argparse.Namespace, out: Path) -> dict:
     if pipeline.semantics.notice:
         print(pipeline.semantics.notice)
     slam = GauSemSLAM.load(args.resume, pipeline.device, cfg) if args.resume else None
-    result = pipeline.run(slam, args.save_session, getattr(args, "realtime", None))
-    return write_outputs(result, dataset, cfg, out, eval_every=args.eval_every, params_file=params)
+    viewer = open_viewer(args, out, pipeline) if args.viewer else None
+    try:
+        result = pipeline.run(slam, args.save_session, getattr(args, "realtime", None), viewer)
+        metrics = write_outputs(result, dataset, cfg, out, eval_every=args.eval_every, params_file=params)
+        if viewer is not None and viewer.url:
+            serve_until_interrupted(viewer, out)
+    finally:
+        if viewer is not None:
+            viewer.close()
+    return metrics
+
+
+def open_viewer(args: argparse.Namespace, out: Path, pipeline):
+    """The run's :class:`~gausem_core.viewer.Viewer` (``--viewer``), saying where to watch it."""
+    from gausem_core.viewer import Viewer
+
+    table = pipeline.semantics.class_table
+    viewer = Viewer(args.viewer_out or out / RECORDING, pipeline.palette, table.names if table else None,
+                    args.viewer, args.viewer_colors, args.viewer_map_every, web_port=args.viewer_port)
+    print(f"viewer: recording to {viewer.path} (reopen it with `rerun {viewer.path}`)"
+          + (f"; web viewer at {viewer.url}" if viewer.url else ""), flush=True)
+    return viewer
+
+
+def serve_until_interrupted(viewer, out: Path) -> None:
+    """``--viewer web``: go on serving the finished run until Ctrl-C."""
+    print(f"outputs written to {out}/; serving the web viewer at {viewer.url} until Ctrl-C", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
 
 
 def main(args: argparse.Namespace) -> int:

@@ -6,7 +6,12 @@ Subscribes (relative names, remappable): ``rgb/image`` (rgb8/bgr8/rgba8/bgra8), 
 ``gausem/loop_candidates`` and ``gausem/pose_graph`` (records, ``msg_adapters.records``).
 Publishes: ``gausem/odometry`` (nav_msgs/Odometry of the camera frame in ``map_frame``, stamped like the rgb image),
 ``gausem/path`` (latched, re-published after every frame with its pose appended; rebuilt from the trajectory after a
-loop correction), TF ``map_frame`` -> camera frame,
+loop correction), TF by REP-105 (:mod:`gausem_ros.frames`; needs tf2_ros or tf2_msgs, which the pip set-up builds):
+``map_frame`` -> ``odom_frame`` (the map's corrections) and ``odom_frame`` -> camera frame (the motion as tracked, never
+jumping), or with ``base_frame`` set ``odom_frame`` -> ``base_frame`` and on /tf_static ``base_frame`` -> camera frame
+(``camera_extrinsic``: x y z qx qy qz qw of the camera in the base frame), stamped like the frame and composing to its
+odometry; a correction between frames (a pose-graph answer, the global refinement) reaches TF with the next frame, as
+tf2 ignores a second transform at a stamp it holds,
 ``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/grid``
 (nav_msgs/OccupancyGrid, latched, rebuilt after new keyframes and map corrections at most once per
 ``grid_publish_period`` s: ``gausem_core.maps``, parameters ``grid.*``), ``gausem/keyframes``
@@ -86,6 +91,12 @@ Loop closure (with ``loop.enabled``), parameter ``loop_closure``:
   only while loop_detection and pose_graph subscribe; 0: no wait, answers are applied when they arrive), as
   ``gausem run`` applies them within the keyframe's call: a lock-step replay gives the same loops, but for the check
   of the last loop keyframes at the end of a run (``loop.check_at_end``, off by default), which only ``core`` makes.
+
+A live 3D view (``gausem_core.viewer``, needs rerun-sdk): ``viewer`` ``record`` logs every processed frame, the
+trajectory, the loops and the map to a Rerun recording (``viewer_path``, default ``output_dir/gausem.rrd``), ``web``
+also serves it to a browser on ``viewer_port`` (the URL is logged), ``native`` opens the desktop viewer; ``off`` (the
+default) imports nothing. ``viewer_colors``: the map's points by ``rgb`` or ``class``; ``viewer_map_every``: the map
+every this many frames.
 """
 from __future__ import annotations
 
@@ -120,6 +131,7 @@ from gausem_core.slam.observation import Observation
 from gausem_core.slam.persistence import SESSION_FILE
 from gausem_core.slam.system import GauSemSLAM
 
+from ..frames import Rep105Frames, inverse
 from ..qos import EVENT_QOS, INPUT_QOS_HINT, LATCHED_QOS, input_qos, subscribe_camera
 from ..sync import make_synchronizer
 from ..tf import make_transform_broadcaster
@@ -131,6 +143,9 @@ NODE_DEFAULTS = {
     "classes": "synthetic",      # class table of the labels: synthetic, nyu40, scannet20 or a class-table file
     "use_labels": True,          # False: no semantic/labels input (e.g. TUM), every pixel is one class
     "map_frame": "map",
+    "odom_frame": "odom",
+    "base_frame": "",            # "" = none: TF odom -> camera; else odom -> base_frame and static base_frame -> camera
+    "camera_extrinsic": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],  # with base_frame: the camera in it, x y z qx qy qz qw
     "camera_frame": "",          # "" = the rgb image's header frame_id
     "input_qos": "reliable",     # or "sensor_data" for a live camera driver
     "sync_queue_size": 10,
@@ -151,6 +166,11 @@ NODE_DEFAULTS = {
     # checkpoints go there (and gausem/load_map reads it)
     "checkpoint_keyframes": 5,   # with map_path: checkpoint the session every this many new keyframes (0: never) ...
     "checkpoint_period": 60.0,   # ... or this many seconds after the last checkpoint, at the next frame (0: never)
+    "viewer": "off",             # or record, web, native: a live 3D view (see the module docstring)
+    "viewer_path": "",           # the recording ("" = output_dir/gausem.rrd)
+    "viewer_colors": "rgb",      # the map's points coloured by rgb or class
+    "viewer_map_every": 10,      # frames between the map's updates in the view
+    "viewer_port": 9090,         # viewer web: the web page's port
 }
 LOOP_CLOSURE_MODES = ("core", "nodes")
 SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched",
@@ -194,6 +214,8 @@ class TrackingMappingNode(Node):
             raise ValueError(f"tracking_mapping: loop_closure must be one of {', '.join(LOOP_CLOSURE_MODES)}, got "
                              f"{p.loop_closure!r}")
         _check_size_limits(self.cfg, p.min_image_size, p.max_image_pixels)
+        self.tf_frames = Rep105Frames(p.map_frame, p.odom_frame, p.base_frame, p.camera_extrinsic)
+        self._static_camera_frame = ""  # the camera frame the static base_frame -> camera was sent for
         table = class_table(p.classes) if p.use_labels else None
         self.palette = table.palette if table is not None else UNLABELLED_PALETTE
         self._floor_class = floor_class_id(table.names if table is not None else None, self.cfg.grid.floor_class)
@@ -220,6 +242,7 @@ class TrackingMappingNode(Node):
                                    "run: one to two minutes)")
         self.frames_processed = 0  # the input accounting's (kept across load_map, cleared by gausem/reset)
         self._reset_state()
+        self._viewer = self._open_viewer()
 
         inputs = [("rgb", Image, "rgb/image"), ("depth", Image, "depth/image")] + (
             [("labels", Image, "semantic/labels")] if p.use_labels else [])
@@ -250,6 +273,7 @@ class TrackingMappingNode(Node):
         self._keyframe_pub = self.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
         self._submap_pub = self.create_publisher(PointCloud2, "gausem/submaps", EVENT_QOS)
         self._tf = make_transform_broadcaster(self)
+        self._tf_static = make_transform_broadcaster(self, static=True) if p.base_frame else None
         self.create_timer(p.map_publish_period, self._publish_map)
         if p.grid_publish_period < 0:
             raise ValueError(f"tracking_mapping: grid_publish_period must be >= 0 (0: no grid), got "
@@ -267,6 +291,23 @@ class TrackingMappingNode(Node):
                 raise ValueError(f"tracking_mapping: cannot load map_path {p.map_path!r}: {err}") from err
         elif p.map_path:
             self.get_logger().info(f"no session in map_path {p.map_path} yet: a new map, checkpointed there")
+
+    def _open_viewer(self):
+        """The ``viewer`` parameter's :class:`~gausem_core.viewer.Viewer`; None when off (nothing imported)."""
+        p = self.params
+        if p.viewer == "off":
+            return None
+        from gausem_core.viewer import RECORDING, Viewer
+
+        try:
+            viewer = Viewer(p.viewer_path or Path(p.output_dir) / RECORDING, self.palette,
+                            class_table(p.classes).names if p.use_labels else None, p.viewer, p.viewer_colors,
+                            p.viewer_map_every, web_port=p.viewer_port)
+        except (ImportError, ValueError) as err:
+            raise ValueError(f"tracking_mapping: viewer {p.viewer!r}: {err}") from err
+        self.get_logger().info(f"viewer: recording to {viewer.path}" + (f", web viewer at {viewer.url}"
+                                                                          if viewer.url else ""))
+        return viewer
 
     @property
     def loop_nodes(self) -> bool:
@@ -286,6 +327,7 @@ class TrackingMappingNode(Node):
         self._rays = KeyframeRays(self.cfg.grid.pixel_stride)  # the map's keyframe rays, for its grids
         self._grid_floor: str | None = None  # where the last grid's floor came from (logged when it changes)
         self._path: PathMsg | None = None  # the published path (None: rebuild it from the trajectory)
+        self._tf_last: int | None = None  # the last frame (id in this map) whose transforms were sent
         self.map_age = 0  # frames between the last frame and the newest keyframe of the map it was tracked against
         self._loop_answers.clear()
         self._new_map = True  # the next place signature is the map's first (loop_detection starts over)
@@ -481,6 +523,8 @@ class TrackingMappingNode(Node):
 
     def _track_and_publish(self, obs: Observation, image_frame: str, arrived: float, skipped: int) -> None:
         result = self.slam.process(obs, skipped)
+        if self._viewer is not None:
+            self._viewer.frame(obs, result, self.slam)
         self._last_stamp = obs.timestamp
         self.map_age = result.map_age
         self._publish_mapped(result.mapped)
@@ -510,13 +554,29 @@ class TrackingMappingNode(Node):
         self.frames_processed += 1
         self._in_progress = False
         self.latencies.append(time.monotonic() - arrived)
-        self._tf.sendTransform(ma.matrix_to_transform(pose, header, self._camera_frame))
+        self._send_transforms(result, pose, obs.timestamp)
         if self._corrected(result.events):
             self._path = None  # rebuilt from the corrected trajectory
         self._publish_path((obs.timestamp, pose))
         self._publish_events(result.events, header)
         self._map_dirty = True
         self.drops.publish()
+
+    def _send_transforms(self, result, pose: np.ndarray, stamp: float) -> None:
+        """A published frame's ``map -> odom -> camera`` (or ``-> base``), with the motion since the last frame sent
+        from both frames' map poses as they are now (none for a relocalised frame); the static ``base -> camera``
+        once per camera frame name."""
+        motion = None
+        if self._tf_last is not None and result.relocalisation is None:
+            with self.slam.lock:  # both poses after the same corrections (the mapping worker corrects in parallel)
+                last, current = (rigid_float64(self.slam.frames[i].cam_to_world).numpy()
+                                 for i in (self._tf_last, result.frame_id))
+            motion = inverse(last) @ current
+        self._tf_last = result.frame_id
+        self._tf.sendTransform(self.tf_frames.transforms(stamp, self._camera_frame, pose, motion))
+        if self._tf_static is not None and self._static_camera_frame != self._camera_frame:
+            self._static_camera_frame = self._camera_frame
+            self._tf_static.sendTransform(self.tf_frames.static_transforms(stamp, self._camera_frame))
 
     def _relocalised(self, reloc, stamp: float) -> bool:
         """Report a relocalisation against a loaded map; whether it placed the frame."""
@@ -764,6 +824,8 @@ class TrackingMappingNode(Node):
         if self.params.grid_publish_period:
             self._grid_dirty = True
             self._publish_grid()
+        if self._viewer is not None:
+            self._viewer.finish(self.slam)
 
     # --- services -----------------------------------------------------------------------------------------------
     def save_map(self, folder: str | Path) -> tuple[Path, Path]:
@@ -856,6 +918,8 @@ class TrackingMappingNode(Node):
             except OSError as err:
                 self.get_logger().error(f"save_on_exit: could not write to {self.params.output_dir}: {err}")
         self.slam.close()  # deletes spilled submaps now (a command-line process skips the interpreter's teardown)
+        if self._viewer is not None:
+            self._viewer.close()
         super().destroy_node()
 
 

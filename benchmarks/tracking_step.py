@@ -1,0 +1,126 @@
+"""What one tracking step costs on one CPU thread, and what it gets right: model views rendered per level against one
+model view per frame (``tracking.gauss_newton.model_views``), on a fixed map.
+
+The map is built at the ground-truth poses of every ``--keyframe-every``-th frame of the first ``--frames`` (the
+dataset's parameter file, mapping as the SLAM system maps a keyframe), then every frame is tracked against it from
+the constant-velocity prediction of its variant's own previous estimates (the previous estimate as the alternative
+start, as the system does). The variants take turns frame by frame, so that load on a shared machine falls on both.
+Per variant: median and 90th-percentile milliseconds of ``Tracker.track``, renders per frame, translation error
+(RMSE, mm) and rotation error (median, degrees) against the ground truth. From the repository root:
+
+    python benchmarks/tracking_step.py --dataset synthetic:loop
+    python benchmarks/tracking_step.py --dataset 'tum:$GAUSEM_SHARED_DATA/tum_fr1_rpy'
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from gausem_core.config import load_config
+from gausem_core.data import open_dataset
+from gausem_core.geometry import invert_pose, so3_log
+from gausem_core.pipeline import Pipeline
+from gausem_core.slam import tracker as tracker_module
+from gausem_core.slam.mapper import Keyframe, Mapper
+from gausem_core.slam.tracker import Tracker, constant_velocity
+from gausem_core.tools.run import default_params_file
+
+from gausem_bench import results
+from gausem_bench.data import expand
+VARIANTS = ("per_level", "per_frame")  # model_views[:rerender_motion]
+WHAT = ("Tracker.track against a fixed map built at the ground-truth poses of every 5th frame, each frame from the "
+        "constant-velocity prediction of its variant's own estimates (variants take turns frame by frame); "
+        "model views rendered at every pyramid level (per_level) or once per frame at full resolution and "
+        "downsampled, again only when the estimate moved rerender_motion (per_frame[:rerender_motion]).")
+
+
+def fixed_map(pipeline: Pipeline, poses: list[torch.Tensor], every: int):
+    """Gaussians mapped from every ``every``-th observation at its true pose, as the system maps keyframes."""
+    cfg = pipeline.cfg.mapping
+    mapper = Mapper(cfg, pipeline.cfg.backend, pipeline.cfg.seed)
+    keyframes = [Keyframe(0, pipeline.observation(pipeline.dataset[0]), poses[0], fixed=True)]
+    cloud, _ = mapper.optimise(mapper.strategy.initial(keyframes[0].obs, poses[0]), keyframes, cfg.init_iterations)
+    for i in range(every, len(poses), every):
+        keyframes.append(Keyframe(i, pipeline.observation(pipeline.dataset[i]), poses[i], fixed=True))
+        cloud = mapper.strategy.grow(cloud, keyframes[-1].obs, poses[i])
+        cloud, _ = mapper.optimise(cloud, keyframes[-cfg.window:], cfg.iterations)
+    return cloud
+
+
+def with_variant(cfg, name: str):
+    """``cfg`` (tracking.gauss_newton) with ``model_views[:rerender_motion]`` from ``name``."""
+    views, _, motion = name.partition(":")
+    return replace(cfg, model_views=views, **({"rerender_motion": float(motion)} if motion else {}))
+
+
+class RenderCounter:
+    """Counts the tracker module's renders."""
+
+    def __init__(self):
+        self.count, self._render = 0, tracker_module.render
+        tracker_module.render = self
+
+    def __call__(self, *args, **kwargs):
+        self.count += 1
+        return self._render(*args, **kwargs)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--dataset", default="synthetic:loop")
+    parser.add_argument("--size", default="160x120")
+    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--keyframe-every", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS),
+                        help="model_views values, each optionally with :rerender_motion (e.g. per_frame:0.01)")
+    parser.add_argument("--name", help="results file name (default: tracking_step_<dataset>_<size>)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    size = tuple(int(v) for v in args.size.split("x"))
+    dataset = open_dataset(expand(args.dataset), size=size, max_frames=args.frames)
+    cfg = load_config(default_params_file(args.dataset.split(":")[0]))
+    pipeline = Pipeline(dataset, cfg, progress=False)
+    origin = np.linalg.inv(dataset[0].gt_pose)
+    truths = [torch.tensor(origin @ dataset[i].gt_pose, dtype=torch.float32) for i in range(len(dataset))]
+    cloud = fixed_map(pipeline, truths, args.keyframe_every)
+    observations = [pipeline.observation(dataset[i]) for i in range(len(dataset))]
+    trackers = {v: Tracker(replace(cfg.tracking, gauss_newton=with_variant(cfg.tracking.gauss_newton, v)), cfg.backend)
+                for v in args.variants}
+    counter = RenderCounter()
+    estimates = {v: [truths[0]] for v in args.variants}
+    stats = {v: {"ms": [], "renders": [], "t_err": [], "r_err": []} for v in args.variants}
+    for i in range(1, len(dataset)):
+        for variant in args.variants if i % 2 else reversed(args.variants):
+            chain = estimates[variant]
+            start = constant_velocity(chain[-1], chain[-2] if len(chain) > 1 else None)
+            before, t0 = counter.count, time.perf_counter()
+            pose = trackers[variant].track(cloud, observations[i], start, [chain[-1]]).cam_to_world
+            stats[variant]["ms"].append(1000 * (time.perf_counter() - t0))
+            stats[variant]["renders"].append(counter.count - before)
+            delta = invert_pose(pose) @ truths[i]
+            stats[variant]["t_err"].append(1000 * float(delta[:3, 3].norm()))
+            stats[variant]["r_err"].append(float(np.degrees(float(so3_log(delta[:3, :3]).norm()))))
+            chain.append(pose)
+    columns = ["model views", "track ms median", "track ms p90", "renders per frame", "translation RMSE mm",
+               "rotation median deg"]
+    rows = [[v, round(float(np.median(s["ms"])), 1), round(float(np.percentile(s["ms"], 90)), 1),
+             round(float(np.mean(s["renders"])), 2), round(float(np.sqrt(np.mean(np.square(s["t_err"])))), 2),
+             round(float(np.median(s["r_err"])), 3)] for v, s in stats.items()]
+    ratios = ", ".join(f"{row[0]} {rows[0][1] / row[1]:.2f}x" for row in rows[1:])
+    name = args.name or f"tracking_step_{results.label(args.dataset).replace(' ', '_')}_{args.size}"
+    results.write(results.RESULTS / name, results.record(
+        title=f"Tracking step on a fixed map: {results.label(args.dataset)} at {args.size}",
+        what=WHAT + f" {len(dataset) - 1} frames, {args.threads} thread(s); median times, {rows[0][0]} over the "
+                    f"others: {ratios}.",
+        table=results.table(columns, rows)))
+    print(" | ".join(columns))
+    for row in rows:
+        print(" | ".join(str(v) for v in row))
+
+if __name__ == "__main__":
+    main()
