@@ -354,6 +354,23 @@ WORKER_MODES = ("sync", "async")
 
 
 @dataclass
+class GridConfig:
+    """The 2D occupancy grid for navigation (``maps.occupancy``): cells holding opaque Gaussians between two heights
+    above the floor are occupied, cells the keyframes' depth rays crossed between those heights are free."""
+
+    resolution: float = 0.05  # metres per cell
+    min_height: float = 0.1  # metres above the floor: the band whose Gaussians occupy a cell ...
+    max_height: float = 1.5  # ... up to this height (a robot's height)
+    occupied_opacity: float = 0.5  # Gaussians at least this opaque occupy their cell
+    floor_class: str = "floor"  # the class whose Gaussians give the floor plane; "" or absent from the class table:
+    # the dominant plane within max_tilt_deg of the cameras' up, below them
+    max_tilt_deg: float = 30.0  # the floor's normal within this angle of the keyframes' mean image-up direction
+    plane_threshold: float = 0.03  # metres: a Gaussian this close to a plane supports it
+    pixel_stride: int = 2  # free space: every this-many-th pixel of each keyframe's depth, both ways, casts a ray
+    max_range: float = 5.0  # metres: rays clear free space this far at most
+
+
+@dataclass
 class SlamConfig:
     backend: str = "auto"  # renderer back-end: "auto", "torch", "cpu" or "gsplat"
     device: str = "auto"  # "auto" (CUDA when available), "cpu" or "cuda"
@@ -369,6 +386,7 @@ class SlamConfig:
     depth_filter: DepthFilterConfig = field(default_factory=DepthFilterConfig)
     vignetting: VignettingConfig = field(default_factory=VignettingConfig)
     worker: WorkerConfig = field(default_factory=WorkerConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
 
 
 @dataclass

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import math
+import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -17,15 +18,19 @@ import torch
 
 from gausem_core.config import SlamConfig, flatten
 from gausem_core.eval.image import depth_l1, psnr, ssim
+from gausem_core.data.synthetic import Scene
 from gausem_core.eval.loops import DEFAULT_PROTOCOL, loop_scores
+from gausem_core.eval.occupancy import layout_cells, occupancy_scores
 from gausem_core.eval.semantic import confusion_matrix, mean_iou, pixel_accuracy
 from gausem_core.eval.trajectory import absolute_trajectory_error, associate_trajectories
 from gausem_core.geometry import invert_pose
 from gausem_core.io import metrics as metrics_io
 from gausem_core.io.montage import MontageRow, write_montage
 from gausem_core.io.plots import write_trajectory_plot
+from gausem_core.io.map_server import write_map_server
 from gausem_core.io.ply import write_gaussian_ply
 from gausem_core.io.trajectory import Trajectory, write_tum_trajectory
+from gausem_core.maps.slam_grid import floor_class_id, slam_grid
 from gausem_core.pipeline import Pipeline, RunResult, peak_rss_mb, percentile
 from gausem_core.render import render
 from gausem_core.slam.health import SIGNALS, STATUSES
@@ -226,6 +231,30 @@ def write_tracking_status(path: Path, result: RunResult) -> dict[str, int]:
     return {status: counts[status] for status in STATUSES}
 
 
+def write_grid(result: RunResult, pipeline: Pipeline, out: Path) -> dict:
+    """The final map's occupancy grid as ``grid.pgm`` and ``grid.yaml`` (map_server); its figures: where the floor came
+    from, the grid's size and cells per state, the seconds it took and, on a synthetic room seen from its first frame,
+    the scores against the room's layout (:mod:`gausem_core.eval.occupancy`). A map without a floor writes no grid
+    and says why."""
+    cfg, table = pipeline.cfg.grid, pipeline.semantics.class_table
+    start = time.perf_counter()
+    try:
+        grid = slam_grid(result.slam, cfg, pipeline.palette,
+                         floor_class_id(table.names if table is not None else None, cfg.floor_class))
+    except ValueError as err:
+        return {"error": str(err)}
+    seconds = time.perf_counter() - start
+    write_map_server(grid, out / "grid.yaml")
+    rows, cols = grid.cells.shape
+    metrics = {"floor": grid.floor.source, "floor_inliers": grid.floor.inliers, "resolution": grid.resolution,
+               "width": cols, "height": rows, "cells": grid.counts(), "seconds": seconds}
+    scene = getattr(pipeline.dataset, "scene", None)
+    if isinstance(scene, Scene) and result.first_frame == 0 and result.gt_poses[0] is not None:
+        truth, in_room = layout_cells(grid, scene, result.gt_poses[0], cfg.min_height, cfg.max_height)
+        metrics["layout"] = occupancy_scores(grid, truth, in_room)
+    return metrics
+
+
 LOOP_COLUMNS = ("query_frame", "match_frame", "query_submap", "match_submap", "intra", "accepted", "fitness", "inliers",
                 "seconds")
 
@@ -247,7 +276,8 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
     Files: ``trajectory.txt`` (TUM, estimate), ``loops.csv`` (every detected loop, with loop closure on),
     ``tracking_status.csv`` (per-frame tracking health, its counts per
     status in the metrics' ``tracking_status``), ``keyframes.txt`` (TUM, keyframe poses), ``map.ply`` (3DGS-style,
-    class ids unless the run has no labels and no segmenter), ``metrics.json``, ``montage.png`` and, with ground truth,
+    class ids unless the run has no labels and no segmenter), ``grid.pgm`` and ``grid.yaml`` (the occupancy grid as
+    map_server reads it, :func:`write_grid`), ``metrics.json``, ``montage.png`` and, with ground truth,
     ``trajectory_gt.txt`` and ``trajectory.png`` (SE(3)-aligned estimate vs ground truth).
     """
     out = Path(out)
@@ -272,6 +302,7 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
     has_classes = pipeline.semantics.class_table is not None
     write_gaussian_ply(out / "map.ply", cloud, cloud.class_ids(pipeline.palette) if has_classes else None)
 
+    metrics["grid"] = write_grid(result, pipeline, out)
     evaluation = evaluate_rendering(result, pipeline, eval_every)
     metrics["rendering"] = evaluation.metrics()
     if evaluation.rows:

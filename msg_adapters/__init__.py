@@ -8,6 +8,7 @@ from .loops import (information_to_sigmas, loop_candidate_to_record, loop_constr
                     place_signature_to_record, pose_graph_update_from_core, pose_graph_update_to_core,
                     record_to_loop_candidate, record_to_loop_constraint, record_to_place_signature,
                     sigmas_to_information)
+from .occupancy import grid_to_occupancy_grid, occupancy_grid_to_cells
 from .poses import (matrix_to_odometry, matrix_to_pose, matrix_to_pose_stamped, matrix_to_transform,
                     odometry_to_matrix, path_to_poses, pose_stamped_to_matrix, pose_to_matrix, poses_to_path,
                     transform_to_matrix)

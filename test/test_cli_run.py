@@ -27,7 +27,7 @@ def test_gausem_run_writes_the_outputs(tmp_path, capsys):
                  "--set", "device=cpu", "--out", str(out)]) == 0
     assert "ATE RMSE" in capsys.readouterr().out
     for name in ("trajectory.txt", "trajectory_gt.txt", "keyframes.txt", "map.ply", "metrics.json", "montage.png",
-                 "trajectory.png"):
+                 "trajectory.png", "grid.pgm", "grid.yaml"):
         assert (out / name).is_file(), name
     assert len(read_tum_trajectory(out / "trajectory.txt")) == 6
     assert len(read_tum_trajectory(out / "keyframes.txt")) >= 2  # frames 0 and 5 with mapping.every = 5
@@ -41,6 +41,7 @@ def test_gausem_run_writes_the_outputs(tmp_path, capsys):
     assert math.isfinite(metrics["ate"]["rmse"]) and metrics["ate"]["rmse"] < 0.2
     assert metrics["rendering"]["psnr"] > 10 and metrics["rendering"]["frames"] == 2
     assert 0 < metrics["rendering"]["miou"] <= 1
+    assert metrics["grid"]["floor"] == "class" and 0 < metrics["grid"]["layout"]["iou"] <= 1
 
 
 @pytest.mark.slow

@@ -463,3 +463,20 @@ def test_place_signatures_to_and_from_the_core_type():
                          (dataclasses.replace(record, bag_of_words=False), "needs values and no ORB rows")):
         with pytest.raises(ValueError, match=message):
             ma.record_to_place_signature(bad)
+
+
+# --- occupancy grid -------------------------------------------------------------------------------------------------
+def test_occupancy_grid_round_trips_with_its_tilted_origin():
+    from gausem_core.maps.floor import FloorPlane
+    from gausem_core.maps.occupancy import OccupancyGrid
+
+    cells = np.random.default_rng(0).choice(np.array([-1, 0, 100], np.int8), (7, 5))
+    floor = FloorPlane(np.array([0.0, -1.0, 0.0]), 1.2, 100, "class")  # an optical map frame: y is down
+    grid = OccupancyGrid(cells, 0.05, (-0.35, 0.2, 0.0), floor)
+    msg = ma.grid_to_occupancy_grid(grid, ma.make_header(3.5, "map"))
+    assert (msg.info.width, msg.info.height, msg.header.frame_id) == (5, 7, "map")
+    back, resolution, origin = ma.occupancy_grid_to_cells(msg)
+    assert np.array_equal(back, cells) and resolution == pytest.approx(0.05)
+    assert np.allclose(origin, grid.origin_pose, atol=1e-9)
+    assert np.allclose(origin[:3, 2], [0.0, -1.0, 0.0])  # the grid's z axis is the floor's up
+    assert origin[1, 3] == pytest.approx(1.2)  # on the floor, 1.2 m below the first camera

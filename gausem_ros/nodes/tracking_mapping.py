@@ -12,7 +12,9 @@ jumping), or with ``base_frame`` set ``odom_frame`` -> ``base_frame`` and on /tf
 (``camera_extrinsic``: x y z qx qy qz qw of the camera in the base frame), stamped like the frame and composing to its
 odometry; a correction between frames (a pose-graph answer, the global refinement) reaches TF with the next frame, as
 tf2 ignores a second transform at a stamp it holds,
-``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/keyframes``
+``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/grid``
+(nav_msgs/OccupancyGrid, latched, rebuilt after new keyframes and map corrections at most once per
+``grid_publish_period`` s: ``gausem_core.maps``, parameters ``grid.*``), ``gausem/keyframes``
 (KeyframeRecord, pose in its submap frame), ``gausem/submaps`` (SubmapEvent), with ``loop_closure: nodes``
 ``gausem/place_signatures`` (PlaceSignatureRecord of each loop keyframe), ``gausem/loop_constraints``
 (LoopConstraintRecord, every accepted loop) and ``gausem/diagnostics`` (dropped inputs by reason, frames processed,
@@ -105,7 +107,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from diagnostic_msgs.msg import DiagnosticStatus
-from nav_msgs.msg import Odometry, Path as PathMsg
+from nav_msgs.msg import OccupancyGrid, Odometry, Path as PathMsg
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
@@ -118,6 +120,7 @@ from gausem_core.data.undistortion import Undistortion
 from gausem_core.geometry import PinholeCamera, rigid_float64
 from gausem_core.io.ply import write_gaussian_ply
 from gausem_core.io.trajectory import Trajectory, write_tum_trajectory
+from gausem_core.maps.slam_grid import KeyframeRays, floor_class_id, slam_grid
 from gausem_core.runtime import resolve_device, smallest_image_side
 from gausem_core.semantics.source import UNLABELLED_PALETTE
 from gausem_core.slam.events import FrameEvents, KeyframeState, SubmapChange
@@ -150,6 +153,8 @@ NODE_DEFAULTS = {
     "sync_wait": 5.0,            # seconds an rgb/depth/labels message waits for its partners before it is dropped as
     # unmatched (0: until a later frame matches; a lock-step replay sends none, so its player would wait its timeout)
     "map_publish_period": 2.0,   # seconds
+    "grid_publish_period": 5.0,  # seconds between occupancy grids at most (one after new keyframes or a map
+    # correction; 0: no grid)
     "min_valid_depth": 0.05,     # fraction of pixels with a valid depth below which a frame is dropped
     "min_image_size": 16,        # pixels: frames with a smaller side are dropped (bad_size); >= the pyramids' need
     "max_image_pixels": 1280 * 720,  # larger frames are downscaled to at most this many pixels (aspect kept)
@@ -211,7 +216,9 @@ class TrackingMappingNode(Node):
         _check_size_limits(self.cfg, p.min_image_size, p.max_image_pixels)
         self.tf_frames = Rep105Frames(p.map_frame, p.odom_frame, p.base_frame, p.camera_extrinsic)
         self._static_camera_frame = ""  # the camera frame the static base_frame -> camera was sent for
-        self.palette = class_table(p.classes).palette if p.use_labels else UNLABELLED_PALETTE
+        table = class_table(p.classes) if p.use_labels else None
+        self.palette = table.palette if table is not None else UNLABELLED_PALETTE
+        self._floor_class = floor_class_id(table.names if table is not None else None, self.cfg.grid.floor_class)
         self.device = resolve_device(self.cfg.device)
         self.drops = DropReport(self, status=self._status, level=lambda: _HEALTH_LEVELS[self.health.status])
         self._handled_ns = -1  # stamp of the last synchronised frame handled (processed or dropped)
@@ -262,11 +269,17 @@ class TrackingMappingNode(Node):
         self._odometry_pub = self.create_publisher(Odometry, "gausem/odometry", EVENT_QOS)
         self._path_pub = self.create_publisher(PathMsg, "gausem/path", LATCHED_QOS)
         self._map_pub = self.create_publisher(PointCloud2, "gausem/map", LATCHED_QOS)
+        self._grid_pub = self.create_publisher(OccupancyGrid, "gausem/grid", LATCHED_QOS)
         self._keyframe_pub = self.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
         self._submap_pub = self.create_publisher(PointCloud2, "gausem/submaps", EVENT_QOS)
         self._tf = make_transform_broadcaster(self)
         self._tf_static = make_transform_broadcaster(self, static=True) if p.base_frame else None
         self.create_timer(p.map_publish_period, self._publish_map)
+        if p.grid_publish_period < 0:
+            raise ValueError(f"tracking_mapping: grid_publish_period must be >= 0 (0: no grid), got "
+                             f"{p.grid_publish_period}")
+        if p.grid_publish_period:
+            self.create_timer(p.grid_publish_period, self._publish_grid)
         self.create_service(Trigger, "gausem/save_map", self._on_save_map)
         self.create_service(Trigger, "gausem/reset", self._on_reset)
         self.create_service(Trigger, "gausem/load_map", self._on_load_map)
@@ -310,6 +323,9 @@ class TrackingMappingNode(Node):
         self._last_stamp = -math.inf
         self._camera_frame = self.params.camera_frame or "camera"
         self._map_dirty = False
+        self._grid_dirty = False  # keyframes or corrections since the last grid
+        self._rays = KeyframeRays(self.cfg.grid.pixel_stride)  # the map's keyframe rays, for its grids
+        self._grid_floor: str | None = None  # where the last grid's floor came from (logged when it changes)
         self._path: PathMsg | None = None  # the published path (None: rebuild it from the trajectory)
         self._tf_last: int | None = None  # the last frame (id in this map) whose transforms were sent
         self.map_age = 0  # frames between the last frame and the newest keyframe of the map it was tracked against
@@ -655,6 +671,7 @@ class TrackingMappingNode(Node):
         self._publish_submaps(events.submaps, header)
         if events.keyframe is not None:
             self._publish_keyframes([events.keyframe], header)
+            self._grid_dirty = True
         if events.place is not None:
             self._publish_place(events.place, events.keyframe.timestamp)
         if events.loop is not None and events.loop.constraint is not None:
@@ -700,6 +717,24 @@ class TrackingMappingNode(Node):
         stamp = max(self._last_stamp, 0.0)
         self._map_pub.publish(ma.cloud_to_pointcloud2(self.slam.global_cloud(),
                                                       ma.make_header(stamp, self.params.map_frame), self.palette))
+
+    def _publish_grid(self) -> None:
+        """The occupancy grid, when keyframes or a correction changed the map since the last one (none while the map
+        shows no floor: said once)."""
+        if not self._grid_dirty:
+            return
+        self._grid_dirty = False
+        try:
+            grid = slam_grid(self.slam, self.cfg.grid, self.palette, self._floor_class, self._rays)
+        except ValueError as err:
+            self.get_logger().warning(f"no occupancy grid yet: {err}", once=True)
+            return
+        if grid.floor.source != self._grid_floor:
+            self._grid_floor = grid.floor.source
+            where = "the floor class" if grid.floor.source == "class" else "the lowest level plane"
+            self.get_logger().info(f"occupancy grid: the floor from {where} ({grid.floor.inliers} Gaussians)")
+        header = ma.make_header(max(self._last_stamp, 0.0), self.params.map_frame)
+        self._grid_pub.publish(ma.grid_to_occupancy_grid(grid, header))
 
     # --- loop closure events ------------------------------------------------------------------------------------
     @survives_errors(frame=False)
@@ -764,7 +799,7 @@ class TrackingMappingNode(Node):
         if correction:
             self._path = None
             self._publish_path()
-            self._map_dirty = True
+            self._map_dirty = self._grid_dirty = True
         self.pose_graph_updates.append(update)  # applied
 
     def finish(self) -> None:
@@ -786,6 +821,9 @@ class TrackingMappingNode(Node):
         self._publish_path()
         self._map_dirty = True
         self._publish_map()  # now: a caller that finishes may stop spinning (the map timer) right after
+        if self.params.grid_publish_period:
+            self._grid_dirty = True
+            self._publish_grid()
         if self._viewer is not None:
             self._viewer.finish(self.slam)
 
@@ -831,7 +869,7 @@ class TrackingMappingNode(Node):
             self._loaded_places = [(p, stamps[p.keyframe_id]) for p in slam.loop_closure.stored_places()]
             self._send_loaded_places()
         self._publish_path()
-        self._map_dirty = True
+        self._map_dirty = self._grid_dirty = True
         self.get_logger().info(f"loaded the map in {folder}: {len(slam.submaps)} submaps, {len(slam.trajectory())} "
                                "frames; "
                                "the next frames are relocalised against it")
