@@ -71,7 +71,7 @@ def test_outputs_of_an_exact_run(tmp_path):
 
     names = {p.name for p in tmp_path.iterdir()}
     assert names == {"trajectory.txt", "trajectory_gt.txt", "keyframes.txt", "map.ply", "metrics.json",
-                     "tracking_status.csv", "loops.csv", "montage.png", "trajectory.png"}
+                     "tracking_status.csv", "loops.csv", "montage.png", "trajectory.png", "grid.pgm", "grid.yaml"}
     loops = (tmp_path / "loops.csv").read_text().splitlines()
     assert loops[0].split(",")[:6] == ["query_frame", "match_frame", "query_submap", "match_submap", "intra",
                                        "accepted"] and len(loops) == 1 + metrics["loops"]["detected"]
@@ -124,7 +124,7 @@ def test_run_without_labels_or_ground_truth(tmp_path):
     metrics = write_outputs(result, dataset, config(), tmp_path, eval_every=1)
     names = {p.name for p in tmp_path.iterdir()}
     assert names == {"trajectory.txt", "keyframes.txt", "map.ply", "metrics.json", "montage.png",
-                     "tracking_status.csv", "loops.csv"}
+                     "tracking_status.csv", "loops.csv", "grid.pgm", "grid.yaml"}
     assert "ate" not in metrics and math.isnan(metrics["rendering"]["miou"])
     assert metrics["rendering"]["frames"] == 4
     assert read_gaussian_ply(tmp_path / "map.ply")[1] is None  # no class table: no class ids
