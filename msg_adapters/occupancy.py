@@ -1,10 +1,10 @@
 """An occupancy grid (:class:`~gausem_core.maps.occupancy.OccupancyGrid`) <-> nav_msgs/OccupancyGrid (the
 ``gausem/grid`` topic).
 
-``info.origin`` is the full pose of cell (0, 0)'s corner in ``header.frame_id`` (the map frame): the grid lies in the
-floor plane, which is not the map frame's xy plane (the map frame is the first camera's), so the pose is tilted;
-RViz draws the grid on the floor. ``data`` is filled from bytes (an int8 array), not a list: large grids convert in
-microseconds.
+``info.origin`` is the pose of cell (0, 0)'s corner in ``header.frame_id``: in the floor frame (``floor_frame``) it is
+level (x, y, yaw), as Nav2 reads it; in the map frame it is tilted, since the grid lies in the floor plane, which is
+not the map frame's xy plane (the map frame is the first camera's); RViz draws either on the floor. ``data`` is filled
+from bytes (an int8 array), not a list: large grids convert in microseconds.
 """
 from __future__ import annotations
 
@@ -19,10 +19,11 @@ from gausem_core.maps.occupancy import OccupancyGrid
 from .poses import matrix_to_pose, pose_to_matrix
 
 
-def grid_to_occupancy_grid(grid: OccupancyGrid, header: Header) -> OccupancyGridMsg:
+def grid_to_occupancy_grid(grid: OccupancyGrid, header: Header, floor_frame: bool = False) -> OccupancyGridMsg:
+    """The message of ``grid`` in ``header``'s frame: the floor frame (``floor_frame``) or the map frame."""
     rows, cols = grid.cells.shape
     info = MapMetaData(map_load_time=header.stamp, resolution=float(grid.resolution), width=cols, height=rows,
-                       origin=matrix_to_pose(grid.origin_pose))
+                       origin=matrix_to_pose(grid.local_pose if floor_frame else grid.origin_pose))
     msg = OccupancyGridMsg(header=header, info=info)
     msg.data = array.array("b", np.ascontiguousarray(grid.cells, np.int8).tobytes())
     return msg

@@ -47,14 +47,19 @@ class OccupancyGrid:
     floor: FloorPlane
 
     @property
-    def origin_pose(self) -> np.ndarray:
-        """Map-from-grid (4, 4): cell (0, 0)'s corner and the grid's axes in the map frame
-        (nav_msgs/MapMetaData's ``origin``)."""
+    def local_pose(self) -> np.ndarray:
+        """Floor-from-grid (4, 4): cell (0, 0)'s corner and the grid's axes in the floor frame (level: x, y, yaw)."""
         x, y, yaw = self.origin
         local = np.eye(4)
         local[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
         local[:2, 3] = x, y
-        return self.floor.pose @ local
+        return local
+
+    @property
+    def origin_pose(self) -> np.ndarray:
+        """Map-from-grid (4, 4): cell (0, 0)'s corner and the grid's axes in the map frame (tilted: the map frame is
+        the first camera's)."""
+        return self.floor.pose @ self.local_pose
 
     def counts(self) -> dict[str, int]:
         """Cells per state."""

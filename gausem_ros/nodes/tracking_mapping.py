@@ -14,7 +14,8 @@ odometry; a correction between frames (a pose-graph answer, the global refinemen
 tf2 ignores a second transform at a stamp it holds,
 ``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period`` s), ``gausem/grid``
 (nav_msgs/OccupancyGrid, latched, rebuilt after new keyframes and map corrections at most once per
-``grid_publish_period`` s: ``gausem_core.maps``, parameters ``grid.*``), ``gausem/keyframes``
+``grid_publish_period`` s: ``gausem_core.maps``, parameters ``grid.*``; in ``grid_frame``, level on the estimated floor,
+``map_frame -> grid_frame`` on /tf_static), ``gausem/keyframes``
 (KeyframeRecord, pose in its submap frame), ``gausem/submaps`` (SubmapEvent), with ``loop_closure: nodes``
 ``gausem/place_signatures`` (PlaceSignatureRecord of each loop keyframe), ``gausem/loop_constraints``
 (LoopConstraintRecord, every accepted loop) and ``gausem/diagnostics`` (dropped inputs by reason, frames processed,
@@ -153,6 +154,8 @@ NODE_DEFAULTS = {
     "sync_wait": 5.0,            # seconds an rgb/depth/labels message waits for its partners before it is dropped as
     # unmatched (0: until a later frame matches; a lock-step replay sends none, so its player would wait its timeout)
     "map_publish_period": 2.0,   # seconds
+    "grid_frame": "floor",       # the grid's frame: level, on the estimated floor, map -> grid_frame on /tf_static
+    # (re-sent when the floor estimate moves); "": the map frame, the grid's origin then tilted in it
     "grid_publish_period": 5.0,  # seconds between occupancy grids at most (one after new keyframes or a map
     # correction; 0: no grid)
     "min_valid_depth": 0.05,     # fraction of pixels with a valid depth below which a frame is dropped
@@ -215,6 +218,9 @@ class TrackingMappingNode(Node):
                              f"{p.loop_closure!r}")
         _check_size_limits(self.cfg, p.min_image_size, p.max_image_pixels)
         self.tf_frames = Rep105Frames(p.map_frame, p.odom_frame, p.base_frame, p.camera_extrinsic)
+        if p.grid_frame and p.grid_frame in (p.map_frame, p.odom_frame, p.base_frame):
+            raise ValueError(f"tracking_mapping: grid_frame {p.grid_frame!r} must differ from map_frame, odom_frame "
+                             "and base_frame (\"\" puts the grid in map_frame)")
         self._static_camera_frame = ""  # the camera frame the static base_frame -> camera was sent for
         table = class_table(p.classes) if p.use_labels else None
         self.palette = table.palette if table is not None else UNLABELLED_PALETTE
@@ -273,7 +279,7 @@ class TrackingMappingNode(Node):
         self._keyframe_pub = self.create_publisher(PointCloud2, "gausem/keyframes", EVENT_QOS)
         self._submap_pub = self.create_publisher(PointCloud2, "gausem/submaps", EVENT_QOS)
         self._tf = make_transform_broadcaster(self)
-        self._tf_static = make_transform_broadcaster(self, static=True) if p.base_frame else None
+        self._tf_static = make_transform_broadcaster(self, static=True) if p.base_frame or p.grid_frame else None
         self.create_timer(p.map_publish_period, self._publish_map)
         if p.grid_publish_period < 0:
             raise ValueError(f"tracking_mapping: grid_publish_period must be >= 0 (0: no grid), got "
@@ -326,6 +332,7 @@ class TrackingMappingNode(Node):
         self._grid_dirty = False  # keyframes or corrections since the last grid
         self._rays = KeyframeRays(self.cfg.grid.pixel_stride)  # the map's keyframe rays, for its grids
         self._grid_floor: str | None = None  # where the last grid's floor came from (logged when it changes)
+        self._grid_floor_pose: np.ndarray | None = None  # map-from-floor last sent on /tf_static (grid_frame)
         self._path: PathMsg | None = None  # the published path (None: rebuild it from the trajectory)
         self._tf_last: int | None = None  # the last frame (id in this map) whose transforms were sent
         self.map_age = 0  # frames between the last frame and the newest keyframe of the map it was tracked against
@@ -733,8 +740,13 @@ class TrackingMappingNode(Node):
             self._grid_floor = grid.floor.source
             where = "the floor class" if grid.floor.source == "class" else "the lowest level plane"
             self.get_logger().info(f"occupancy grid: the floor from {where} ({grid.floor.inliers} Gaussians)")
-        header = ma.make_header(max(self._last_stamp, 0.0), self.params.map_frame)
-        self._grid_pub.publish(ma.grid_to_occupancy_grid(grid, header))
+        stamp, frame = max(self._last_stamp, 0.0), self.params.grid_frame
+        if frame and (self._grid_floor_pose is None or not np.array_equal(self._grid_floor_pose, grid.floor.pose)):
+            self._grid_floor_pose = grid.floor.pose
+            self._tf_static.sendTransform(ma.matrix_to_transform(
+                grid.floor.pose, ma.make_header(stamp, self.params.map_frame), frame))
+        header = ma.make_header(stamp, frame or self.params.map_frame)
+        self._grid_pub.publish(ma.grid_to_occupancy_grid(grid, header, floor_frame=bool(frame)))
 
     # --- loop closure events ------------------------------------------------------------------------------------
     @survives_errors(frame=False)
