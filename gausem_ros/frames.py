@@ -23,15 +23,12 @@ import numpy as np
 import torch
 
 import msg_adapters as ma
-from gausem_core.geometry import quaternion_to_matrix
+from gausem_core.geometry import invert_pose, quaternion_to_matrix
 
 
 def inverse(pose: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform."""
-    out = np.eye(4)
-    out[:3, :3] = pose[:3, :3].T
-    out[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
-    return out
+    """Inverse of a rigid 4x4 transform (the core's :func:`~gausem_core.geometry.invert_pose` on an array)."""
+    return invert_pose(torch.from_numpy(np.asarray(pose, dtype=np.float64))).numpy()
 
 
 def extrinsic_matrix(values: Sequence[float]) -> np.ndarray:
