@@ -178,6 +178,12 @@ class NewestFrameQueue:
         """Frames waiting to be processed (not the one in progress)."""
         return int(self._pending is not None)
 
+    @property
+    def idle(self) -> bool:
+        """No frame pending and none in progress."""
+        with self._lock:
+            return self._pending is None and not self._running
+
     def put(self, item) -> None:
         with self._lock:
             old, self._pending = self._pending, (item, time.monotonic())
