@@ -8,6 +8,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_forward", &gausem::rasterize_forward,
         "composite screen Gaussians: (image, offsets, slot, alpha)", release());
   m.def("rasterize_backward", &gausem::rasterize_backward, "gradients of rasterize_forward's image", release());
+  m.def("rasterize_image", &gausem::rasterize_image, "rasterize_forward's image alone (no gradients)", release());
   m.def("depth_order", &gausem::depth_order, "indices of the kept Gaussians front to back (stable radix sort)",
         release());
   m.def("alignment_normal_equations", &gausem::alignment_normal_equations,

@@ -17,6 +17,9 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor u, torch::Tensor v, 
                                               torch::Tensor inv_var_y, torch::Tensor opacity, torch::Tensor features,
                                               torch::Tensor order, torch::Tensor offsets, torch::Tensor slots,
                                               torch::Tensor alpha, torch::Tensor grad_image, int64_t width);
+torch::Tensor rasterize_image(torch::Tensor u, torch::Tensor v, torch::Tensor inv_var_x, torch::Tensor inv_var_y,
+                              torch::Tensor opacity, torch::Tensor features, torch::Tensor order, torch::Tensor x0,
+                              torch::Tensor x1, torch::Tensor y0, torch::Tensor y1, int64_t width, int64_t height);
 torch::Tensor depth_order(torch::Tensor depth, torch::Tensor keep);
 
 // alignment.cpp: Gauss-Newton normal equations of direct alignment (gausem_core/slam/direct_alignment.py)

@@ -4,6 +4,7 @@
 // forward: the Gaussians are bucketed once by chunk of rows; per chunk, its Gaussians, front to back, emit their
 // (pixel, alpha >= 1/255) pairs; a counting sort by pixel keeps them front to back within each pixel (no comparison
 // sort); each pixel is then composited in one pass.
+// image: the forward's image alone, composited as the Gaussians are visited (no pairs kept, no sort).
 // backward: per pixel, a forward walk for the transmittances and a backward walk for the suffix sums
 // S_i = sum_{k>i} w_k h_k give dL/dalpha_i = T_i h_i - S_i / (1 - alpha_i), as in composite.py. Per-thread gradient
 // buffers avoid atomics. Transmittances and suffix sums are accumulated in double. Pairs name a Gaussian by its slot
@@ -125,6 +126,66 @@ void composite_chunk(const RowChunk<scalar_t>& chunk, const scalar_t* feat, cons
   }
 }
 
+// The image of rows [row0, row1) without keeping pairs (no gradients wanted): the Gaussians, front to back, are
+// composited straight into per-pixel sums and transmittances, so each pixel sums the same terms in the same order as
+// fill_chunk + composite_chunk do.
+template <typename scalar_t>
+void composite_rows(int64_t row0, int64_t row1, const Screen& s, const std::vector<int32_t>& members,
+                    const int64_t* ord, const int64_t* x0, const int64_t* x1, const int64_t* y0, const int64_t* y1,
+                    int64_t width, std::vector<double>& acc, std::vector<double>& transmittance, scalar_t* out) {
+  const auto* u = s.u.data_ptr<scalar_t>();
+  const auto* v = s.v.data_ptr<scalar_t>();
+  const auto* ivx = s.inv_var_x.data_ptr<scalar_t>();
+  const auto* ivy = s.inv_var_y.data_ptr<scalar_t>();
+  const auto* op = s.opacity.data_ptr<scalar_t>();
+  const auto* feat = s.features.data_ptr<scalar_t>();
+  const int64_t channels = s.features.size(1), n_pixels = (row1 - row0) * width;
+  const scalar_t alpha_min = static_cast<scalar_t>(kAlphaMin);
+  acc.assign(n_pixels * (channels + 1), 0.0);
+  transmittance.assign(n_pixels, 1.0);
+  for (const int32_t k : members) {
+    const int64_t g = ord[k];
+    const int64_t ya = std::max(y0[g], row0), yb = std::min(y1[g], row1 - 1);
+    const scalar_t gu = u[g], gv = v[g], ax = ivx[g], ay = ivy[g], o = op[g];
+    const scalar_t* f = feat + g * channels;
+    for (int64_t y = ya; y <= yb; ++y) {
+      const scalar_t dy = static_cast<scalar_t>(y) + scalar_t(0.5) - gv;
+      const scalar_t qy = dy * dy * ay;
+      const int64_t row_start = (y - row0) * width;
+      for (int64_t x = x0[g]; x <= x1[g]; ++x) {
+        const scalar_t dx = static_cast<scalar_t>(x) + scalar_t(0.5) - gu;
+        const scalar_t alpha = o * std::exp(scalar_t(-0.5) * (dx * dx * ax + qy));
+        if (alpha < alpha_min) continue;
+        const int64_t p = row_start + x;
+        const double a = std::min(static_cast<double>(alpha), kAlphaMax), w = a * transmittance[p];
+        double* sum = acc.data() + p * (channels + 1);
+        for (int64_t c = 0; c < channels; ++c) sum[c] += w * f[c];
+        sum[channels] += w;
+        transmittance[p] *= 1.0 - a;
+      }
+    }
+  }
+  scalar_t* o = out + row0 * width * (channels + 1);
+  for (int64_t i = 0; i < n_pixels * (channels + 1); ++i) o[i] = static_cast<scalar_t>(acc[i]);
+}
+
+// The Gaussians' slots in the depth order bucketed by the chunk of kRowsPerChunk rows their boxes meet.
+std::vector<std::vector<int32_t>> chunk_members(const torch::Tensor& order, const torch::Tensor& y0,
+                                                const torch::Tensor& y1, int64_t height) {
+  std::vector<std::vector<int32_t>> members((height + kRowsPerChunk - 1) / kRowsPerChunk);
+  const auto* ord = order.data_ptr<int64_t>();
+  const auto* top = y0.data_ptr<int64_t>();
+  const auto* bottom = y1.data_ptr<int64_t>();
+  for (int64_t k = 0; k < order.size(0); ++k) {
+    const int64_t g = ord[k];
+    TORCH_CHECK(top[g] > bottom[g] || (top[g] >= 0 && bottom[g] < height), "box rows outside the image");
+    for (int64_t c = top[g] / kRowsPerChunk; c <= bottom[g] / kRowsPerChunk; ++c) {
+      members[c].push_back(static_cast<int32_t>(k));
+    }
+  }
+  return members;
+}
+
 // Indices of the Gaussians with keep[i], front to back, stable in the index: an LSD radix sort (8-bit digits) of the
 // depths' bit patterns, which order like positive floats. Torch's CPU sort is a comparison sort at these sizes.
 template <typename scalar_t>
@@ -183,17 +244,8 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, t
   torch::Tensor slot_out, alpha_out;
   AT_DISPATCH_FLOATING_TYPES(s.u.scalar_type(), "rasterize_forward", [&] {
     std::vector<RowChunk<scalar_t>> chunks(n_chunks);
-    std::vector<std::vector<int32_t>> members(n_chunks);  // slots of the Gaussians whose box meets each chunk
+    const auto members = chunk_members(order, y0, y1, height);
     const auto* ord = order.data_ptr<int64_t>();
-    const auto* top = y0.data_ptr<int64_t>();
-    const auto* bottom = y1.data_ptr<int64_t>();
-    for (int64_t k = 0; k < order.size(0); ++k) {
-      const int64_t g = ord[k];
-      TORCH_CHECK(top[g] > bottom[g] || (top[g] >= 0 && bottom[g] < height), "box rows outside the image");
-      for (int64_t c = top[g] / kRowsPerChunk; c <= bottom[g] / kRowsPerChunk; ++c) {
-        members[c].push_back(static_cast<int32_t>(k));
-      }
-    }
     at::parallel_for(0, n_chunks, 1, [&](int64_t begin, int64_t end) {
       std::vector<int32_t> gen_pixel, gen_slot;
       std::vector<scalar_t> gen_alpha;
@@ -223,6 +275,30 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor u, torch::Tensor v, t
     off[n_pixels] = at;
   });
   return {image, offsets, slot_out, alpha_out};
+}
+
+// The image (n_pixels, C + 1) of rasterize_forward, without the pairs a backward needs.
+torch::Tensor rasterize_image(torch::Tensor u, torch::Tensor v, torch::Tensor inv_var_x, torch::Tensor inv_var_y,
+                              torch::Tensor opacity, torch::Tensor features, torch::Tensor order, torch::Tensor x0,
+                              torch::Tensor x1, torch::Tensor y0, torch::Tensor y1, int64_t width, int64_t height) {
+  const Screen s = screen_of(u, v, inv_var_x, inv_var_y, opacity, features);
+  order = order.contiguous();
+  x0 = x0.contiguous(), x1 = x1.contiguous(), y0 = y0.contiguous(), y1 = y1.contiguous();
+  const int64_t n_chunks = (height + kRowsPerChunk - 1) / kRowsPerChunk;
+  auto image = torch::empty({width * height, s.features.size(1) + 1}, s.u.options());
+  const auto members = chunk_members(order, y0, y1, height);
+  AT_DISPATCH_FLOATING_TYPES(s.u.scalar_type(), "rasterize_image", [&] {
+    at::parallel_for(0, n_chunks, 1, [&](int64_t begin, int64_t end) {
+      std::vector<double> acc, transmittance;
+      for (int64_t c = begin; c < end; ++c) {
+        composite_rows(c * kRowsPerChunk, std::min(height, (c + 1) * kRowsPerChunk), s, members[c],
+                       order.data_ptr<int64_t>(), x0.data_ptr<int64_t>(), x1.data_ptr<int64_t>(),
+                       y0.data_ptr<int64_t>(), y1.data_ptr<int64_t>(), width, acc, transmittance,
+                       image.data_ptr<scalar_t>());
+      }
+    });
+  });
+  return image;
 }
 
 torch::Tensor depth_order(torch::Tensor depth, torch::Tensor keep) {

@@ -2,7 +2,8 @@
 
 Gaussians are ordered front to back by a radix sort of their depths (the order of ``pairs.depth_order``), pairs are
 bucketed by pixel with a counting sort (the Gaussians are visited front to back, so each pixel's list is already in
-compositing order) and every pixel is composited, and differentiated, in one pass; the torch back-end
+compositing order) and every pixel is composited, and differentiated, in one pass (without gradients, the Gaussians
+are composited as they are visited, no pairs kept); the torch back-end
 needs a comparison sort and a dozen gathers/scatters over all pairs instead. Memory: about 8 bytes per (Gaussian,
 pixel) pair plus one float64 gradient buffer of (5 + C) values per Gaussian with a footprint in the image, and
 thread. Rows run in parallel on torch's intra-op threads. The kernel is built on first use (:mod:`gausem_core.native`);
@@ -42,7 +43,10 @@ def rasterize_cpu(screen: ScreenGaussians, width: int, height: int) -> torch.Ten
         raise ValueError(f"render backend 'cpu' needs CPU tensors, got {screen.u.device}")
     boxes = footprint_boxes(screen, width, height)
     order = kernel.depth_order(screen.depth.detach(), boxes.nonempty())  # pairs.depth_order, by a radix sort
-    image = _RasterizeCpu.apply(screen.u, screen.v, screen.inv_var_x, screen.inv_var_y, screen.opacity,
-                                screen.features, order, boxes.x0, boxes.x1, boxes.y0, boxes.y1, width, height)
+    inputs = (screen.u, screen.v, screen.inv_var_x, screen.inv_var_y, screen.opacity, screen.features)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
+        image = _RasterizeCpu.apply(*inputs, order, boxes.x0, boxes.x1, boxes.y0, boxes.y1, width, height)
+    else:  # no gradients wanted: no pairs kept for a backward
+        image = kernel.rasterize_image(*inputs, order, boxes.x0, boxes.x1, boxes.y0, boxes.y1, width, height)
     return image.reshape(height, width, -1)
 
