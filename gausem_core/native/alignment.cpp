@@ -34,7 +34,7 @@ struct Problem {
 
 template <typename scalar_t>
 void add_point(const Problem& pb, const scalar_t* pt, const scalar_t* ref, int64_t n, const scalar_t* samples,
-               Sums& s) {
+               double* values, Sums& s) {
   const double* m = pb.motion;
   const double px = pt[0], py = pt[1], pz = pt[2];
   const double x = m[0] * px + m[1] * py + m[2] * pz + m[3];
@@ -51,12 +51,13 @@ void add_point(const Problem& pb, const scalar_t* pt, const scalar_t* ref, int64
   const int64_t y0 = std::min<int64_t>(static_cast<int64_t>(iy), pb.height - 2);
   const double wx = ix - x0, wy = iy - y0;
   const double w00 = (1 - wx) * (1 - wy), w01 = wx * (1 - wy), w10 = (1 - wx) * wy, w11 = wx * wy;
-  const int64_t plane = pb.width * pb.height, at = y0 * pb.width + x0, row = pb.width;
-  auto sample = [&](int64_t c) {
-    const scalar_t* p = samples + c * plane + at;
-    return w00 * p[0] + w01 * p[1] + w10 * p[row] + w11 * p[row + 1];
-  };
-  const int64_t channels = pb.channels;
+  const int64_t channels = pb.channels, stride = 3 * channels, row = pb.width * stride;
+  const scalar_t* p00 = samples + (y0 * pb.width + x0) * stride;  // the four corners' 3C values lie contiguously
+  const scalar_t* p01 = p00 + stride;
+  for (int64_t c = 0; c < stride; ++c) {
+    values[c] = w00 * p00[c] + w01 * p01[c] + w10 * p00[row + c] + w11 * p01[row + c];
+  }
+  auto sample = [values](int64_t c) { return values[c]; };
   const double depth = sample(6), depth_res = depth - z;
   if (!(depth > 0 && std::abs(depth_res) < pb.max_depth_residual)) {
     s.cost += pb.cap;
@@ -102,17 +103,17 @@ void add_point(const Problem& pb, const scalar_t* pt, const scalar_t* ref, int64
 namespace gausem {
 
 // (H (6, 6), g (6), summed truncated cost, number of valid points), in double. points (N, 3) model points, ref
-// (C - 1, N) their colour, semantic and feature values, motion (4, 4), samples (3C, H, W): the observed stack (colour,
-// semantics, depth, features) and its horizontal and vertical gradients; camera (fx, fy, cx, cy); one weight per
-// channel. A point without a valid observed counterpart costs cap.
+// (C - 1, N) their colour, semantic and feature values, motion (4, 4), samples (H, W, 3C), channels last: the
+// observed stack (colour, semantics, depth, features) and its horizontal and vertical gradients; camera (fx, fy, cx,
+// cy); one weight per channel. A point without a valid observed counterpart costs cap.
 std::tuple<torch::Tensor, torch::Tensor, double, int64_t> alignment_normal_equations(
     torch::Tensor points, torch::Tensor ref, torch::Tensor motion, torch::Tensor samples, std::vector<double> camera,
     std::vector<double> channel_weights, double huber_delta, double max_depth_residual, double max_depth_slope,
     double cap) {
   points = points.contiguous(), ref = ref.contiguous(), samples = samples.contiguous();
   const auto m = motion.to(torch::kFloat64).contiguous();
-  const int64_t n_points = points.size(0), channels = samples.size(0) / 3;
-  TORCH_CHECK(samples.dim() == 3 && samples.size(0) == 3 * channels && channels >= 7, "samples must be (3C, H, W)");
+  const int64_t n_points = points.size(0), channels = samples.size(2) / 3;
+  TORCH_CHECK(samples.dim() == 3 && samples.size(2) == 3 * channels && channels >= 7, "samples must be (H, W, 3C)");
   TORCH_CHECK(points.dim() == 2 && points.size(1) == 3, "points must be (N, 3)");
   TORCH_CHECK(ref.dim() == 2 && ref.size(0) == channels - 1 && ref.size(1) == n_points, "ref must be (C - 1, N)");
   TORCH_CHECK(m.dim() == 2 && m.size(0) == 4 && m.size(1) == 4, "motion must be (4, 4)");
@@ -120,8 +121,8 @@ std::tuple<torch::Tensor, torch::Tensor, double, int64_t> alignment_normal_equat
   TORCH_CHECK(camera.size() == 4, "camera must be (fx, fy, cx, cy)");
   TORCH_CHECK(points.scalar_type() == samples.scalar_type() && ref.scalar_type() == samples.scalar_type(),
               "points, ref and samples must share a dtype");
-  const Problem pb{m.data_ptr<double>(), camera[0], camera[1], camera[2], camera[3], samples.size(2),
-                   samples.size(1), channels, n_points, channel_weights.data(), huber_delta, max_depth_residual,
+  const Problem pb{m.data_ptr<double>(), camera[0], camera[1], camera[2], camera[3], samples.size(1),
+                   samples.size(0), channels, n_points, channel_weights.data(), huber_delta, max_depth_residual,
                    max_depth_slope, cap};
   std::vector<Sums> sums(at::get_num_threads());
   AT_DISPATCH_FLOATING_TYPES(samples.scalar_type(), "alignment_normal_equations", [&] {
@@ -130,7 +131,8 @@ std::tuple<torch::Tensor, torch::Tensor, double, int64_t> alignment_normal_equat
     const auto* smp = samples.data_ptr<scalar_t>();
     at::parallel_for(0, n_points, 1024, [&](int64_t begin, int64_t end) {
       Sums local;
-      for (int64_t n = begin; n < end; ++n) add_point(pb, pts + 3 * n, rf, n, smp, local);
+      std::vector<double> values(3 * channels);
+      for (int64_t n = begin; n < end; ++n) add_point(pb, pts + 3 * n, rf, n, smp, values.data(), local);
       Sums& s = sums[at::get_thread_num()];
       for (int i = 0; i < 36; ++i) s.h[i] += local.h[i];
       for (int i = 0; i < 6; ++i) s.g[i] += local.g[i];

@@ -71,6 +71,12 @@ class ObservedImages:
     def stack(self) -> torch.Tensor:
         return self.samples[:self.samples.shape[0] // 3]
 
+    @functools.cached_property
+    def samples_last(self) -> torch.Tensor:
+        """``samples`` channels last (H, W, 3C), made once: a pixel's bilinear corners are then four contiguous
+        runs (the compiled kernel reads them so)."""
+        return self.samples.permute(1, 2, 0).contiguous()
+
     def downsampled(self) -> "ObservedImages":
         """Half resolution: colour, semantics and features averaged, depth averaged over valid pixels only."""
         h, w = self.stack.shape[1] // 2 * 2, self.stack.shape[2] // 2 * 2
@@ -165,7 +171,8 @@ def _normal_equations_compiled(observed: ObservedImages, motion: torch.Tensor, w
                                points: torch.Tensor, ref: torch.Tensor):
     cam, features = observed.camera, observed.feature_channels
     h, g, cost, valid = require_kernel().alignment_normal_equations(
-        points, ref, motion, observed.samples, [cam.fx, cam.fy, cam.cx, cam.cy], _channel_weights(weights, features),
+        points, ref, motion, observed.samples_last, [cam.fx, cam.fy, cam.cx, cam.cy],
+        _channel_weights(weights, features),
         weights.huber_delta, weights.max_depth_residual, weights.max_depth_slope, _cost_cap(weights, features))
     return None if valid < 12 else (h, g, cost / len(points))
 
