@@ -39,6 +39,7 @@ class GaussNewtonTrackingConfig:
     coarsest_width: int = 80  # ... and more while the coarsest is wider than this (pixels): 640 wide, 4 levels
     renders_per_level: int = 2  # model re-renders per pyramid level ("per_level" model views) ...
     level_iterations: int = 8  # ... each followed by this many Gauss-Newton iterations (per_frame: both per level)
+    min_step: float = 2e-5  # a level's iterations stop at a step |xi| below this (metres + radians)
     # "per_level": the model rendered at the estimate renders_per_level times on every pyramid level; "per_frame": once
     # at the start, at full resolution, its pyramid made by downsampling, re-rendered at the estimate only when that
     # moved rerender_motion (translation / median model depth + rotation in radians) from where it was rendered

@@ -150,3 +150,26 @@ def test_the_compiled_normal_equations_are_the_torch_ones(dtype, rtol):
     behind = se3_exp(torch.tensor([0.0, 0.0, -3.0, 0.0, 0.0, 0.0], dtype=torch.float64)).to(dtype)
     assert _normal_equations_compiled(observed, behind, weights, points, ref) is None
     assert _normal_equations_torch(observed, behind, weights, points, ref) is None
+
+
+@pytest.mark.skipif(not kernel_available(), reason="compiled CPU kernels unavailable")
+def test_the_compiled_level_takes_the_torch_loops_steps(monkeypatch):
+    """align_level on CPU runs its loop in the compiled kernel: the same motion and cost as the torch loop (float64)
+    when it runs all its iterations, stops at a small step, and makes no step for a view behind the camera."""
+    model_color, model_depth = ray_cast(torch.eye(4, dtype=torch.float64))
+    observed_color, observed_depth = ray_cast(invert_pose(MOTION))
+    model = ModelView(model_color, model_color.flip(-1), model_depth, torch.ones_like(model_depth, dtype=torch.bool),
+                      CAMERA)
+    observed = ObservedImages.build(observed_color, observed_color.flip(-1), jitter_edges(observed_depth), CAMERA)
+    weights = AlignmentWeights(0.5, 0.3, 5.0, huber_delta=0.002)
+    eye = torch.eye(4, dtype=torch.float64)
+    behind = se3_exp(torch.tensor([0.0, 0.0, -3.0, 0.0, 0.0, 0.0], dtype=torch.float64))
+    cases = [(eye, 6, 0.0), (eye, 30, 1e-2), (behind, 5, 0.0)]
+    compiled = [align_level(model, observed, start, weights, steps, min_step=small) for start, steps, small in cases]
+    monkeypatch.setattr(direct_alignment, "kernel_available", lambda: False)
+    reference = [align_level(model, observed, start, weights, steps, min_step=small) for start, steps, small in cases]
+    for (motion, cost), (motion_ref, cost_ref) in zip(compiled[:2], reference[:2]):
+        assert torch.allclose(motion, motion_ref, atol=1e-9)
+        assert cost == pytest.approx(cost_ref, rel=1e-9)
+    assert not torch.allclose(compiled[0][0], compiled[1][0], atol=1e-6)  # the small step stopped the second early
+    assert torch.equal(compiled[2][0], behind) and np.isnan(compiled[2][1]) and np.isnan(reference[2][1])

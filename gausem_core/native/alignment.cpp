@@ -13,6 +13,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <vector>
 
 namespace {
@@ -25,7 +26,7 @@ struct Sums {
 };
 
 struct Problem {
-  const double* motion;  // (4, 4) row-major
+  const double* motion;  // (4, 4) row-major, set per step
   double fx, fy, cx, cy;
   int64_t width, height, channels, n_points;
   const double* weights;  // per channel
@@ -98,6 +99,115 @@ void add_point(const Problem& pb, const scalar_t* pt, const scalar_t* ref, int64
   }
 }
 
+// The problem's sums over all points (H complete, both triangles), the points split among torch's threads.
+Sums sum_points(const Problem& pb, const torch::Tensor& points, const torch::Tensor& ref,
+                const torch::Tensor& samples) {
+  std::vector<Sums> sums(at::get_num_threads());
+  AT_DISPATCH_FLOATING_TYPES(samples.scalar_type(), "alignment_sums", [&] {
+    const auto* pts = points.data_ptr<scalar_t>();
+    const auto* rf = ref.data_ptr<scalar_t>();
+    const auto* smp = samples.data_ptr<scalar_t>();
+    at::parallel_for(0, pb.n_points, 1024, [&](int64_t begin, int64_t end) {
+      Sums local;
+      std::vector<double> values(3 * pb.channels);
+      for (int64_t n = begin; n < end; ++n) add_point(pb, pts + 3 * n, rf, n, smp, values.data(), local);
+      Sums& s = sums[at::get_thread_num()];
+      for (int i = 0; i < 36; ++i) s.h[i] += local.h[i];
+      for (int i = 0; i < 6; ++i) s.g[i] += local.g[i];
+      s.cost += local.cost;
+      s.valid += local.valid;
+    });
+  });
+  Sums total;
+  for (const Sums& s : sums) {
+    for (int i = 0; i < 6; ++i) {
+      for (int j = i; j < 6; ++j) total.h[i * 6 + j] += s.h[i * 6 + j];
+      total.g[i] += s.g[i];
+    }
+    total.cost += s.cost;
+    total.valid += s.valid;
+  }
+  for (int i = 0; i < 6; ++i) {
+    for (int j = 0; j < i; ++j) total.h[i * 6 + j] = total.h[j * 6 + i];
+  }
+  return total;
+}
+
+// The inputs checked and made contiguous, and the problem they pose (its motion is set per step).
+Problem problem_of(torch::Tensor& points, torch::Tensor& ref, torch::Tensor& samples, const std::vector<double>& camera,
+                   const std::vector<double>& channel_weights, double huber_delta, double max_depth_residual,
+                   double max_depth_slope, double cap) {
+  points = points.contiguous(), ref = ref.contiguous(), samples = samples.contiguous();
+  const int64_t n_points = points.size(0), channels = samples.size(2) / 3;
+  TORCH_CHECK(samples.dim() == 3 && samples.size(2) == 3 * channels && channels >= 7, "samples must be (H, W, 3C)");
+  TORCH_CHECK(points.dim() == 2 && points.size(1) == 3, "points must be (N, 3)");
+  TORCH_CHECK(ref.dim() == 2 && ref.size(0) == channels - 1 && ref.size(1) == n_points, "ref must be (C - 1, N)");
+  TORCH_CHECK(static_cast<int64_t>(channel_weights.size()) == channels, "one weight per channel");
+  TORCH_CHECK(camera.size() == 4, "camera must be (fx, fy, cx, cy)");
+  TORCH_CHECK(points.scalar_type() == samples.scalar_type() && ref.scalar_type() == samples.scalar_type(),
+              "points, ref and samples must share a dtype");
+  return Problem{nullptr, camera[0], camera[1], camera[2], camera[3], samples.size(1), samples.size(0), channels,
+                 n_points, channel_weights.data(), huber_delta, max_depth_residual, max_depth_slope, cap};
+}
+
+torch::Tensor checked_motion(const torch::Tensor& motion) {
+  auto m = motion.to(torch::kFloat64).contiguous();
+  TORCH_CHECK(m.dim() == 2 && m.size(0) == 4 && m.size(1) == 4, "motion must be (4, 4)");
+  return m;
+}
+
+// x solving a x = b (6 x 6, row-major; a and b are overwritten) by Gaussian elimination with partial pivoting.
+void solve6(double* a, double* b, double* x) {
+  for (int c = 0; c < 6; ++c) {
+    int pivot = c;
+    for (int r = c + 1; r < 6; ++r) {
+      if (std::abs(a[r * 6 + c]) > std::abs(a[pivot * 6 + c])) pivot = r;
+    }
+    if (pivot != c) {
+      for (int j = 0; j < 6; ++j) std::swap(a[c * 6 + j], a[pivot * 6 + j]);
+      std::swap(b[c], b[pivot]);
+    }
+    for (int r = c + 1; r < 6; ++r) {
+      const double f = a[r * 6 + c] / a[c * 6 + c];
+      for (int j = c; j < 6; ++j) a[r * 6 + j] -= f * a[c * 6 + j];
+      b[r] -= f * b[c];
+    }
+  }
+  for (int r = 5; r >= 0; --r) {
+    double sum = b[r];
+    for (int j = r + 1; j < 6; ++j) sum -= a[r * 6 + j] * x[j];
+    x[r] = sum / a[r * 6 + r];
+  }
+}
+
+// exp of the twist xi = (rho, omega) as a row-major 4 x 4, with the coefficients of geometry.py's se3_exp (their
+// Taylor series below an angle of 1e-4).
+void se3_exp(const double* xi, double* out) {
+  const double wx = xi[3], wy = xi[4], wz = xi[5], t2 = wx * wx + wy * wy + wz * wz;
+  double a, b, c;
+  if (t2 < 1e-8) {
+    a = 1 - t2 / 6 + t2 * t2 / 120, b = 0.5 - t2 / 24 + t2 * t2 / 720, c = 1.0 / 6 - t2 / 120 + t2 * t2 / 5040;
+  } else {
+    const double t = std::sqrt(t2);
+    a = std::sin(t) / t, b = (1 - std::cos(t)) / t2, c = (t - std::sin(t)) / (t2 * t);
+  }
+  const double k[9] = {0, -wz, wy, wz, 0, -wx, -wy, wx, 0};
+  double kk[9];
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) kk[i * 3 + j] = k[i * 3] * k[j] + k[i * 3 + 1] * k[3 + j] + k[i * 3 + 2] * k[6 + j];
+  }
+  for (int i = 0; i < 3; ++i) {
+    double t = 0;
+    for (int j = 0; j < 3; ++j) {
+      const double eye = i == j ? 1.0 : 0.0;
+      out[i * 4 + j] = eye + a * k[i * 3 + j] + b * kk[i * 3 + j];
+      t += (eye + b * k[i * 3 + j] + c * kk[i * 3 + j]) * xi[j];
+    }
+    out[i * 4 + 3] = t;
+  }
+  out[12] = out[13] = out[14] = 0, out[15] = 1;
+}
+
 }  // namespace
 
 namespace gausem {
@@ -110,53 +220,51 @@ std::tuple<torch::Tensor, torch::Tensor, double, int64_t> alignment_normal_equat
     torch::Tensor points, torch::Tensor ref, torch::Tensor motion, torch::Tensor samples, std::vector<double> camera,
     std::vector<double> channel_weights, double huber_delta, double max_depth_residual, double max_depth_slope,
     double cap) {
-  points = points.contiguous(), ref = ref.contiguous(), samples = samples.contiguous();
-  const auto m = motion.to(torch::kFloat64).contiguous();
-  const int64_t n_points = points.size(0), channels = samples.size(2) / 3;
-  TORCH_CHECK(samples.dim() == 3 && samples.size(2) == 3 * channels && channels >= 7, "samples must be (H, W, 3C)");
-  TORCH_CHECK(points.dim() == 2 && points.size(1) == 3, "points must be (N, 3)");
-  TORCH_CHECK(ref.dim() == 2 && ref.size(0) == channels - 1 && ref.size(1) == n_points, "ref must be (C - 1, N)");
-  TORCH_CHECK(m.dim() == 2 && m.size(0) == 4 && m.size(1) == 4, "motion must be (4, 4)");
-  TORCH_CHECK(static_cast<int64_t>(channel_weights.size()) == channels, "one weight per channel");
-  TORCH_CHECK(camera.size() == 4, "camera must be (fx, fy, cx, cy)");
-  TORCH_CHECK(points.scalar_type() == samples.scalar_type() && ref.scalar_type() == samples.scalar_type(),
-              "points, ref and samples must share a dtype");
-  const Problem pb{m.data_ptr<double>(), camera[0], camera[1], camera[2], camera[3], samples.size(1),
-                   samples.size(0), channels, n_points, channel_weights.data(), huber_delta, max_depth_residual,
-                   max_depth_slope, cap};
-  std::vector<Sums> sums(at::get_num_threads());
-  AT_DISPATCH_FLOATING_TYPES(samples.scalar_type(), "alignment_normal_equations", [&] {
-    const auto* pts = points.data_ptr<scalar_t>();
-    const auto* rf = ref.data_ptr<scalar_t>();
-    const auto* smp = samples.data_ptr<scalar_t>();
-    at::parallel_for(0, n_points, 1024, [&](int64_t begin, int64_t end) {
-      Sums local;
-      std::vector<double> values(3 * channels);
-      for (int64_t n = begin; n < end; ++n) add_point(pb, pts + 3 * n, rf, n, smp, values.data(), local);
-      Sums& s = sums[at::get_thread_num()];
-      for (int i = 0; i < 36; ++i) s.h[i] += local.h[i];
-      for (int i = 0; i < 6; ++i) s.g[i] += local.g[i];
-      s.cost += local.cost;
-      s.valid += local.valid;
-    });
-  });
-  auto h = torch::zeros({6, 6}, torch::kFloat64), g = torch::zeros({6}, torch::kFloat64);
-  auto* hp = h.data_ptr<double>();
-  auto* gp = g.data_ptr<double>();
-  double cost = 0.0;
-  int64_t valid = 0;
-  for (const Sums& s : sums) {
-    for (int i = 0; i < 6; ++i) {
-      for (int j = i; j < 6; ++j) hp[i * 6 + j] += s.h[i * 6 + j];
-      gp[i] += s.g[i];
+  Problem pb = problem_of(points, ref, samples, camera, channel_weights, huber_delta, max_depth_residual,
+                          max_depth_slope, cap);
+  const auto m = checked_motion(motion);
+  pb.motion = m.data_ptr<double>();
+  const Sums s = sum_points(pb, points, ref, samples);
+  auto h = torch::empty({6, 6}, torch::kFloat64), g = torch::empty({6}, torch::kFloat64);
+  std::copy(s.h.begin(), s.h.end(), h.data_ptr<double>());
+  std::copy(s.g.begin(), s.g.end(), g.data_ptr<double>());
+  return {h, g, s.cost, s.valid};
+}
+
+// A level of Gauss-Newton steps as direct_alignment.align_level takes them (its torch loop, in double): at most
+// `iterations` steps from `motion`, each solving the damped normal equations (H + damping diag(H) + 1e-9 I) xi = -g
+// and moving motion to exp(xi) motion; it stops before a step with fewer than 12 valid points and after a step
+// |xi| < min_step. Returns (motion (4, 4) float64, the mean cost before the last step, NaN without one).
+std::tuple<torch::Tensor, double> alignment_level(
+    torch::Tensor points, torch::Tensor ref, torch::Tensor motion, torch::Tensor samples, std::vector<double> camera,
+    std::vector<double> channel_weights, double huber_delta, double max_depth_residual, double max_depth_slope,
+    double cap, int64_t iterations, double damping, double min_step) {
+  Problem pb = problem_of(points, ref, samples, camera, channel_weights, huber_delta, max_depth_residual,
+                          max_depth_slope, cap);
+  auto m = checked_motion(motion).clone();
+  double* current = m.data_ptr<double>();
+  pb.motion = current;
+  double cost = std::numeric_limits<double>::quiet_NaN();
+  for (int64_t step = 0; step < iterations; ++step) {
+    Sums s = sum_points(pb, points, ref, samples);
+    if (s.valid < 12) break;
+    cost = s.cost / static_cast<double>(pb.n_points);
+    for (int i = 0; i < 6; ++i) s.h[i * 6 + i] += damping * s.h[i * 6 + i] + 1e-9, s.g[i] = -s.g[i];
+    double xi[6], update[16], moved[16];
+    solve6(s.h.data(), s.g.data(), xi);
+    se3_exp(xi, update);
+    for (int i = 0; i < 4; ++i) {
+      for (int j = 0; j < 4; ++j) {
+        moved[i * 4 + j] = update[i * 4] * current[j] + update[i * 4 + 1] * current[4 + j] +
+                           update[i * 4 + 2] * current[8 + j] + update[i * 4 + 3] * current[12 + j];
+      }
     }
-    cost += s.cost;
-    valid += s.valid;
+    std::copy(moved, moved + 16, current);
+    double norm = 0;
+    for (const double v : xi) norm += v * v;
+    if (std::sqrt(norm) < min_step) break;
   }
-  for (int i = 0; i < 6; ++i) {
-    for (int j = 0; j < i; ++j) hp[i * 6 + j] = hp[j * 6 + i];
-  }
-  return {h, g, cost, valid};
+  return {m, cost};
 }
 
 }  // namespace gausem

@@ -13,4 +13,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         release());
   m.def("alignment_normal_equations", &gausem::alignment_normal_equations,
         "direct alignment: (H, g, summed truncated cost, valid points) of one Gauss-Newton step", release());
+  m.def("alignment_level", &gausem::alignment_level,
+        "direct alignment: (motion, mean cost before the last step) after a level of Gauss-Newton steps", release());
 }

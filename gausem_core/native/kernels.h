@@ -27,5 +27,9 @@ std::tuple<torch::Tensor, torch::Tensor, double, int64_t> alignment_normal_equat
     torch::Tensor points, torch::Tensor ref, torch::Tensor motion, torch::Tensor samples, std::vector<double> camera,
     std::vector<double> channel_weights, double huber_delta, double max_depth_residual, double max_depth_slope,
     double cap);
+std::tuple<torch::Tensor, double> alignment_level(
+    torch::Tensor points, torch::Tensor ref, torch::Tensor motion, torch::Tensor samples, std::vector<double> camera,
+    std::vector<double> channel_weights, double huber_delta, double max_depth_residual, double max_depth_slope,
+    double cap, int64_t iterations, double damping, double min_step);
 
 }  // namespace gausem

@@ -32,6 +32,19 @@ class ModelView:
     camera: PinholeCamera
     features: torch.Tensor | None = None
 
+    @functools.cached_property
+    def samples(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The pixels inside the mask back-projected (N, 3) and their colour + semantic (+ feature) values
+        (6 + F, N), made once per view (views are not changed once made: ``dataclasses.replace`` makes a new one)."""
+        rays = self.camera.pixel_rays(self.depth.dtype, self.depth.device)
+        values = [self.color, self.semantic] + ([self.features] if self.features is not None else [])
+        return (rays * self.depth[..., None])[self.mask], torch.cat([v[self.mask] for v in values], 1).T.contiguous()
+
+    @functools.cached_property
+    def median_depth(self) -> float:
+        """The median depth inside the mask (inf for an empty view)."""
+        depth = self.depth[self.mask]
+        return float(depth.median()) if len(depth) else float("inf")
 
     def downsampled(self) -> "ModelView":
         """Half resolution: the pixels whose 2x2 block lies mostly inside the silhouette, their values averaged over
@@ -44,8 +57,9 @@ class ModelView:
             summed = F.avg_pool2d((t[:h, :w] * inside).permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0)
             return summed / count.clamp_min(1e-6)
 
-        return ModelView(pool(self.color), pool(self.semantic), pool(self.depth[..., None])[..., 0], count[..., 0] > 0.6,
-                         self.camera.scaled(w // 2, h // 2), None if self.features is None else pool(self.features))
+        return ModelView(pool(self.color), pool(self.semantic), pool(self.depth[..., None])[..., 0],
+                         count[..., 0] > 0.6, self.camera.scaled(w // 2, h // 2),
+                         None if self.features is None else pool(self.features))
 
 
 @dataclass
@@ -167,13 +181,17 @@ def normal_equations(observed: ObservedImages, motion: torch.Tensor, weights: Al
     return _normal_equations_torch(observed, motion, weights, points, ref)
 
 
+def _kernel_arguments(observed: ObservedImages, weights: AlignmentWeights) -> tuple:
+    """The observed samples, camera, channel weights and tolerances as the compiled kernels take them."""
+    cam, features = observed.camera, observed.feature_channels
+    return (observed.samples_last, [cam.fx, cam.fy, cam.cx, cam.cy], _channel_weights(weights, features),
+            weights.huber_delta, weights.max_depth_residual, weights.max_depth_slope, _cost_cap(weights, features))
+
+
 def _normal_equations_compiled(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                                points: torch.Tensor, ref: torch.Tensor):
-    cam, features = observed.camera, observed.feature_channels
-    h, g, cost, valid = require_kernel().alignment_normal_equations(
-        points, ref, motion, observed.samples_last, [cam.fx, cam.fy, cam.cx, cam.cy],
-        _channel_weights(weights, features),
-        weights.huber_delta, weights.max_depth_residual, weights.max_depth_slope, _cost_cap(weights, features))
+    h, g, cost, valid = require_kernel().alignment_normal_equations(points, ref, motion,
+                                                                    *_kernel_arguments(observed, weights))
     return None if valid < 12 else (h, g, cost / len(points))
 
 
@@ -221,10 +239,7 @@ def model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Ten
     if channels != observed.feature_channels:
         raise ValueError(f"the model view has {channels} feature channels, the observation "
                          f"{observed.feature_channels}")
-    rays = model.camera.pixel_rays(model.depth.dtype, model.depth.device)
-    points = (rays * model.depth[..., None])[model.mask]
-    values = [model.color, model.semantic] + ([model.features] if channels else [])
-    return points, torch.cat([v[model.mask] for v in values], 1).T.contiguous()
+    return model.samples
 
 
 def alignment_cost(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
@@ -235,11 +250,16 @@ def alignment_cost(model: ModelView, observed: ObservedImages, motion: torch.Ten
 
 
 def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
-                iterations: int, damping: float = 1e-4) -> tuple[torch.Tensor, float]:
-    """Refine ``motion`` (observed-camera-from-model-camera, 4x4) on one level; returns it and the last mean L1. The
-    normal equations are summed where the images are; the 6x6 solve and the pose update run on the host (on a GPU
-    each would be a handful of kernel launches and a wait)."""
+                iterations: int, damping: float = 1e-4, min_step: float = 1e-6) -> tuple[torch.Tensor, float]:
+    """Refine ``motion`` (observed-camera-from-model-camera, 4x4) on one level by at most ``iterations`` steps,
+    stopping after a step |xi| < ``min_step``; returns it and the last mean L1. The normal equations are summed where
+    the images are; the 6x6 solve and the pose update run on the host (on a GPU each would be a handful of kernel
+    launches and a wait). On CPU tensors the compiled kernel runs the whole loop when it loads (no Python per step)."""
     points, ref = model_samples(model, observed)
+    if points.device.type == "cpu" and kernel_available():  # the same loop in the compiled kernel, in double
+        moved, cost = require_kernel().alignment_level(points, ref, motion, *_kernel_arguments(observed, weights),
+                                                       iterations, damping, min_step)
+        return moved.to(motion.dtype), cost
     device, motion = motion.device, motion.detach().cpu()
     cost = float("nan")
     for _ in range(iterations):
@@ -250,6 +270,6 @@ def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor
         h = h + damping * torch.diag(h.diagonal()) + 1e-9 * torch.eye(6, dtype=h.dtype)
         xi = -torch.linalg.solve(h, g).to(motion.dtype)
         motion = se3_exp(xi) @ motion
-        if float(xi.norm()) < 1e-6:
+        if float(xi.norm()) < min_step:
             break
     return motion.to(device), cost

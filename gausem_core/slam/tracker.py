@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -65,11 +65,10 @@ def model_view(cloud: GaussianCloud, cam_to_world: torch.Tensor, camera, cfg: Tr
 def motion_size(motion: torch.Tensor, view: ModelView) -> float:
     """How far ``motion`` moves ``view``'s camera: translation over the view's median depth plus rotation in
     radians (inf for an empty view)."""
-    depth = view.depth[view.mask]
-    if len(depth) == 0:
+    if math.isinf(view.median_depth):
         return math.inf
     cos = ((motion[:3, :3].trace() - 1) / 2).clamp(-1, 1)
-    return float(motion[:3, 3].norm() / depth.median() + torch.arccos(cos))
+    return float(motion[:3, 3].norm() / view.median_depth + torch.arccos(cos))
 
 
 def inspect_pose(cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor, cfg: TrackingConfig,
@@ -158,27 +157,43 @@ class Tracker:
         """Coarse-to-fine Gauss-Newton, ``renders_per_level`` rounds of ``level_iterations`` per level, against one
         model view rendered at the first start and downsampled for the coarser levels; the estimate is the view's
         pose moved by ``motion`` (observed-from-model camera), and a round renders the view again at the estimate
-        only when that moved ``rerender_motion`` from it. The start whose first coarsest round costs least goes on;
-        it is kept if it explains the full-resolution frame better, all costs from the views already rendered."""
+        only when that moved ``rerender_motion`` from it. The start whose coarsest rounds cost least goes on
+        (:meth:`_best_start`); it is kept if it explains the full-resolution frame better, all costs from the views
+        already rendered."""
         cfg = self.cfg.gauss_newton
         base, views = starts[0], self._view_pyramid(cloud, starts[0], pyramid)
         first = views[0]
         begun = [invert_pose(start) @ base for start in starts]
-        coarse = [align_level(views[-1], pyramid[-1], motion, weights, cfg.level_iterations * cfg.renders_per_level)[0]
-                  for motion in begun]
-        best = min(range(len(starts)), key=lambda i: alignment_cost(views[-1], pyramid[-1], coarse[i], weights))
-        motion, renders = coarse[best], 1
+        best, motion, cost = self._best_start(views[-1], pyramid[-1], begun)
+        renders = 1
         rounds = [index for index in reversed(range(len(pyramid) - 1)) for _ in range(cfg.renders_per_level)]
         for index in rounds:
             if motion_size(motion, views[0]) > cfg.rerender_motion:
                 base, motion = base @ invert_pose(motion), torch.eye(4, dtype=motion.dtype, device=motion.device)
                 views, renders = self._view_pyramid(cloud, base, pyramid), renders + 1
-            motion, _ = align_level(views[index], pyramid[index], motion, weights, cfg.level_iterations)
-        cost = alignment_cost(views[0], pyramid[0], motion, weights)
+            motion, cost = self._align_level(views[index], pyramid[index], motion)  # cost: before the last step
         initial_cost = alignment_cost(first, pyramid[0], begun[best], weights)
-        if initial_cost < cost:
+        if not cost <= initial_cost:  # a nan cost: the views stopped overlapping
             return TrackingResult(starts[best], initial_cost, renders)
         return TrackingResult(project_to_se3(base @ invert_pose(motion)), cost, renders)
+
+    def _best_start(self, view: ModelView, level: ObservedImages,
+                    motions: list[torch.Tensor]) -> tuple[int, torch.Tensor, float]:
+        """Which of the start ``motions`` costs least after ``renders_per_level`` rounds on ``level`` against
+        ``view``, its motion and cost. A start after the first is dropped after one round when that round ended
+        costlier than the best result so far (it left its basin: rounds more would only wander)."""
+        weights, rounds = alignment_weights(self.cfg), self.cfg.gauss_newton.renders_per_level
+        best = (-1, motions[0], math.inf)
+        for index, motion in enumerate(motions):
+            motion, cost = self._align_level(view, level, motion)
+            if index > 0 and not cost < best[2]:
+                continue
+            if rounds > 1:
+                motion, _ = self._align_level(view, level, motion, rounds - 1)
+            cost = alignment_cost(view, level, motion, weights)
+            if index == 0 or cost < best[2]:
+                best = (index, motion, cost)
+        return best
 
     def _view_pyramid(self, cloud: GaussianCloud, cam_to_world: torch.Tensor,
                       pyramid: list[ObservedImages]) -> list[ModelView]:
@@ -187,23 +202,30 @@ class Tracker:
         views = [model_view(cloud, cam_to_world, pyramid[0].camera, self.cfg, self.backend)]
         while len(views) < len(pyramid):
             views.append(views[-1].downsampled())
-        for view in views:
-            view.color = local_contrast(view.color, self.cfg.gauss_newton.color_normalisation_width, view.mask)
-        return views
+        return [self._compared_model(view) for view in views]
 
     def _align(self, cloud: GaussianCloud, pose: torch.Tensor, level: ObservedImages, weights: AlignmentWeights,
                eye: torch.Tensor) -> torch.Tensor:
         """``renders_per_level`` rounds of render-at-the-estimate + Gauss-Newton on one pyramid level."""
         for _ in range(self.cfg.gauss_newton.renders_per_level):
-            motion, _ = align_level(self._model_view(cloud, pose, level.camera), level, eye, weights,
-                                    self.cfg.gauss_newton.level_iterations)
-            pose = pose @ invert_pose(motion)
+            pose = pose @ invert_pose(self._align_level(self._model_view(cloud, pose, level.camera), level, eye)[0])
         return pose
 
+    def _align_level(self, view: ModelView, level: ObservedImages, motion: torch.Tensor,
+                     rounds: int = 1) -> tuple[torch.Tensor, float]:
+        """``rounds`` rounds of ``level_iterations`` Gauss-Newton steps (fewer once a step is below ``min_step``): the
+        motion and the mean cost before its last step."""
+        cfg = self.cfg.gauss_newton
+        return align_level(view, level, motion, alignment_weights(self.cfg), cfg.level_iterations * rounds,
+                           min_step=cfg.min_step)
+
     def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
-        view = model_view(cloud, cam_to_world, camera, self.cfg, self.backend)
-        view.color = local_contrast(view.color, self.cfg.gauss_newton.color_normalisation_width, view.mask)
-        return view
+        return self._compared_model(model_view(cloud, cam_to_world, camera, self.cfg, self.backend))
+
+    def _compared_model(self, view: ModelView) -> ModelView:
+        """The view with the colour that is compared with the observation's (``slam.photometric``)."""
+        return replace(view, color=local_contrast(view.color, self.cfg.gauss_newton.color_normalisation_width,
+                                                  view.mask))
 
     def _compared_colour(self, level: ObservedImages) -> ObservedImages:
         """The level with the colour that is compared with the model views' (``slam.photometric``)."""
