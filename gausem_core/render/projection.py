@@ -73,10 +73,9 @@ def project(cloud: GaussianCloud, world_to_cam: torch.Tensor, camera: PinholeCam
     cam = cloud.means @ pose[:3, :3].T + pose[:3, 3]
     x, y, z = cam.unbind(-1)
     opacity = torch.sigmoid(cloud.opacity_logits)
-    in_front = z > near
-    if not bool(in_front.all()):
-        z = torch.where(in_front, z, torch.ones_like(z))
-        opacity = torch.where(in_front, opacity, torch.zeros_like(opacity))
+    in_front = z > near  # masked unconditionally: testing for any Gaussian behind would be a host sync per render
+    z = torch.where(in_front, z, torch.ones_like(z))
+    opacity = torch.where(in_front, opacity, torch.zeros_like(opacity))
     radii = cloud.log_radii.exp()
     return ScreenGaussians(
         u=camera.fx * x / z + camera.cx,

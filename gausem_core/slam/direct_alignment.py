@@ -197,8 +197,19 @@ def _normal_equations_compiled(observed: ObservedImages, motion: torch.Tensor, w
 
 def _normal_equations_torch(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                             points: torch.Tensor, ref: torch.Tensor):
-    """The torch implementation: every model point is weighted (invalid ones by zero) rather than selected, so that on
-    a GPU the step is one stream of kernels with a single copy of ``(H, g, cost, count)`` to the host at its end."""
+    """The torch implementation: :func:`normal_equation_sums` and a single copy of ``(H, g, cost, count)`` to the
+    host."""
+    h, g, cost, count = normal_equation_sums(observed, motion, weights, points, ref)
+    packed = torch.cat([h.reshape(-1), g, cost[None], count[None].to(h.dtype)]).to("cpu", torch.float64)
+    h, g, cost, count = packed[:36].view(6, 6), packed[36:42], float(packed[42]), int(packed[43])
+    return None if count < 12 else (h, g, cost / len(points))
+
+
+def normal_equation_sums(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
+                         points: torch.Tensor, ref: torch.Tensor):
+    """The sums of :func:`normal_equations` as tensors on the points' device, nothing read back: ``H`` (6, 6), ``g``
+    (6), the summed (not mean) cost and the count of valid model points. Every model point is weighted (invalid ones
+    by zero) rather than selected, so that on a GPU the step is one stream of kernels."""
     cam = observed.camera
     p = points @ motion[:3, :3].T + motion[:3, 3]
     z = p[:, 2]
@@ -227,10 +238,7 @@ def _normal_equations_torch(observed: ObservedImages, motion: torch.Tensor, weig
     cap = _cost_cap(weights, features)
     cost = torch.where(valid, (chan * res.abs()).sum(0).clamp_max(cap), cap).sum()
     jw = (jac * irls[..., None]).reshape(-1, 6)
-    h, g = jw.T @ jac.reshape(-1, 6), jw.T @ res.reshape(-1)
-    packed = torch.cat([h.reshape(-1), g, cost[None], valid.sum()[None].to(h.dtype)]).to("cpu", torch.float64)
-    h, g, cost, count = packed[:36].view(6, 6), packed[36:42], float(packed[42]), int(packed[43])
-    return None if count < 12 else (h, g, cost / len(points))
+    return jw.T @ jac.reshape(-1, 6), jw.T @ res.reshape(-1), cost, valid.sum()
 
 
 def model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Tensor, torch.Tensor]:

@@ -20,17 +20,25 @@ def tracking_loss(out: RenderOutput, obs: Observation, w_color: float, w_depth: 
     return (w_color * color + w_semantic * semantic + w_depth * depth)[mask].sum() / mask.sum()
 
 
+def valid_depth_pixels(obs: Observation) -> torch.Tensor:
+    """Flat indices of ``obs.valid_depth`` (their count is read to the host: a sync on a GPU)."""
+    return obs.valid_depth.reshape(-1).nonzero()[:, 0]
+
+
 def mapping_loss(out: RenderOutput, obs: Observation, w_color: float, w_depth: float, w_semantic: float,
-                 ssim_lambda: float) -> torch.Tensor:
+                 ssim_lambda: float, valid_pixels: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 3: depth L1 on valid pixels + weighted SSIM losses (Eq. 4) for colour and semantics.
 
     The depth term compares the expected depth of the covered part (``depth / alpha``) and adds the uncovered
     fraction ``1 - alpha``: comparing the alpha-weighted depth sum itself would pull Gaussians behind the surface
-    wherever the silhouette stays below 1.
+    wherever the silhouette stays below 1. ``valid_pixels``: :func:`valid_depth_pixels` of ``obs`` when the caller
+    keeps them (then the loss makes no host sync).
     """
-    valid = obs.valid_depth
-    if valid.any():
-        depth = (out.expected_depth - obs.depth).abs()[valid].mean() + (1 - out.alpha)[valid].mean()
+    if valid_pixels is None:
+        valid_pixels = valid_depth_pixels(obs)
+    if len(valid_pixels):
+        depth = ((out.expected_depth - obs.depth).abs().take(valid_pixels).mean()
+                 + (1 - out.alpha).take(valid_pixels).mean())
     else:
         depth = out.depth.sum() * 0.0
     # Eq. 4 per channel, lam * L1 + (1 - lam) * (1 - SSIM), for colour and semantics in one SSIM pass

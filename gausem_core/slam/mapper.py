@@ -14,7 +14,7 @@ from gausem_core.geometry import invert_pose, se3_exp
 from gausem_core.render import render
 from gausem_core.slam.adam import AdamSteps, ParameterGroup
 from gausem_core.slam.densification import DensificationStrategy
-from gausem_core.slam.losses import mapping_loss
+from gausem_core.slam.losses import mapping_loss, valid_depth_pixels
 from gausem_core.slam.observation import MAX_COLOR, Observation
 
 
@@ -55,7 +55,8 @@ class Mapper:
 
         Keyframe poses are updated in place. Returns the optimised cloud (pruned) and the loss per iteration.
         ``publish`` gets a finished copy of the Gaussians every ``publish_every`` iterations (a map to track against
-        while the optimisation goes on).
+        while the optimisation goes on). On a GPU the iterations make no host sync of their own (the rasteriser may):
+        the keyframes' valid pixels are listed before them and the losses read back after them.
         """
         cfg = self.cfg
         if optimise_poses is None:
@@ -67,6 +68,7 @@ class Mapper:
         if twists:
             groups.append(ParameterGroup(list(twists.values()), cfg.lr_pose))
         adam = AdamSteps(groups)
+        valid_pixels = {id(kf): valid_depth_pixels(kf.obs) for kf in keyframes}
         losses = []
         for iteration in range(iterations):
             if self.hurry.is_set():
@@ -74,12 +76,13 @@ class Mapper:
             if self.pressure.is_set() and iteration >= self.min_iteration_fraction * iterations:
                 self.shortened += 1
                 break
-            kf = keyframes[int(torch.randint(len(keyframes), (1,), generator=self.generator))]
+            kf = keyframes[self._keyframe_index(len(keyframes))]
             w2c = invert_pose(kf.cam_to_world.to(params.dtype))
             if id(kf) in twists:
                 w2c = se3_exp(twists[id(kf)]) @ w2c
             out = render(params, w2c, kf.obs.camera, backend=self.backend)
-            loss = mapping_loss(out, kf.obs, cfg.w_color, cfg.w_depth, cfg.w_semantic, cfg.ssim_lambda)
+            loss = mapping_loss(out, kf.obs, cfg.w_color, cfg.w_depth, cfg.w_semantic, cfg.ssim_lambda,
+                                valid_pixels[id(kf)])
             adam.step(loss)
             losses.append(loss.detach())
             if publish is not None and publish_every > 0 and (iteration + 1) % publish_every == 0:
@@ -91,6 +94,10 @@ class Mapper:
                 for kf, pose in zip(movable, poses):
                     kf.cam_to_world = pose
         return self._finished(params.detach()), torch.stack(losses).tolist() if losses else []
+
+    def _keyframe_index(self, count: int) -> int:
+        """A uniform draw below ``count`` from the mapper's generator: a CPU one, so no device read."""
+        return int(torch.randint(count, (1,), generator=self.generator))
 
     def _finished(self, cloud: GaussianCloud) -> GaussianCloud:
         """Optimised Gaussians as the map keeps them: colours clamped (in place), then pruned."""
