@@ -12,14 +12,14 @@ from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, Obse
 
 def align_level_on_device(model: ModelView, observed: ObservedImages, motion: torch.Tensor,
                           weights: AlignmentWeights, iterations: int, damping: float = 1e-4,
-                          check_every: int = 4) -> tuple[torch.Tensor, float]:
+                          min_step: float = 1e-6, check_every: int = 4) -> tuple[torch.Tensor, float]:
     """:func:`~gausem_core.slam.direct_alignment.align_level` with the torch normal equations and no host sync per
     step: returns the refined ``motion`` (on its device) and the last mean cost (nan when no step had 12 valid points).
 
-    The solve runs in float64 as on the host. Once converged (|xi| < 1e-6, or a step with fewer than 12 valid points,
-    which moves nothing) the steps leave the motion and the cost as they are, so running on changes nothing. The host
-    reads the converged flag after every ``check_every`` iterations but the last, stopping when it is set, and the
-    cost once at the end: ``ceil(iterations / check_every)`` reads at most."""
+    The solve runs in float64 as on the host. Once converged (|xi| < ``min_step``, or a step with fewer than 12 valid
+    points, which moves nothing) the steps leave the motion and the cost as they are, so running on changes nothing.
+    The host reads the converged flag after every ``check_every`` iterations but the last, stopping when it is set,
+    and the cost once at the end: ``ceil(iterations / check_every)`` reads at most."""
     points, ref = model_samples(model, observed)
     device, motion = motion.device, motion.detach()
     eye = torch.eye(6, dtype=torch.float64, device=device)
@@ -33,7 +33,7 @@ def align_level_on_device(model: ModelView, observed: ObservedImages, motion: to
         moves = enough & ~done
         motion = torch.where(moves, se3_exp(xi) @ motion, motion)
         cost = torch.where(moves, total.double(), cost)
-        done = done | ~enough | (xi.norm() < 1e-6)
+        done = done | ~enough | (xi.norm() < min_step)
         if i % check_every == 0 and i < iterations and bool(done):
             break
     return motion, float(cost) / len(points)

@@ -12,6 +12,7 @@ from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose, project_to_se3, se3_exp, se3_log
 from gausem_core.render import render
 from gausem_core.slam.adam import AdamSteps, ParameterGroup, has_stalled
+from gausem_core.slam.device_alignment import align_level_on_device
 from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, align_level,
                                                 alignment_cost, model_samples, normal_equations)
 from gausem_core.slam.losses import tracking_loss
@@ -216,8 +217,9 @@ class Tracker:
         """``rounds`` rounds of ``level_iterations`` Gauss-Newton steps (fewer once a step is below ``min_step``): the
         motion and the mean cost before its last step."""
         cfg = self.cfg.gauss_newton
-        return align_level(view, level, motion, alignment_weights(self.cfg), cfg.level_iterations * rounds,
-                           min_step=cfg.min_step)
+        align = align_level if view.depth.device.type == "cpu" else align_level_on_device  # no host sync per step
+        return align(view, level, motion, alignment_weights(self.cfg), cfg.level_iterations * rounds,
+                     min_step=cfg.min_step)
 
     def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
         return self._compared_model(model_view(cloud, cam_to_world, camera, self.cfg, self.backend))
