@@ -181,20 +181,12 @@ class Tracker:
     def _best_start(self, view: ModelView, level: ObservedImages,
                     motions: list[torch.Tensor]) -> tuple[int, torch.Tensor, float]:
         """Which of the start ``motions`` costs least after ``renders_per_level`` rounds on ``level`` against
-        ``view``, its motion and cost. A start after the first is dropped after one round when that round ended
-        costlier than the best result so far (it left its basin: rounds more would only wander)."""
+        ``view``, its motion and cost."""
         weights, rounds = alignment_weights(self.cfg), self.cfg.gauss_newton.renders_per_level
-        best = (-1, motions[0], math.inf)
-        for index, motion in enumerate(motions):
-            motion, cost = self._align_level(view, level, motion)
-            if index > 0 and not cost < best[2]:
-                continue
-            if rounds > 1:
-                motion, _ = self._align_level(view, level, motion, rounds - 1)
-            cost = alignment_cost(view, level, motion, weights)
-            if index == 0 or cost < best[2]:
-                best = (index, motion, cost)
-        return best
+        aligned = [self._align_level(view, level, motion, rounds)[0] for motion in motions]
+        costs = [alignment_cost(view, level, motion, weights) for motion in aligned]
+        best = min(range(len(motions)), key=costs.__getitem__)
+        return best, aligned[best], costs[best]
 
     def _view_pyramid(self, cloud: GaussianCloud, cam_to_world: torch.Tensor,
                       pyramid: list[ObservedImages]) -> list[ModelView]:
