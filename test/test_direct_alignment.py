@@ -173,3 +173,26 @@ def test_the_compiled_level_takes_the_torch_loops_steps(monkeypatch):
         assert cost == pytest.approx(cost_ref, rel=1e-9)
     assert not torch.allclose(compiled[0][0], compiled[1][0], atol=1e-6)  # the small step stopped the second early
     assert torch.equal(compiled[2][0], behind) and np.isnan(compiled[2][1]) and np.isnan(reference[2][1])
+
+
+def test_compared_costs_leave_out_the_points_that_leave_the_view(monkeypatch):
+    """Two motions compared over the model points inside the image under both: where every point stays inside they
+    are alignment_cost's; with the whole view (its border leaves the image under a motion) fewer points count, and
+    the true motion still costs less than none."""
+    model_color, model_depth = ray_cast(torch.eye(4, dtype=torch.float64))
+    observed_color, observed_depth = ray_cast(invert_pose(MOTION))
+    observed = ObservedImages.build(observed_color, observed_color, observed_depth, CAMERA)
+    centre = torch.zeros_like(model_depth, dtype=torch.bool)
+    centre[30:90, 40:120] = True
+    eye = torch.eye(4, dtype=torch.float64)
+    inner = ModelView(model_color, model_color, model_depth, centre, CAMERA)
+    assert direct_alignment.compared_costs(inner, observed, [MOTION, eye], WEIGHTS) == pytest.approx(
+        [direct_alignment.alignment_cost(inner, observed, m, WEIGHTS) for m in (MOTION, eye)], rel=1e-12)
+    whole = ModelView(model_color, model_color, model_depth, torch.ones_like(centre), CAMERA)
+    counted, normal_equations = [], direct_alignment.normal_equations
+    monkeypatch.setattr(direct_alignment, "normal_equations",
+                        lambda observed, motion, weights, points, ref: counted.append(len(points)) or normal_equations(
+                            observed, motion, weights, points, ref))
+    true_cost, no_motion_cost = direct_alignment.compared_costs(whole, observed, [MOTION, eye], WEIGHTS)
+    assert counted[0] == counted[1] < CAMERA.width * CAMERA.height
+    assert true_cost < no_motion_cost

@@ -257,6 +257,24 @@ def alignment_cost(model: ModelView, observed: ObservedImages, motion: torch.Ten
     return float("inf") if step is None else step[2]
 
 
+def compared_costs(model: ModelView, observed: ObservedImages, motions: list[torch.Tensor],
+                   weights: AlignmentWeights) -> list[float]:
+    """Mean weighted L1 residuals of ``model`` seen through each of ``motions``, over the model points that land
+    inside the observed image (half a pixel in from the edge of the bilinear support) under every one of them: a
+    comparison of poses that the view's border, which moves out of view at a cap's cost, does not tilt towards the
+    motion it was rendered at (inf for a motion without 12 valid points)."""
+    points, ref = model_samples(model, observed)
+    cam, inside = observed.camera, torch.ones(len(points), dtype=torch.bool, device=points.device)
+    for motion in motions:
+        p = points @ motion[:3, :3].T.to(points) + motion[:3, 3].to(points)
+        z = p[:, 2].clamp_min(1e-3)
+        u, v = cam.fx * p[:, 0] / z + cam.cx, cam.fy * p[:, 1] / z + cam.cy
+        inside &= (p[:, 2] > 1e-3) & (u > 1) & (u < cam.width - 1) & (v > 1) & (v < cam.height - 1)
+    points, ref = points[inside], ref[:, inside].contiguous()
+    steps = [normal_equations(observed, motion, weights, points, ref) for motion in motions]
+    return [float("inf") if step is None else step[2] for step in steps]
+
+
 def align_level(model: ModelView, observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
                 iterations: int, damping: float = 1e-4, min_step: float = 1e-6) -> tuple[torch.Tensor, float]:
     """Refine ``motion`` (observed-camera-from-model-camera, 4x4) on one level by at most ``iterations`` steps,

@@ -14,7 +14,7 @@ from gausem_core.render import render
 from gausem_core.slam.adam import AdamSteps, ParameterGroup, has_stalled
 from gausem_core.slam.device_alignment import align_level_on_device
 from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, align_level,
-                                                alignment_cost, model_samples, normal_equations)
+                                                alignment_cost, compared_costs, model_samples, normal_equations)
 from gausem_core.slam.losses import tracking_loss
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.photometric import local_contrast
@@ -159,24 +159,25 @@ class Tracker:
         model view rendered at the first start and downsampled for the coarser levels; the estimate is the view's
         pose moved by ``motion`` (observed-from-model camera), and a round renders the view again at the estimate
         only when that moved ``rerender_motion`` from it. The start whose coarsest rounds cost least goes on
-        (:meth:`_best_start`); it is kept if it explains the full-resolution frame better, all costs from the views
-        already rendered."""
+        (:meth:`_best_start`); it is kept if it explains the full-resolution frame better (:func:`compared_costs` on
+        the last view), all costs from the views already rendered."""
         cfg = self.cfg.gauss_newton
         base, views = starts[0], self._view_pyramid(cloud, starts[0], pyramid)
-        first = views[0]
         begun = [invert_pose(start) @ base for start in starts]
-        best, motion, cost = self._best_start(views[-1], pyramid[-1], begun)
+        best, motion, _ = self._best_start(views[-1], pyramid[-1], begun)
         renders = 1
         rounds = [index for index in reversed(range(len(pyramid) - 1)) for _ in range(cfg.renders_per_level)]
         for index in rounds:
             if motion_size(motion, views[0]) > cfg.rerender_motion:
                 base, motion = base @ invert_pose(motion), torch.eye(4, dtype=motion.dtype, device=motion.device)
                 views, renders = self._view_pyramid(cloud, base, pyramid), renders + 1
-            motion, cost = self._align_level(views[index], pyramid[index], motion)  # cost: before the last step
-        initial_cost = alignment_cost(first, pyramid[0], begun[best], weights)
-        if not cost <= initial_cost:  # a nan cost: the views stopped overlapping
-            return TrackingResult(starts[best], initial_cost, renders)
-        return TrackingResult(project_to_se3(base @ invert_pose(motion)), cost, renders)
+            motion = self._align_level(views[index], pyramid[index], motion)[0]
+        initial = invert_pose(starts[best]) @ base
+        cost, initial_cost = compared_costs(views[0], pyramid[0], [motion, initial], weights)
+        if initial_cost < cost:
+            return TrackingResult(starts[best], alignment_cost(views[0], pyramid[0], initial, weights), renders)
+        return TrackingResult(project_to_se3(base @ invert_pose(motion)),
+                              alignment_cost(views[0], pyramid[0], motion, weights), renders)
 
     def _best_start(self, view: ModelView, level: ObservedImages,
                     motions: list[torch.Tensor]) -> tuple[int, torch.Tensor, float]:
