@@ -171,7 +171,7 @@ class Tracker:
             if motion_size(motion, views[0]) > cfg.rerender_motion:
                 base, motion = base @ invert_pose(motion), torch.eye(4, dtype=motion.dtype, device=motion.device)
                 views, renders = self._view_pyramid(cloud, base, pyramid), renders + 1
-            motion = self._align_level(views[index], pyramid[index], motion)[0]
+            motion = self._align_level(views[index], pyramid[index], motion)
         initial = invert_pose(starts[best]) @ base
         cost, initial_cost = compared_costs(views[0], pyramid[0], [motion, initial], weights)
         if initial_cost < cost:
@@ -184,7 +184,7 @@ class Tracker:
         """Which of the start ``motions`` costs least after ``renders_per_level`` rounds on ``level`` against
         ``view``, its motion and cost."""
         weights, rounds = alignment_weights(self.cfg), self.cfg.gauss_newton.renders_per_level
-        aligned = [self._align_level(view, level, motion, rounds)[0] for motion in motions]
+        aligned = [self._align_level(view, level, motion, rounds) for motion in motions]
         costs = [alignment_cost(view, level, motion, weights) for motion in aligned]
         best = min(range(len(motions)), key=costs.__getitem__)
         return best, aligned[best], costs[best]
@@ -202,17 +202,17 @@ class Tracker:
                eye: torch.Tensor) -> torch.Tensor:
         """``renders_per_level`` rounds of render-at-the-estimate + Gauss-Newton on one pyramid level."""
         for _ in range(self.cfg.gauss_newton.renders_per_level):
-            pose = pose @ invert_pose(self._align_level(self._model_view(cloud, pose, level.camera), level, eye)[0])
+            pose = pose @ invert_pose(self._align_level(self._model_view(cloud, pose, level.camera), level, eye))
         return pose
 
     def _align_level(self, view: ModelView, level: ObservedImages, motion: torch.Tensor,
-                     rounds: int = 1) -> tuple[torch.Tensor, float]:
-        """``rounds`` rounds of ``level_iterations`` Gauss-Newton steps (fewer once a step is below ``min_step``): the
-        motion and the mean cost before its last step."""
+                     rounds: int = 1) -> torch.Tensor:
+        """``motion`` after ``rounds`` rounds of ``level_iterations`` Gauss-Newton steps (fewer once a step is below
+        ``min_step``)."""
         cfg = self.cfg.gauss_newton
         align = align_level if view.depth.device.type == "cpu" else align_level_on_device  # no host sync per step
         return align(view, level, motion, alignment_weights(self.cfg), cfg.level_iterations * rounds,
-                     min_step=cfg.min_step)
+                     min_step=cfg.min_step)[0]
 
     def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
         return self._compared_model(model_view(cloud, cam_to_world, camera, self.cfg, self.backend))
