@@ -129,27 +129,32 @@ class Tracker:
                             starts: list[torch.Tensor]) -> TrackingResult:
         """Coarse-to-fine Gauss-Newton from the start whose coarsest-level alignment costs least; keeps that start if
         the result explains the full-resolution frame worse (coarse levels can leave the basin of convergence when
-        the map covers little of the view), judged on the last model view rendered (:meth:`_keep_better`)."""
+        the map covers little of the view)."""
         cfg, weights = self.cfg.gauss_newton, alignment_weights(self.cfg)
         pyramid = ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera).pyramid(cfg.pyramid_levels,
                                                                                              cfg.coarsest_width)
         pyramid = [self._compared_colour(level) for level in pyramid]
         if cfg.model_views == "per_frame":
             with torch.no_grad():
-                return self._track_per_frame(cloud, [start.to(cloud.dtype) for start in starts], pyramid)
+                return self._track_per_frame(cloud, [start.to(cloud.dtype) for start in starts], pyramid, weights)
         eye = torch.eye(4, dtype=cloud.dtype, device=cloud.means.device)
         with torch.no_grad():
-            coarse = [self._align(cloud, start.to(cloud.dtype), pyramid[-1], eye)[0] for start in starts]
-            checked = [self._model_view(cloud, pose, pyramid[-1].camera) for pose in coarse]
-            best = min(range(len(starts)), key=lambda i: alignment_cost(checked[i], pyramid[-1], eye, weights))
-            pose, view, view_pose = coarse[best], checked[best], coarse[best]
+            coarse = [self._align(cloud, start.to(cloud.dtype), pyramid[-1], weights, eye) for start in starts]
+            best = min(range(len(starts)), key=lambda i: alignment_cost(
+                self._model_view(cloud, coarse[i], pyramid[-1].camera), pyramid[-1], eye, weights))
+            initial, pose = starts[best].to(cloud.dtype), coarse[best]
             for level in reversed(pyramid[:-1]):
-                pose, view, view_pose = self._align(cloud, pose, level, eye)
-            renders = cfg.renders_per_level * (len(pyramid) - 1 + len(starts))
-            return self._keep_better(view, view_pose, pyramid[0], pose, starts[best].to(cloud.dtype), renders)
+                pose = self._align(cloud, pose, level, weights, eye)
+            iterations = cfg.renders_per_level * (len(pyramid) - 1 + len(starts))
+            full = pyramid[0]
+            cost = alignment_cost(self._model_view(cloud, pose, full.camera), full, eye, weights)
+            initial_cost = alignment_cost(self._model_view(cloud, initial, full.camera), full, eye, weights)
+        if initial_cost < cost:
+            return TrackingResult(initial, initial_cost, iterations)
+        return TrackingResult(project_to_se3(pose), cost, iterations)
 
-    def _track_per_frame(self, cloud: GaussianCloud, starts: list[torch.Tensor],
-                         pyramid: list[ObservedImages]) -> TrackingResult:
+    def _track_per_frame(self, cloud: GaussianCloud, starts: list[torch.Tensor], pyramid: list[ObservedImages],
+                         weights: AlignmentWeights) -> TrackingResult:
         """Coarse-to-fine Gauss-Newton, ``renders_per_level`` rounds of ``level_iterations`` per level, against one
         model view rendered at the first start and downsampled for the coarser levels; the estimate is the view's
         pose moved by ``motion`` (observed-from-model camera), and a round renders the view again at the estimate
@@ -167,17 +172,12 @@ class Tracker:
                 base, motion = base @ invert_pose(motion), torch.eye(4, dtype=motion.dtype, device=motion.device)
                 views, renders = self._view_pyramid(cloud, base, pyramid), renders + 1
             motion = self._align_level(views[index], pyramid[index], motion)
-        return self._keep_better(views[0], base, pyramid[0], base @ invert_pose(motion), starts[best], renders)
-
-    def _keep_better(self, view: ModelView, view_pose: torch.Tensor, level: ObservedImages, pose: torch.Tensor,
-                     start: torch.Tensor, renders: int) -> TrackingResult:
-        """``pose``, or ``start`` where that explains the full-resolution ``level`` better over the same points of
-        ``view`` (rendered at ``view_pose``; :func:`compared_costs`), with its cost."""
-        weights = alignment_weights(self.cfg)
-        motions = [invert_pose(p) @ view_pose for p in (pose, start)]
-        cost, start_cost = compared_costs(view, level, motions, weights)
-        chosen, motion = (start, motions[1]) if start_cost < cost else (project_to_se3(pose), motions[0])
-        return TrackingResult(chosen, alignment_cost(view, level, motion, weights), renders)
+        initial = invert_pose(starts[best]) @ base
+        cost, initial_cost = compared_costs(views[0], pyramid[0], [motion, initial], weights)
+        if initial_cost < cost:
+            return TrackingResult(starts[best], alignment_cost(views[0], pyramid[0], initial, weights), renders)
+        return TrackingResult(project_to_se3(base @ invert_pose(motion)),
+                              alignment_cost(views[0], pyramid[0], motion, weights), renders)
 
     def _best_start(self, view: ModelView, level: ObservedImages,
                     motions: list[torch.Tensor]) -> tuple[int, torch.Tensor, float]:
@@ -198,14 +198,12 @@ class Tracker:
             views.append(views[-1].downsampled())
         return [self._compared_model(view) for view in views]
 
-    def _align(self, cloud: GaussianCloud, pose: torch.Tensor, level: ObservedImages,
-               eye: torch.Tensor) -> tuple[torch.Tensor, ModelView, torch.Tensor]:
-        """``renders_per_level`` rounds of render-at-the-estimate + Gauss-Newton on one pyramid level: the pose, the
-        last model view and the pose it was rendered at."""
+    def _align(self, cloud: GaussianCloud, pose: torch.Tensor, level: ObservedImages, weights: AlignmentWeights,
+               eye: torch.Tensor) -> torch.Tensor:
+        """``renders_per_level`` rounds of render-at-the-estimate + Gauss-Newton on one pyramid level."""
         for _ in range(self.cfg.gauss_newton.renders_per_level):
-            view, view_pose = self._model_view(cloud, pose, level.camera), pose
-            pose = pose @ invert_pose(self._align_level(view, level, eye))
-        return pose, view, view_pose
+            pose = pose @ invert_pose(self._align_level(self._model_view(cloud, pose, level.camera), level, eye))
+        return pose
 
     def _align_level(self, view: ModelView, level: ObservedImages, motion: torch.Tensor,
                      rounds: int = 1) -> torch.Tensor:
