@@ -171,6 +171,7 @@ def performance_metrics(result: RunResult, device: torch.device) -> dict:
     out = {"frames": frames, "seconds": result.seconds, "fps": result.fps,
            "seconds_per_frame": result.seconds / frames if frames else math.nan,
            "num_gaussians": sum(len(s.cloud) for s in slam.submaps), "num_submaps": len(slam.submaps),
+           "gaussians_per_submap": [len(s.cloud) for s in slam.submaps],
            "num_keyframes": sum(len(s.keyframes) for s in slam.submaps), "peak_rss_mb": peak_rss_mb()}
     if result.frame_seconds:
         out["frame_ms_median"] = 1e3 * percentile(result.frame_seconds, 0.5)

@@ -83,7 +83,8 @@ def test_outputs_of_an_exact_run(tmp_path):
     np.testing.assert_allclose(keyframes.poses, gt[[0, 2]], atol=1e-5)
 
     ply_cloud, ply_ids = read_gaussian_ply(tmp_path / "map.ply")
-    assert len(ply_cloud) == len(cloud) == metrics["num_gaussians"]
+    assert len(ply_cloud) == len(cloud) == metrics["num_gaussians"] == sum(metrics["gaussians_per_submap"])
+    assert len(metrics["gaussians_per_submap"]) == metrics["num_submaps"] == 2
     torch.testing.assert_close(ply_cloud.means, cloud.means, atol=1e-6, rtol=0)
     assert torch.equal(ply_ids, cloud.class_ids(dataset.class_table.palette))
 
