@@ -31,11 +31,12 @@ from gausem_core.tools.run import default_params_file
 
 from gausem_bench import results
 from gausem_bench.data import expand
-VARIANTS = ("per_level", "per_frame")  # model_views[:rerender_motion]
+VARIANTS = ("per_level", "per_frame")  # model_views[,KEY=VALUE...] of tracking.gauss_newton
 WHAT = ("Tracker.track against a fixed map built at the ground-truth poses of every 5th frame, each frame from the "
         "constant-velocity prediction of its variant's own estimates (variants take turns frame by frame); "
         "model views rendered at every pyramid level (per_level) or once per frame at full resolution and "
-        "downsampled, again only when the estimate moved rerender_motion (per_frame[:rerender_motion]).")
+        "downsampled, again only when the estimate moved rerender_motion (per_frame); other tracking.gauss_newton "
+        "values after commas.")
 
 
 def fixed_map(pipeline: Pipeline, poses: list[torch.Tensor], every: int):
@@ -52,9 +53,11 @@ def fixed_map(pipeline: Pipeline, poses: list[torch.Tensor], every: int):
 
 
 def with_variant(cfg, name: str):
-    """``cfg`` (tracking.gauss_newton) with ``model_views[:rerender_motion]`` from ``name``."""
-    views, _, motion = name.partition(":")
-    return replace(cfg, model_views=views, **({"rerender_motion": float(motion)} if motion else {}))
+    """``cfg`` (tracking.gauss_newton) with the model views and the other values that ``name`` sets
+    (``MODEL_VIEWS[,KEY=VALUE...]``, e.g. ``per_frame,min_step=1e-5``)."""
+    views, *settings = name.split(",")
+    values = {key: type(getattr(cfg, key))(value) for key, value in (s.split("=", 1) for s in settings)}
+    return replace(cfg, model_views=views, **values)
 
 
 class RenderCounter:
@@ -77,7 +80,8 @@ def main() -> None:
     parser.add_argument("--keyframe-every", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS),
-                        help="model_views values, each optionally with :rerender_motion (e.g. per_frame:0.01)")
+                        help="model_views values, each optionally with tracking.gauss_newton values "
+                             "(e.g. per_frame,min_step=1e-5,rerender_motion=0.01)")
     parser.add_argument("--name", help="results file name (default: tracking_step_<dataset>_<size>)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
