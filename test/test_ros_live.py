@@ -313,12 +313,14 @@ def test_a_tracker_killed_mid_replay_is_respawned_into_the_same_map(tmp_path, mo
             assert spin_until(executor, lambda: then.done, 180.0)
             after = odometry.messages["gausem/odometry"][len(before):]
             assert len(before) >= 4 and len(after) >= 3  # (a frame relocalisation cannot place yet gets no odometry)
-            # the map's world frame is its first frame's camera (the first frame answered)
+            # the map's world frame is its first frame's camera (the first frame answered); a new map's origin would
+            # be off by the whole expected distance (> 0.15 m), the resumed map within half of that (an 80x60 map of
+            # six frames: the first relocalised frame lands about 5 cm off)
             origin = np.linalg.inv(truth[ma.time_to_ns(before[0].header.stamp)])
             for msg in after:
                 expected = (origin @ truth[ma.time_to_ns(msg.header.stamp)])[:3, 3]
                 position = ma.odometry_to_matrix(msg)[:3, 3]
-                assert np.linalg.norm(expected) > 0.15 and np.linalg.norm(position - expected) < 0.05
+                assert np.linalg.norm(expected) > 0.15 and np.linalg.norm(position - expected) < 0.075
     finally:
         launcher._forward(signal.SIGTERM, None)
         thread.join(30.0)
