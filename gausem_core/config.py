@@ -45,6 +45,8 @@ class GaussNewtonTrackingConfig:
     # moved rerender_motion (translation / median model depth + rotation in radians) from where it was rendered
     model_views: str = "per_level"
     rerender_motion: float = 0.02
+    full_resolution_points: str = "all"  # per_frame: the model pixels aligned at full resolution, "all" or
+    # "checkerboard" (every other one: half the cost of the finest level)
     # more starts on the coarsest level: the prediction moved this far (metres) along each camera axis, both ways,
     # and turned this far (degrees) about each. search: "gaps" after skipped or lost frames (a live node slower than
     # its camera), "always", or "never"

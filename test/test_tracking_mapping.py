@@ -347,24 +347,41 @@ def test_a_segments_second_frame_gets_the_gap_measures(mode):
 def test_one_model_view_per_frame_recovers_the_motion_with_a_render_or_two(scene, monkeypatch):
     """tracking.gauss_newton.model_views per_frame: the map rendered once at the start, its pyramid downsampled from
     it, rendered again only when the estimate moved rerender_motion: frames 1 and 2 come out as well as with a
-    render per level and round, in far fewer renders."""
+    render per level and round, in far fewer renders, with all the full-resolution pixels or a checkerboard of them."""
     from gausem_core.slam import tracker as tracker_module
 
     cfg, cloud, observations, truths, _ = scene
     renders = {}
-    for views in ("per_level", "per_frame"):
+    for views, points in (("per_level", "all"), ("per_frame", "all"), ("per_frame", "checkerboard")):
         calls = []
         monkeypatch.setattr(tracker_module, "render", lambda *a, _render=render, _calls=calls, **k: (
             _calls.append(1), _render(*a, **k))[1])
-        tracking = dataclasses.replace(cfg.tracking, gauss_newton=dataclasses.replace(cfg.tracking.gauss_newton,
-                                                                                      model_views=views))
+        tracking = dataclasses.replace(cfg.tracking, gauss_newton=dataclasses.replace(
+            cfg.tracking.gauss_newton, model_views=views, full_resolution_points=points))
         for translation, rotation, motion in tracked_errors(Tracker(tracking, "torch"), cloud, observations, truths):
-            assert translation < 0.25 * motion and rotation < 0.5, (views, translation, rotation, motion)
-        renders[views] = len(calls)
-    assert renders["per_frame"] <= renders["per_level"] / 3, renders
-    with pytest.raises(ValueError, match="model_views"):
-        Tracker(dataclasses.replace(cfg.tracking, gauss_newton=dataclasses.replace(cfg.tracking.gauss_newton,
-                                                                                   model_views="sometimes")))
+            assert translation < 0.25 * motion and rotation < 0.5, (views, points, translation, rotation, motion)
+        renders[views, points] = len(calls)
+    assert renders["per_frame", "all"] <= renders["per_level", "all"] / 3, renders
+    assert renders["per_frame", "checkerboard"] <= renders["per_level", "all"] / 3, renders
+    for name, value in (("model_views", "sometimes"), ("full_resolution_points", "some")):
+        with pytest.raises(ValueError, match=name):
+            Tracker(dataclasses.replace(cfg.tracking, gauss_newton=dataclasses.replace(cfg.tracking.gauss_newton,
+                                                                                       **{name: value})))
+
+
+def test_a_checkerboard_model_view_keeps_every_other_pixel_of_its_silhouette():
+    from gausem_core.geometry import PinholeCamera
+    from gausem_core.slam.direct_alignment import ModelView
+
+    depth = torch.ones(4, 6)
+    mask = torch.ones(4, 6, dtype=torch.bool)
+    mask[0, :] = False
+    view = ModelView(torch.zeros(4, 6, 3), torch.zeros(4, 6, 3), depth, mask, PinholeCamera(6.0, 6.0, 3.0, 2.0, 6, 4))
+    board = view.checkerboard()
+    assert int(board.mask.sum()) == 9 and not bool((board.mask & ~mask).any())
+    assert not bool((board.mask[:, 1:] & board.mask[:, :-1]).any())  # no two neighbours in a row ...
+    assert not bool((board.mask[1:] & board.mask[:-1]).any())  # ... or a column
+    assert len(board.samples[0]) == 9 and len(view.samples[0]) == 18
 
 
 def test_a_downsampled_model_view_averages_inside_the_silhouette():

@@ -11,7 +11,7 @@ channels (the feature term of SGR's Eq. 6) enter exactly like colour: per-pixel 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -45,6 +45,14 @@ class ModelView:
         """The median depth inside the mask (inf for an empty view)."""
         depth = self.depth[self.mask]
         return float(depth.median()) if len(depth) else float("inf")
+
+    def checkerboard(self) -> "ModelView":
+        """The view with half its pixels: those of the mask whose row plus column is even. At a full resolution
+        where a Gaussian covers several pixels, neighbours see about the same surface: the alignment keeps its
+        accuracy at half the cost."""
+        rows = torch.arange(self.mask.shape[0], device=self.mask.device)[:, None]
+        cols = torch.arange(self.mask.shape[1], device=self.mask.device)[None, :]
+        return replace(self, mask=self.mask & ((rows + cols) % 2 == 0))
 
     def downsampled(self) -> "ModelView":
         """Half resolution: the pixels whose 2x2 block lies mostly inside the silhouette, their values averaged over

@@ -21,6 +21,7 @@ from gausem_core.slam.photometric import local_contrast
 
 METHODS = ("gauss_newton", "adam")
 MODEL_VIEWS = ("per_level", "per_frame")
+FULL_RESOLUTION_POINTS = ("all", "checkerboard")
 
 
 @dataclass
@@ -101,6 +102,9 @@ class Tracker:
         if cfg.gauss_newton.model_views not in MODEL_VIEWS:
             raise ValueError(f"tracking.gauss_newton.model_views must be one of {MODEL_VIEWS}, got "
                              f"{cfg.gauss_newton.model_views!r}")
+        if cfg.gauss_newton.full_resolution_points not in FULL_RESOLUTION_POINTS:
+            raise ValueError(f"tracking.gauss_newton.full_resolution_points must be one of {FULL_RESOLUTION_POINTS}, "
+                             f"got {cfg.gauss_newton.full_resolution_points!r}")
         check_gap_mode("tracking.gauss_newton.search", cfg.gauss_newton.search)
         self.cfg = cfg
         self.backend = backend
@@ -131,9 +135,9 @@ class Tracker:
         the result explains the full-resolution frame worse (coarse levels can leave the basin of convergence when
         the map covers little of the view)."""
         cfg, weights = self.cfg.gauss_newton, alignment_weights(self.cfg)
-        pyramid = ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera).pyramid(cfg.pyramid_levels,
-                                                                                             cfg.coarsest_width)
-        pyramid = [self._compared_colour(level) for level in pyramid]
+        rgb = local_contrast(obs.rgb, cfg.color_normalisation_width)  # compared with the model views' colour
+        pyramid = ObservedImages.build(rgb, obs.semantic, obs.depth, obs.camera).pyramid(cfg.pyramid_levels,
+                                                                                         cfg.coarsest_width)
         if cfg.model_views == "per_frame":
             with torch.no_grad():
                 return self._track_per_frame(cloud, [start.to(cloud.dtype) for start in starts], pyramid, weights)
@@ -159,12 +163,13 @@ class Tracker:
         model view rendered at the first start and downsampled for the coarser levels; the estimate is the view's
         pose moved by ``motion`` (observed-from-model camera), and a round renders the view again at the estimate
         only when that moved ``rerender_motion`` from it. The start whose coarsest rounds cost least goes on
-        (:meth:`_best_start`); it is kept if it explains the full-resolution frame better (:func:`compared_costs` on
-        the last view), all costs from the views already rendered."""
+        (:meth:`_best_start`); a start is kept instead if it explains the full-resolution frame better than the result
+        (:func:`compared_costs` on the last view: the view's border that leaves the image under any of the poses left
+        out), all costs from the views already rendered; the pose kept carries its cost."""
         cfg = self.cfg.gauss_newton
         base, views = starts[0], self._view_pyramid(cloud, starts[0], pyramid)
         begun = [invert_pose(start) @ base for start in starts]
-        best, motion, _ = self._best_start(views[-1], pyramid[-1], begun)
+        best, motion = self._best_start(views[-1], pyramid[-1], begun)
         renders = 1
         rounds = [index for index in reversed(range(len(pyramid) - 1)) for _ in range(cfg.renders_per_level)]
         for index in rounds:
@@ -172,31 +177,35 @@ class Tracker:
                 base, motion = base @ invert_pose(motion), torch.eye(4, dtype=motion.dtype, device=motion.device)
                 views, renders = self._view_pyramid(cloud, base, pyramid), renders + 1
             motion = self._align_level(views[index], pyramid[index], motion)
-        initial = invert_pose(starts[best]) @ base
-        cost, initial_cost = compared_costs(views[0], pyramid[0], [motion, initial], weights)
-        if initial_cost < cost:
-            return TrackingResult(starts[best], alignment_cost(views[0], pyramid[0], initial, weights), renders)
-        return TrackingResult(project_to_se3(base @ invert_pose(motion)),
-                              alignment_cost(views[0], pyramid[0], motion, weights), renders)
+        poses = [project_to_se3(base @ invert_pose(motion)), *starts]
+        costs = compared_costs(views[0], pyramid[0], [invert_pose(pose) @ base for pose in poses], weights)
+        kept = min(range(len(poses)), key=costs.__getitem__)
+        return TrackingResult(poses[kept], costs[kept], renders)
 
     def _best_start(self, view: ModelView, level: ObservedImages,
-                    motions: list[torch.Tensor]) -> tuple[int, torch.Tensor, float]:
+                    motions: list[torch.Tensor]) -> tuple[int, torch.Tensor]:
         """Which of the start ``motions`` costs least after ``renders_per_level`` rounds on ``level`` against
-        ``view``, its motion and cost."""
+        ``view`` (:func:`compared_costs`: the view's border that leaves the image under any of them left out), and
+        its motion."""
         weights, rounds = alignment_weights(self.cfg), self.cfg.gauss_newton.renders_per_level
         aligned = [self._align_level(view, level, motion, rounds) for motion in motions]
-        costs = [alignment_cost(view, level, motion, weights) for motion in aligned]
+        if len(aligned) == 1:
+            return 0, aligned[0]
+        costs = compared_costs(view, level, aligned, weights)
         best = min(range(len(motions)), key=costs.__getitem__)
-        return best, aligned[best], costs[best]
+        return best, aligned[best]
 
     def _view_pyramid(self, cloud: GaussianCloud, cam_to_world: torch.Tensor,
                       pyramid: list[ObservedImages]) -> list[ModelView]:
-        """The model rendered once at ``cam_to_world`` at full resolution and halved to match ``pyramid``'s levels,
-        each level's colour compared as the observation's is."""
-        views = [model_view(cloud, cam_to_world, pyramid[0].camera, self.cfg, self.backend)]
+        """The model rendered once at ``cam_to_world`` at full resolution, its colour compared as the observation's
+        is, and halved to match ``pyramid``'s levels (as the observation's pyramid is made); the full-resolution
+        view keeps ``full_resolution_points``."""
+        views = [self._model_view(cloud, cam_to_world, pyramid[0].camera)]
         while len(views) < len(pyramid):
             views.append(views[-1].downsampled())
-        return [self._compared_model(view) for view in views]
+        if self.cfg.gauss_newton.full_resolution_points == "checkerboard":
+            views[0] = views[0].checkerboard()
+        return views
 
     def _align(self, cloud: GaussianCloud, pose: torch.Tensor, level: ObservedImages, weights: AlignmentWeights,
                eye: torch.Tensor) -> torch.Tensor:
@@ -215,21 +224,10 @@ class Tracker:
                      min_step=cfg.min_step)[0]
 
     def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
-        return self._compared_model(model_view(cloud, cam_to_world, camera, self.cfg, self.backend))
-
-    def _compared_model(self, view: ModelView) -> ModelView:
-        """The view with the colour that is compared with the observation's (``slam.photometric``)."""
+        """The model view with the colour that is compared with the observation's (``slam.photometric``)."""
+        view = model_view(cloud, cam_to_world, camera, self.cfg, self.backend)
         return replace(view, color=local_contrast(view.color, self.cfg.gauss_newton.color_normalisation_width,
                                                   view.mask))
-
-    def _compared_colour(self, level: ObservedImages) -> ObservedImages:
-        """The level with the colour that is compared with the model views' (``slam.photometric``)."""
-        width = self.cfg.gauss_newton.color_normalisation_width
-        if width <= 0:
-            return level
-        s = level.stack
-        return ObservedImages.build(local_contrast(s[:3].permute(1, 2, 0), width),
-                                    s[3:6].permute(1, 2, 0), s[6], level.camera)
 
     def _track_adam(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor) -> TrackingResult:
         cfg = self.cfg.adam
