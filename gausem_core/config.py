@@ -37,12 +37,12 @@ class GaussNewtonTrackingConfig:
 
     pyramid_levels: int = 3  # at least this many image pyramid levels, ...
     coarsest_width: int = 80  # ... and more while the coarsest is wider than this (pixels): 640 wide, 4 levels
-    renders_per_level: int = 2  # model re-renders per pyramid level ("per_level" model views) ...
-    level_iterations: int = 8  # ... each followed by this many Gauss-Newton iterations (per_frame: both per level)
+    renders_per_level: int = 2  # rounds per pyramid level (per_level: each on a model view rendered at the estimate)
+    level_iterations: int = 8  # ... each of this many Gauss-Newton iterations
     min_step: float = 2e-5  # a level's iterations stop at a step |xi| below this (metres + radians)
-    # "per_level": the model rendered at the estimate renders_per_level times on every pyramid level; "per_frame": once
-    # at the start, at full resolution, its pyramid made by downsampling, re-rendered at the estimate only when that
-    # moved rerender_motion (translation / median model depth + rotation in radians) from where it was rendered
+    # "per_level": the model rendered at the estimate for every round on every level; "per_frame": once, at the start,
+    # at full resolution, its pyramid made by downsampling, and again at the estimate only when that moved
+    # rerender_motion (translation / median model depth + rotation in radians) from where it was rendered
     model_views: str = "per_level"
     rerender_motion: float = 0.02
     full_resolution_points: str = "all"  # per_frame: the model pixels aligned at full resolution, "all" or
