@@ -1,7 +1,8 @@
 // Normal equations of one Gauss-Newton step of direct alignment (gausem_core/slam/direct_alignment.py) in one pass:
 // per model point, move it by the motion, project it into the observed frame, sample the observed channels and their
 // gradients bilinearly, form the residuals and IRLS weights of every channel, and accumulate H = sum w J J^T,
-// g = sum w J r and the truncated L1 cost, in double, without per-point storage.
+// g = sum w J r and the truncated L1 cost, in double. Points go through in blocks of kLanes, each stage a loop over
+// the block that the compiler vectorises (AVX2 where the CPU has it), the sums kept per lane until the end.
 //
 // Every channel's Jacobian is J_c = a_c^T B with a_c = (du_c, dv_c, -[c is depth]) its image gradients and B (3 x 6)
 // the derivatives of (u, v, z) by the twist, so a point adds B^T (sum_c w_c a_c a_c^T) B to H: the channels meet in
@@ -14,6 +15,7 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <memory>
 #include <vector>
 
 namespace {
@@ -33,70 +35,120 @@ struct Problem {
   double huber_delta, max_depth_residual, max_depth_slope, cap;
 };
 
+// Per-lane partial sums of a run of points, lane = point index within a block: every loop over a block's lanes is
+// free of branches and cross-lane dependencies, so that the compiler vectorises it.
+constexpr int64_t kLanes = 64;
+
+struct LaneSums {
+  double h[21][kLanes] = {};  // upper triangle of H, row by row
+  double g[6][kLanes] = {};
+  double cost[kLanes] = {};
+  int64_t valid = 0;
+};
+
 template <typename scalar_t>
-void add_point(const Problem& pb, const scalar_t* pt, const scalar_t* ref, int64_t n, const scalar_t* samples,
-               double* values, Sums& s) {
+#if defined(__x86_64__) && defined(__linux__) && defined(__GNUC__)  // AVX2 + FMA where the CPU has them (ifunc)
+__attribute__((target_clones("arch=x86-64-v3", "default")))
+#endif
+void add_block(const Problem& pb, const scalar_t* pts, const scalar_t* ref, int64_t first, int64_t count,
+               const scalar_t* samples, double* values, LaneSums& s) {
   const double* m = pb.motion;
-  const double px = pt[0], py = pt[1], pz = pt[2];
-  const double x = m[0] * px + m[1] * py + m[2] * pz + m[3];
-  const double y = m[4] * px + m[5] * py + m[6] * pz + m[7];
-  const double z = m[8] * px + m[9] * py + m[10] * pz + m[11];
-  const double u = pb.fx * x / z + pb.cx, v = pb.fy * y / z + pb.cy;
-  if (!(z > 1e-3 && u > 0.5 && u < pb.width - 0.5 && v > 0.5 && v < pb.height - 0.5)) {
-    s.cost += pb.cap;
-    return;
-  }
-  // bilinear weights at pixel centres (+0.5), as grid_sample with align_corners=False; all four corners inside
-  const double ix = u - 0.5, iy = v - 0.5;
-  const int64_t x0 = std::min<int64_t>(static_cast<int64_t>(ix), pb.width - 2);
-  const int64_t y0 = std::min<int64_t>(static_cast<int64_t>(iy), pb.height - 2);
-  const double wx = ix - x0, wy = iy - y0;
-  const double w00 = (1 - wx) * (1 - wy), w01 = wx * (1 - wy), w10 = (1 - wx) * wy, w11 = wx * wy;
   const int64_t channels = pb.channels, stride = 3 * channels, row = pb.width * stride;
-  const scalar_t* p00 = samples + (y0 * pb.width + x0) * stride;  // the four corners' 3C values lie contiguously
-  const scalar_t* p01 = p00 + stride;
-  for (int64_t c = 0; c < stride; ++c) {
-    values[c] = w00 * p00[c] + w01 * p01[c] + w10 * p00[row + c] + w11 * p01[row + c];
+  const double fx = pb.fx, fy = pb.fy;
+  double x[kLanes], y[kLanes], z[kLanes], u[kLanes], v[kLanes], ok[kLanes];
+  for (int64_t i = 0; i < count; ++i) {
+    const scalar_t* pt = pts + 3 * (first + i);
+    const double px = pt[0], py = pt[1], pz = pt[2];
+    x[i] = m[0] * px + m[1] * py + m[2] * pz + m[3];
+    y[i] = m[4] * px + m[5] * py + m[6] * pz + m[7];
+    z[i] = m[8] * px + m[9] * py + m[10] * pz + m[11];
+    u[i] = fx * x[i] / z[i] + pb.cx, v[i] = fy * y[i] / z[i] + pb.cy;
+    ok[i] = (z[i] > 1e-3) & (u[i] > 0.5) & (u[i] < pb.width - 0.5) & (v[i] > 0.5) & (v[i] < pb.height - 0.5);
+    z[i] = ok[i] != 0.0 ? z[i] : 1.0;  // finite sums: a lane outside gets no weight and costs the cap
   }
-  auto sample = [values](int64_t c) { return values[c]; };
-  const double depth = sample(6), depth_res = depth - z;
-  if (!(depth > 0 && std::abs(depth_res) < pb.max_depth_residual)) {
-    s.cost += pb.cap;
-    return;
-  }
-  ++s.valid;
-  // the channels' weighted moments of a = (du, dv, dz) and of a r
-  double muu = 0, muv = 0, mvv = 0, muz = 0, mvz = 0, mzz = 0, bu = 0, bv = 0, bz = 0, cost = 0;
-  for (int64_t c = 0; c < channels; ++c) {
-    const double res = c == 6 ? depth_res : sample(c) - ref[(c < 6 ? c : c - 1) * pb.n_points + n];
-    const double gu = sample(channels + c), gv = sample(2 * channels + c), chan = pb.weights[c];
-    cost += chan * std::abs(res);
-    double w = chan / std::max(std::abs(res), pb.huber_delta);
-    if (c == 6 && !((std::abs(gu) * pb.fx + std::abs(gv) * pb.fy) / z < pb.max_depth_slope)) w = 0.0;
-    muu += w * gu * gu, muv += w * gu * gv, mvv += w * gv * gv;
-    bu += w * gu * res, bv += w * gv * res;
-    if (c == 6) {  // the observed depth moves with z: a_z = -1
-      muz -= w * gu;
-      mvz -= w * gv;
-      mzz += w;
-      bz -= w * res;
+  // bilinear samples at pixel centres (+0.5), as grid_sample with align_corners=False, all four corners inside;
+  // values[c * kLanes + i]: channel c of lane i (zero outside)
+  for (int64_t i = 0; i < count; ++i) {
+    if (ok[i] == 0.0) {
+      for (int64_t c = 0; c < stride; ++c) values[c * kLanes + i] = 0.0;
+      continue;
+    }
+    const double ix = u[i] - 0.5, iy = v[i] - 0.5;
+    const int64_t x0 = std::min<int64_t>(static_cast<int64_t>(ix), pb.width - 2);
+    const int64_t y0 = std::min<int64_t>(static_cast<int64_t>(iy), pb.height - 2);
+    const double wx = ix - x0, wy = iy - y0;
+    const double w00 = (1 - wx) * (1 - wy), w01 = wx * (1 - wy), w10 = (1 - wx) * wy, w11 = wx * wy;
+    const scalar_t* p00 = samples + (y0 * pb.width + x0) * stride;  // the four corners' 3C values lie contiguously
+    const scalar_t* p01 = p00 + stride;
+    for (int64_t c = 0; c < stride; ++c) {
+      values[c * kLanes + i] = w00 * p00[c] + w01 * p01[c] + w10 * p00[row + c] + w11 * p01[row + c];
     }
   }
-  s.cost += std::min(cost, pb.cap);
-  // B: rows d(u, v, z)/dxi of the point moved by a left increment exp(xi), dp/dxi = [I | -[p]x]
-  const double inv_z = 1.0 / z, xn = x * inv_z, yn = y * inv_z, fx = pb.fx, fy = pb.fy;
-  const double b[3][6] = {{fx * inv_z, 0.0, -fx * xn * inv_z, -fx * xn * yn, fx * (1 + xn * xn), -fx * yn},
-                          {0.0, fy * inv_z, -fy * yn * inv_z, -fy * (1 + yn * yn), fy * xn * yn, fy * xn},
-                          {0.0, 0.0, 1.0, y, -x, 0.0}};
-  const double mm[3][3] = {{muu, muv, muz}, {muv, mvv, mvz}, {muz, mvz, mzz}};
-  double t[3][6];  // M B
+  double muu[kLanes], muv[kLanes], mvv[kLanes], muz[kLanes], mvz[kLanes], mzz[kLanes];
+  double bu[kLanes], bv[kLanes], bz[kLanes], cost[kLanes], valid[kLanes];
+  const double* depth = values + 6 * kLanes;
+  for (int64_t i = 0; i < count; ++i) {
+    const double depth_res = depth[i] - z[i];
+    valid[i] = ok[i] * (depth[i] > 0) * (std::abs(depth_res) < pb.max_depth_residual);
+    muu[i] = muv[i] = mvv[i] = muz[i] = mvz[i] = mzz[i] = bu[i] = bv[i] = bz[i] = cost[i] = 0.0;
+  }
+  // the channels' weighted moments of a = (du, dv, dz) and of a r
+  for (int64_t c = 0; c < channels; ++c) {
+    const double* obs = values + c * kLanes;
+    const double* gu = values + (channels + c) * kLanes;
+    const double* gv = values + (2 * channels + c) * kLanes;
+    const double chan = pb.weights[c];
+    if (c == 6) {  // depth: the observed depth moves with z (a_z = -1); no weight across a discontinuity
+      for (int64_t i = 0; i < count; ++i) {
+        const double res = obs[i] - z[i];
+        cost[i] += chan * std::abs(res);
+        const bool smooth = (std::abs(gu[i]) * fx + std::abs(gv[i]) * fy) / z[i] < pb.max_depth_slope;
+        const double w = smooth * valid[i] * chan / std::max(std::abs(res), pb.huber_delta);
+        muu[i] += w * gu[i] * gu[i], muv[i] += w * gu[i] * gv[i], mvv[i] += w * gv[i] * gv[i];
+        bu[i] += w * gu[i] * res, bv[i] += w * gv[i] * res;
+        muz[i] -= w * gu[i], mvz[i] -= w * gv[i], mzz[i] += w, bz[i] -= w * res;
+      }
+      continue;
+    }
+    const scalar_t* r = ref + (c < 6 ? c : c - 1) * pb.n_points + first;
+    for (int64_t i = 0; i < count; ++i) {
+      const double res = obs[i] - r[i];
+      cost[i] += chan * std::abs(res);
+      const double w = valid[i] * chan / std::max(std::abs(res), pb.huber_delta);
+      muu[i] += w * gu[i] * gu[i], muv[i] += w * gu[i] * gv[i], mvv[i] += w * gv[i] * gv[i];
+      bu[i] += w * gu[i] * res, bv[i] += w * gv[i] * res;
+    }
+  }
+  // B: rows d(u, v, z)/dxi of the point moved by a left increment exp(xi), dp/dxi = [I | -[p]x]; H += B^T M B,
+  // g += B^T (M a r), each entry a loop over the lanes
+  double b[3][6][kLanes], t[3][6][kLanes], mb[3][kLanes];
+  for (int64_t i = 0; i < count; ++i) {
+    s.cost[i] += valid[i] * std::min(cost[i], pb.cap) + (1.0 - valid[i]) * pb.cap;
+    const double inv_z = 1.0 / z[i], xn = x[i] * inv_z, yn = y[i] * inv_z;
+    b[0][0][i] = fx * inv_z, b[0][1][i] = 0.0, b[0][2][i] = -fx * xn * inv_z;
+    b[0][3][i] = -fx * xn * yn, b[0][4][i] = fx * (1 + xn * xn), b[0][5][i] = -fx * yn;
+    b[1][0][i] = 0.0, b[1][1][i] = fy * inv_z, b[1][2][i] = -fy * yn * inv_z;
+    b[1][3][i] = -fy * (1 + yn * yn), b[1][4][i] = fy * xn * yn, b[1][5][i] = fy * xn;
+    b[2][0][i] = 0.0, b[2][1][i] = 0.0, b[2][2][i] = 1.0, b[2][3][i] = y[i], b[2][4][i] = -x[i], b[2][5][i] = 0.0;
+  }
+  const double* mm[3][3] = {{muu, muv, muz}, {muv, mvv, mvz}, {muz, mvz, mzz}};
   for (int p = 0; p < 3; ++p) {
-    for (int j = 0; j < 6; ++j) t[p][j] = mm[p][0] * b[0][j] + mm[p][1] * b[1][j] + mm[p][2] * b[2][j];
+    for (int j = 0; j < 6; ++j) {
+      for (int64_t i = 0; i < count; ++i) {
+        t[p][j][i] = mm[p][0][i] * b[0][j][i] + mm[p][1][i] * b[1][j][i] + mm[p][2][i] * b[2][j][i];
+      }
+    }
   }
-  for (int i = 0; i < 6; ++i) {
-    for (int j = i; j < 6; ++j) s.h[i * 6 + j] += b[0][i] * t[0][j] + b[1][i] * t[1][j] + b[2][i] * t[2][j];
-    s.g[i] += b[0][i] * bu + b[1][i] * bv + b[2][i] * bz;
+  int k = 0;
+  for (int a = 0; a < 6; ++a) {
+    for (int j = a; j < 6; ++j, ++k) {
+      for (int64_t i = 0; i < count; ++i) {
+        s.h[k][i] += b[0][a][i] * t[0][j][i] + b[1][a][i] * t[1][j][i] + b[2][a][i] * t[2][j][i];
+      }
+    }
+    for (int64_t i = 0; i < count; ++i) s.g[a][i] += b[0][a][i] * bu[i] + b[1][a][i] * bv[i] + b[2][a][i] * bz[i];
   }
+  for (int64_t i = 0; i < count; ++i) s.valid += static_cast<int64_t>(valid[i]);
 }
 
 // The problem's sums over all points (H complete, both triangles), the points split among torch's threads.
@@ -108,14 +160,21 @@ Sums sum_points(const Problem& pb, const torch::Tensor& points, const torch::Ten
     const auto* rf = ref.data_ptr<scalar_t>();
     const auto* smp = samples.data_ptr<scalar_t>();
     at::parallel_for(0, pb.n_points, 1024, [&](int64_t begin, int64_t end) {
-      Sums local;
-      std::vector<double> values(3 * pb.channels);
-      for (int64_t n = begin; n < end; ++n) add_point(pb, pts + 3 * n, rf, n, smp, values.data(), local);
+      auto lanes = std::make_unique<LaneSums>();
+      std::vector<double> values(3 * pb.channels * kLanes);
+      for (int64_t n = begin; n < end; n += kLanes) {
+        add_block(pb, pts, rf, n, std::min(kLanes, end - n), smp, values.data(), *lanes);
+      }
       Sums& s = sums[at::get_thread_num()];
-      for (int i = 0; i < 36; ++i) s.h[i] += local.h[i];
-      for (int i = 0; i < 6; ++i) s.g[i] += local.g[i];
-      s.cost += local.cost;
-      s.valid += local.valid;
+      for (int64_t i = 0; i < kLanes; ++i) {
+        int k = 0;
+        for (int a = 0; a < 6; ++a) {
+          for (int j = a; j < 6; ++j, ++k) s.h[a * 6 + j] += lanes->h[k][i];
+          s.g[a] += lanes->g[a][i];
+        }
+        s.cost += lanes->cost[i];
+      }
+      s.valid += lanes->valid;
     });
   });
   Sums total;
