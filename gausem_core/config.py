@@ -47,6 +47,9 @@ class GaussNewtonTrackingConfig:
     rerender_motion: float = 0.02
     full_resolution_points: str = "all"  # per_frame: the model pixels aligned at full resolution, "all" or
     # "checkerboard" (every other one: half the cost of the finest level)
+    # per_frame: a start is kept instead of the estimate only when the estimate's cost exceeds the start's by more
+    # than this fraction (the two costs differ by a few per cent on noisy frames where the estimate is the better pose)
+    keep_start_margin: float = 0.2
     # more starts on the coarsest level: the prediction moved this far (metres) along each camera axis, both ways,
     # and turned this far (degrees) about each. search: "gaps" after skipped or lost frames (a live node slower than
     # its camera), "always", or "never"

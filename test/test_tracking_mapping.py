@@ -369,6 +369,30 @@ def test_one_model_view_per_frame_recovers_the_motion_with_a_render_or_two(scene
                                                                                        **{name: value})))
 
 
+@pytest.mark.parametrize("margin, kept", [(0.2, "estimate"), (0.05, "start")])
+def test_per_frame_keeps_a_start_only_when_it_explains_the_frame_better_by_the_margin(scene, monkeypatch, margin,
+                                                                                      kept):
+    """per_frame's final check: the start replaces the estimate only when the estimate costs more than the start's
+    cost times 1 + keep_start_margin (here the estimate 1.0 against the start 0.9); a negative margin is refused."""
+    from gausem_core.slam import tracker as tracker_module
+
+    cfg, cloud, observations, _, _ = scene
+    compared = []
+    monkeypatch.setattr(tracker_module, "compared_costs", lambda view, level, motions, weights: (
+        compared.append(len(motions)), [1.0] + [0.9] * (len(motions) - 1))[1])
+    tracking = dataclasses.replace(cfg.tracking, gauss_newton=dataclasses.replace(
+        cfg.tracking.gauss_newton, model_views="per_frame", keep_start_margin=margin))
+    start = torch.eye(4)
+    start[0, 3] = 0.01  # a centimetre off: the estimate moves away from it
+    result = Tracker(tracking, "torch").track(cloud, observations[0], start)
+    assert compared[-1] == 2  # the estimate and the one start
+    assert torch.equal(result.cam_to_world, start) == (kept == "start"), result.cam_to_world
+    assert result.loss == (0.9 if kept == "start" else 1.0)
+    with pytest.raises(ValueError, match="keep_start_margin"):
+        Tracker(dataclasses.replace(tracking, gauss_newton=dataclasses.replace(tracking.gauss_newton,
+                                                                               keep_start_margin=-0.1)))
+
+
 def test_a_checkerboard_model_view_keeps_every_other_pixel_of_its_silhouette():
     from gausem_core.geometry import PinholeCamera
     from gausem_core.slam.direct_alignment import ModelView

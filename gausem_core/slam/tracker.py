@@ -105,6 +105,9 @@ class Tracker:
         if cfg.gauss_newton.full_resolution_points not in FULL_RESOLUTION_POINTS:
             raise ValueError(f"tracking.gauss_newton.full_resolution_points must be one of {FULL_RESOLUTION_POINTS}, "
                              f"got {cfg.gauss_newton.full_resolution_points!r}")
+        if not cfg.gauss_newton.keep_start_margin >= 0:
+            raise ValueError(f"tracking.gauss_newton.keep_start_margin must be >= 0, got "
+                             f"{cfg.gauss_newton.keep_start_margin!r}")
         check_gap_mode("tracking.gauss_newton.search", cfg.gauss_newton.search)
         self.cfg = cfg
         self.backend = backend
@@ -164,8 +167,9 @@ class Tracker:
         pose moved by ``motion`` (observed-from-model camera), and a round renders the view again at the estimate
         only when that moved ``rerender_motion`` from it. The start whose coarsest rounds cost least goes on
         (:meth:`_best_start`); a start is kept instead if it explains the full-resolution frame better than the result
-        (:func:`compared_costs` on the last view: the view's border that leaves the image under any of the poses left
-        out), all costs from the views already rendered; the pose kept carries its cost."""
+        by more than ``keep_start_margin`` (:func:`compared_costs` on the last view: the view's border that leaves the
+        image under any of the poses left out), all costs from the views already rendered; the pose kept carries its
+        cost."""
         cfg = self.cfg.gauss_newton
         base, views = starts[0], self._view_pyramid(cloud, starts[0], pyramid)
         begun = [invert_pose(start) @ base for start in starts]
@@ -179,7 +183,8 @@ class Tracker:
             motion = self._align_level(views[index], pyramid[index], motion)
         poses = [project_to_se3(base @ invert_pose(motion)), *starts]
         costs = compared_costs(views[0], pyramid[0], [invert_pose(pose) @ base for pose in poses], weights)
-        kept = min(range(len(poses)), key=costs.__getitem__)
+        start = min(range(1, len(poses)), key=costs.__getitem__)
+        kept = start if costs[start] * (1 + cfg.keep_start_margin) < costs[0] else 0
         return TrackingResult(poses[kept], costs[kept], renders)
 
     def _best_start(self, view: ModelView, level: ObservedImages,
