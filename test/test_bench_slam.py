@@ -103,6 +103,23 @@ def test_unknown_parameters_fail_before_anything_runs(tmp_path, capsys):
     assert not (tmp_path / "res").exists()
 
 
+def test_a_suite_runs_the_sequences_of_another(tmp_path):
+    """``sequences_of``: the other file's sequences and defaults, the suite's own defaults on top; with sequences of
+    its own, or a missing file, a clear error."""
+    write_suite(tmp_path / "base.yaml", {"defaults": {"size": "80x60", "frames": 10},
+                                         "sequences": [{"dataset": "synthetic:loop"}, {"dataset": "synthetic"}],
+                                         "configurations": [{"name": "g"}]})
+    suite = load_suite(write_suite(tmp_path / "cmp.yaml", {"sequences_of": "base.yaml", "defaults": {"frames": 4},
+                                                           "configurations": [{"name": "a"}, {"name": "b"}]}))
+    assert [(s.name, s.size, s.frames) for s in suite.sequences] == [("synthetic_loop", (80, 60), 4),
+                                                                     ("synthetic_default", (80, 60), 4)]
+    assert (suite.name, [c.name for c in suite.configurations]) == ("cmp", ["a", "b"])
+    for document, message in (({"sequences_of": "none.yaml"}, "does not exist"),
+                              ({"sequences_of": "base.yaml", "sequences": []}, "not both")):
+        with pytest.raises(SuiteError, match=message):
+            load_suite(write_suite(tmp_path / "bad.yaml", {**document, "configurations": [{"name": "a"}]}))
+
+
 @pytest.mark.parametrize("path", SUITES, ids=[p.stem for p in SUITES])
 def test_committed_suites_name_only_known_parameters(path):
     suite = load_suite(path)

@@ -18,6 +18,9 @@ e.g. its depth range) and ``color_calibration`` (for depth that is not registere
 ``intrinsics`` [fx, fy, cx, cy] at ``size`` [w, h] and an optional ``depth_to_color`` 3x4/4x4 transform; colour is
 then resampled into the depth camera, :mod:`~gausem_bench.color_registration`).
 
+Instead of ``sequences``, ``sequences_of: paper.yaml`` runs the sequences (and defaults) of another suite file beside
+this one, e.g. a comparison of settings over the paper suite's sequences.
+
 Configuration keys: ``name``, ``method`` (``gausem``, ``open3d_odometry`` or ``open3d_slam``), ``overrides``
 (parameter values, dotted or nested names; GauSem's are those of :class:`~gausem_core.config.SlamConfig`, the
 baselines' those of :class:`~gausem_bench.baselines.Open3DParams`) and ``note``. Every name is checked
@@ -229,7 +232,25 @@ def load_suite(path: str | Path) -> Suite:
     path = Path(path)
     if not path.is_file():
         raise SuiteError(f"suite file {path} does not exist")
-    return parse_suite(yaml.safe_load(path.read_text()), path.stem)
+    document = yaml.safe_load(path.read_text())
+    if isinstance(document, dict) and "sequences_of" in document:
+        document = _with_sequences_of(document, path)
+    return parse_suite(document, path.stem)
+
+
+def _with_sequences_of(document: dict, path: Path) -> dict:
+    """``document`` with the sequences and defaults (its own on top) of the suite file its ``sequences_of`` names,
+    beside ``path``."""
+    where = f"suite {path.stem}: sequences_of"
+    if "sequences" in document:
+        raise SuiteError(f"{where}: give sequences or sequences_of, not both")
+    source = path.parent / str(document["sequences_of"])
+    if not source.is_file():
+        raise SuiteError(f"{where}: suite file {source} does not exist")
+    other = yaml.safe_load(source.read_text()) or {}
+    rest = {key: value for key, value in document.items() if key != "sequences_of"}
+    return {**rest, "sequences": other.get("sequences"),
+            "defaults": {**(other.get("defaults") or {}), **(document.get("defaults") or {})}}
 
 
 def _coerce(name: str, value, default, where: str):
