@@ -354,6 +354,11 @@ class WorkerConfig:
     publish_every: int = 20  # async: a new submap's first optimisation publishes its Gaussians every this many steps
     first_opacity: float = 0.9  # async: a new submap's Gaussians start this opaque, so that the first publication
     # is trackable (at 0.5 the map reaches the tracker's 0.99 silhouette only after some 40-80 steps)
+    # async: when the last tracked frame's map covered less than this fraction of the image (the camera is leaving
+    # the published map), the tracker waits for the worker's queued keyframes before the next frame, at most
+    # max_map_wait_s seconds (a live camera's frames meanwhile are dropped, not tracked off the map)
+    wait_below_coverage: float = 0.05
+    max_map_wait_s: float = 2.0
 
 
 WORKER_MODES = ("sync", "async")

@@ -88,6 +88,20 @@ def test_a_job_error_reaches_the_caller_once():
     worker.stop()
 
 
+def test_catch_up_waits_for_the_queued_jobs_at_most_its_timeout_and_counts_only_real_waits():
+    gate, worker = Gate(), MappingWorker(lambda: 0)
+    worker.catch_up(10)  # idle: nothing to wait for
+    assert worker.stats.tracker_waits == 0
+    worker.submit(gate.job(1))
+    worker.submit(gate.job(2))
+    worker.catch_up(0.05)  # both still blocked: back after the timeout
+    assert gate.ran == [] and worker.stats.tracker_waits == 1 and worker.stats.tracker_wait_s >= 0.05
+    threading.Timer(0.05, gate.release.set).start()
+    worker.catch_up(10)
+    assert gate.ran == [1, 2] and worker.idle and worker.stats.tracker_waits == 2
+    worker.stop()
+
+
 def test_threads_split_the_cores_and_keep_what_is_given():
     tracker, worker = split_threads(0, 0)
     assert tracker >= 1 and worker >= 1
@@ -221,6 +235,24 @@ def test_async_closes_a_loop_while_frames_keep_coming():
     assert len(slam.submaps) >= 2
     estimate = [pose for _, pose in slam.trajectory()]
     assert ate_rmse(estimate, truth) <= 0.5 * ate_rmse(integrate_odometry(truth), truth)
+    slam.close()
+
+
+def test_async_tracks_no_frame_before_the_worker_caught_up_while_the_map_covers_too_little():
+    """With ``wait_below_coverage`` above any coverage the tracker waits for the worker before every frame after the
+    first tracked one (which the map's first published Gaussians serve): each later keyframe is mapped before the next
+    frame is tracked (lag 0), as in sync mode."""
+    data = SyntheticDataset("default", resolution=(40, 30))
+    slam = GauSemSLAM(from_flat({**CHEAP, "worker.wait_below_coverage": 1.01, "worker.max_map_wait_s": 600}), "cpu",
+                      len(SYNTHETIC_CLASSES))
+    results = [slam.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
+                                                    f.timestamp)) for f in (data[i] for i in range(8))]
+    slam.finish()
+    stats = slam.back_end.worker.stats
+    keyframes = sum(r.is_keyframe for r in results)
+    assert keyframes >= 3 and stats.mapped == keyframes and stats.superseded == 0
+    assert stats.lag_frames[1:] == [0] * (keyframes - 1)
+    assert stats.tracker_waits >= 1 and stats.summary()["tracker_waits"] == stats.tracker_waits
     slam.close()
 
 

@@ -98,6 +98,12 @@ class BackEnd:
                 self.raise_error()
         return submap
 
+    def catch_up(self) -> None:
+        """Async: wait for the worker's queued keyframes, at most ``worker.max_map_wait_s`` (the tracker is leaving
+        the published map); nothing in sync mode."""
+        if self.worker is not None:
+            self.worker.catch_up(self.cfg.worker.max_map_wait_s)
+
     def raise_error(self) -> None:
         """Raise the mapping worker's error, if a job failed (nothing in sync mode)."""
         if self.worker is not None:

@@ -7,6 +7,7 @@ changes Gaussians or keyframe poses.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -74,6 +75,7 @@ class FrontEnd:
         # load starts a new one when it relocalises)
         self.dropped = 0  # frames dropped (not relocalised while lost) since the last recorded frame
         self.skipped = 0  # frames the caller skipped since the last recorded frame
+        self.coverage = math.nan  # the share of the image the map covered at the last tracked frame
 
     @property
     def frames(self) -> list[FrameRecord]:
@@ -90,6 +92,8 @@ class FrontEnd:
         its health, record it and decide whether it is a keyframe. ``skipped``: camera frames the caller did not pass
         on since the previous call (see :meth:`GauSemSLAM.process <gausem_core.slam.system.GauSemSLAM.process>`)."""
         self.skipped += skipped
+        if self.coverage < self.cfg.worker.wait_below_coverage:  # leaving the published map: let the worker catch up
+            self.back_end.catch_up()
         self.back_end.tracked_submap()  # async: waits for the map's first Gaussians (not under the worker's lock)
         with self.back_end.lock:  # the map the frame is tracked against, and the poses behind the motion model
             submap = self.back_end.tracked_submap()
@@ -103,6 +107,7 @@ class FrontEnd:
             return replace(placement, relocalised=relocalised,
                            health=replace(judged, status="lost", reasons=(*judged.reasons, "relocalisation_failed")))
         health = self._assess(obs, tracked, relocalised, motion, cloud)
+        self.coverage = health.coverage
         missed, self.dropped, self.skipped = self.dropped + self.skipped, 0, 0
         pose = tracked.cam_to_world.detach()
         self.lost = health.status == "lost"

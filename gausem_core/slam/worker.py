@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -36,7 +37,8 @@ def split_threads(tracker: int, worker: int) -> tuple[int, int]:
 @dataclass
 class WorkerStats:
     """What the worker did: keyframes submitted, superseded in the queue and mapped; optimisations cut short under
-    pressure; each mapped keyframe's lag (tracker frames between its arrival and its mapping's end)."""
+    pressure; each mapped keyframe's lag (tracker frames between its arrival and its mapping's end); how often and
+    how long the tracker waited for it (:meth:`MappingWorker.catch_up`)."""
 
     submitted: int = 0
     superseded: int = 0
@@ -44,12 +46,15 @@ class WorkerStats:
     shortened: int = 0
     lag_frames: list[int] = field(default_factory=list)
     queue_peak: int = 0
+    tracker_waits: int = 0
+    tracker_wait_s: float = 0.0
 
     def summary(self) -> dict:
         lags = sorted(self.lag_frames)
         return {"keyframes_submitted": self.submitted, "keyframes_superseded": self.superseded,
                 "keyframes_mapped": self.mapped, "optimisations_shortened": self.shortened,
-                "queue_peak": self.queue_peak,
+                "queue_peak": self.queue_peak, "tracker_waits": self.tracker_waits,
+                "tracker_wait_s": round(self.tracker_wait_s, 3),
                 "lag_frames_median": lags[len(lags) // 2] if lags else None, "lag_frames_max": lags[-1] if lags else None}
 
 
@@ -119,6 +124,15 @@ class MappingWorker:
                                        timeout)
         self.raise_error()
         return done
+
+    def catch_up(self, timeout: float) -> None:
+        """The tracker waits until every queued job is done, at most ``timeout`` seconds (counted when busy)."""
+        if self.idle:
+            return
+        start = time.monotonic()
+        self.drain(timeout)
+        self.stats.tracker_waits += 1
+        self.stats.tracker_wait_s += time.monotonic() - start
 
     def take_events(self) -> list:
         """The finished jobs' results since the last call, in order."""
