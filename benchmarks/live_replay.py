@@ -8,7 +8,7 @@
    10 % (the camera thread reading frames beside it), T becomes that cost and the run is repeated (the one reported).
 
 Reported per run: frames processed (and released, superseded), T, latency median / p95, the worker's lag and the map's
-age, tracking losses and the ATE of the processed frames. Writes ``benchmarks/results/live_replay_<name>.json`` (a results record).
+age, the tracker's waits for the worker at the map's edge, tracking losses and the ATE of the processed frames. Writes ``benchmarks/results/live_replay_<name>.json`` (a results record).
 
     .venv/bin/python benchmarks/live_replay.py --dataset synthetic:loop --name synthetic_loop_160x120
     .venv/bin/python benchmarks/live_replay.py --dataset "tum:${GAUSEM_SHARED_DATA:-../shared/data}/tum_fr1_rpy" --name tum_fr1_rpy_160x120
@@ -38,21 +38,24 @@ def row(mode: str, metrics: dict) -> dict:
             "worker_lag_frames_median": worker.get("lag_frames_median"),
             "worker_lag_frames_max": worker.get("lag_frames_max"),
             "map_age_frames_median": worker.get("map_age_frames_median"),
-            "map_age_frames_p95": worker.get("map_age_frames_p95"), "ate_cm": metrics.get("ate_rmse_cm"),
+            "map_age_frames_p95": worker.get("map_age_frames_p95"), "tracker_waits": worker.get("tracker_waits"),
+            "ate_cm": metrics.get("ate_rmse_cm"),
             "num_submaps": metrics.get("num_submaps")}
 
 
 def markdown(doc: dict) -> str:
     fmt = lambda v, d=1: "-" if v is None else (f"{v:.{d}f}" if isinstance(v, float) else str(v))  # noqa: E731
     lines = ["| mode | processed | released | superseded | T median / p95 (ms) | latency median / p95 (ms) "
-             "| duration (s) | lost | keyframes superseded | worker lag median / max | map age median / p95 | ATE (cm) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| duration (s) | lost | keyframes superseded | worker lag median / max | map age median / p95 | tracker waits "
+             "| ATE (cm) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in doc["rows"]:
         lines.append(f"| {r['mode']} | {r['frames_processed']} | {fmt(r['frames_released'])} | "
                      f"{fmt(r['frames_superseded'])} | {fmt(r['tracker_ms_median'], 0)} / {fmt(r['tracker_ms_p95'], 0)} "
                      f"| {fmt(r['latency_ms_median'], 0)} / {fmt(r['latency_ms_p95'], 0)} | {fmt(r['duration_s'])} | "
                      f"{r['lost']} | {fmt(r['keyframes_superseded'])} | {fmt(r['worker_lag_frames_median'])} / {fmt(r['worker_lag_frames_max'])} | "
-                     f"{fmt(r['map_age_frames_median'])} / {fmt(r['map_age_frames_p95'])} | {fmt(r['ate_cm'], 2)} |")
+                     f"{fmt(r['map_age_frames_median'])} / {fmt(r['map_age_frames_p95'])} | "
+                     f"{fmt(r.get('tracker_waits'))} | {fmt(r['ate_cm'], 2)} |")
     return "\n".join(lines) + "\n"
 
 

@@ -43,9 +43,9 @@ class GaussNewtonTrackingConfig:
     # "per_level": the model rendered at the estimate for every round on every level; "per_frame": once, at the start,
     # at full resolution, its pyramid made by downsampling, and again at the estimate only when that moved
     # rerender_motion (translation / median model depth + rotation in radians) from where it was rendered
-    model_views: str = "per_level"
+    model_views: str = "per_frame"
     rerender_motion: float = 0.02
-    full_resolution_points: str = "all"  # per_frame: the model pixels aligned at full resolution, "all" or
+    full_resolution_points: str = "checkerboard"  # per_frame: the model pixels aligned at full resolution, "all" or
     # "checkerboard" (every other one: half the cost of the finest level)
     # per_frame: a start is kept instead of the estimate only when the estimate's cost exceeds the start's by more
     # than this fraction (the two costs differ by a few per cent on noisy frames where the estimate is the better pose)
@@ -354,10 +354,11 @@ class WorkerConfig:
     publish_every: int = 20  # async: a new submap's first optimisation publishes its Gaussians every this many steps
     first_opacity: float = 0.9  # async: a new submap's Gaussians start this opaque, so that the first publication
     # is trackable (at 0.5 the map reaches the tracker's 0.99 silhouette only after some 40-80 steps)
-    # async: when the last tracked frame's map covered less than this fraction of the image (the camera is leaving
-    # the published map), the tracker waits for the worker's queued keyframes before the next frame, at most
-    # max_map_wait_s seconds (a live camera's frames meanwhile are dropped, not tracked off the map)
-    wait_below_coverage: float = 0.05
+    # async: when the last tracked frame's map covered less than this fraction of the image (health's
+    # degraded_coverage: the camera leaving the published map, or a new map's early publication), the tracker waits
+    # for the worker's queued keyframes before the next frame, at most max_map_wait_s seconds (a live camera's frames
+    # meanwhile are superseded, not tracked off the map)
+    wait_below_coverage: float = 0.3
     max_map_wait_s: float = 2.0
 
 
