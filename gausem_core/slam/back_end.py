@@ -99,8 +99,8 @@ class BackEnd:
         return submap
 
     def catch_up(self) -> None:
-        """Async: wait for the worker's queued keyframes, at most ``worker.max_map_wait_s`` (the tracker is leaving
-        the published map); nothing in sync mode."""
+        """Async: wait for the worker's queued keyframes, at most ``worker.max_map_wait_s`` (the published map covers
+        too little of the view); nothing in sync mode."""
         if self.worker is not None:
             self.worker.catch_up(self.cfg.worker.max_map_wait_s)
 
