@@ -6,7 +6,9 @@ import torch
 from gausem_core.config import MappingConfig, SlamConfig
 from gausem_core.data import open_dataset
 from gausem_core.pipeline import Pipeline
-from gausem_core.slam.densification import DensificationStrategy, pixel_lattice
+from gausem_core.gaussians import GaussianCloud
+from gausem_core.render import render
+from gausem_core.slam.densification import DensificationStrategy, blend_weights, pixel_lattice
 
 
 def first_frame(size):
@@ -60,3 +62,59 @@ def test_pruning_drops_transparent_and_huge_gaussians():
         cloud.opacity_logits[:10] = -10.0
         cloud.log_radii[10:15] = 2.0
     assert len(DensificationStrategy(cfg).prune(cloud)) == len(cloud) - 15
+
+
+def test_a_lattice_of_non_whole_spacing_keeps_one_pixel_per_block_of_that_size():
+    for spacing in (1.25, 2.5, 4.0):
+        lattice = pixel_lattice(120, 160, spacing, "cpu")
+        assert abs(int(lattice.sum()) - 120 * 160 / spacing ** 2) < 0.1 * 120 * 160 / spacing ** 2
+    assert DensificationStrategy(MappingConfig(density_width=64)).spacing(first_frame((160, 120))) == 2.5
+
+
+def test_detail_growth_adds_one_pixel_gaussians_only_where_the_covering_map_misses_the_colour():
+    obs = first_frame((160, 120))
+    cfg = MappingConfig(density_width=80, densify_color_error=0.2)
+    strategy = DensificationStrategy(cfg, "torch", torch.Generator().manual_seed(0))
+    covering = strategy.grow(GaussianCloud.empty(), obs, torch.eye(4))
+    for _ in range(2):  # the lattice's Gaussians cover the view
+        covering = strategy.grow(covering, obs, torch.eye(4))
+    wrong = covering.clone()
+    upper = wrong.means[:, 1] < 0  # the upper half of the image in colours it does not have
+    wrong.colors[upper] = (covering.colors[upper] < 0.5).to(wrong.colors.dtype)  # each channel off by 0.5 or more
+    grown = strategy.grow(wrong, obs, torch.eye(4))
+    new = grown.means[len(wrong):]
+    assert len(new) > 0.2 * int(obs.valid_depth[:60].sum())  # one-pixel detail where the colour is off ...
+    rows = obs.camera.fy * new[:, 1] / new[:, 2] + obs.camera.cy
+    assert bool((rows < 64).all())  # ... and only there (blending blurs the boundary by a few pixels)
+    assert torch.median(grown.radii[len(wrong):]) < 0.75 * torch.median(covering.radii)
+    off = DensificationStrategy(dataclasses.replace(cfg, densify_color_error=0.0), "torch")
+    assert len(off.grow(wrong, obs, torch.eye(4))) - len(wrong) < 0.05 * len(new)
+
+
+def test_blend_weights_add_up_to_the_rendered_silhouette():
+    obs = first_frame((80, 60))
+    cloud = DensificationStrategy(MappingConfig(), "torch", torch.Generator().manual_seed(0)).initial(obs, torch.eye(4))
+    view = (torch.eye(4), obs.camera)
+    weights = blend_weights(cloud, [view], "torch")
+    silhouette = render(cloud, *view, backend="torch").alpha.sum()
+    assert torch.isclose(weights.sum(), silhouette, rtol=1e-4)
+    assert torch.allclose(blend_weights(cloud, [view, view], "torch"), 2 * weights)
+
+
+def test_a_closed_submap_drops_the_gaussians_hidden_behind_an_opaque_surface_and_keeps_its_image():
+    obs = first_frame((80, 60))
+    strategy = DensificationStrategy(MappingConfig(prune_weight=0.05), "torch", torch.Generator().manual_seed(0))
+    front = strategy.initial(obs, torch.eye(4), opacity=0.999)
+    with torch.no_grad():
+        front.log_radii += 1.0  # wide enough that the surface has no gaps between its Gaussians
+    behind = front.clone()
+    behind.means[:] *= 1.5  # the same rays, half as far again behind the surface
+    behind.semantics[:] = 0.123  # a mark to find them by
+    both, view = GaussianCloud.cat([front, behind]), (torch.eye(4), obs.camera)
+    kept = strategy.prune_hidden(both, [view])
+    assert int((kept.semantics[:, 0] == 0.123).sum()) < 0.02 * len(behind)
+    assert len(kept) < 0.9 * len(front)  # (wide and opaque, the surface's own Gaussians hide each other too)
+    before, after = render(both, *view, backend="torch"), render(kept, *view, backend="torch")
+    assert (before.color - after.color).abs().mean() < 0.002 and (before.alpha - after.alpha).abs().mean() < 0.002
+    off = DensificationStrategy(MappingConfig(prune_weight=0.0), "torch")
+    assert len(off.prune_hidden(both, [view])) == len(both)

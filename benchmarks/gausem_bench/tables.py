@@ -42,6 +42,7 @@ PERFORMANCE = [Metric("fps ↑", _path("fps"), 2), Metric("s/frame ↓", _path("
                Metric("peak CPU [MB] ↓", _path("peak_rss_mb"), 0),
                Metric("peak GPU [MB] ↓", _path("gpu_peak_mb"), 0)]
 SUBMAPS = Metric("submaps", _path("num_submaps"), 1)
+GAUSSIANS = Metric("Gaussians [k]", _path("num_gaussians", scale=1e-3), 0)
 
 
 def sequence_mark(record: dict) -> str:
@@ -128,8 +129,9 @@ def loops_table(grid: Grid) -> str:
 
 
 def ablation_table(grid: Grid) -> str:
-    """Tab. VIII: GauSem configurations (their overrides) with rendering, semantics and ATE averaged over sequences."""
-    metrics = [m for m in (*RENDERING[:4], ATE) if grid.has(m)] + [SUBMAPS, PERFORMANCE[0]]
+    """Tab. VIII: GauSem configurations (their overrides) with rendering, semantics, ATE and the map's size averaged over
+    sequences."""
+    metrics = [m for m in (*RENDERING[:4], ATE) if grid.has(m)] + [SUBMAPS, GAUSSIANS, PERFORMANCE[0]]
     rows = []
     for c in grid.methods("gausem"):
         overrides = next(r.get("overrides") or {} for r in grid.records if r["configuration"] == c)

@@ -251,9 +251,12 @@ class BackEnd:
         return losses[-1] if losses else None
 
     def _boundary_adjust(self, submap: Submap) -> None:
-        """Boundary local BA over a submap's last keyframes, before it is closed (offloaded)."""
+        """Boundary local BA over a submap's last keyframes, then the Gaussians hidden from all its keyframes pruned,
+        before it is closed (offloaded)."""
         window = submap.keyframes[-self.cfg.submaps.boundary_window:]
-        submap.cloud, _ = self.mapper.optimise(submap.cloud, window, self.cfg.submaps.boundary_iterations)
+        cloud, _ = self.mapper.optimise(submap.cloud, window, self.cfg.submaps.boundary_iterations)
+        views = [(invert_pose(kf.cam_to_world), kf.obs.camera) for kf in submap.keyframes]
+        submap.cloud = self.mapper.strategy.prune_hidden(cloud, views)
 
     def _keyframe_events(self, closed: list[SubmapChange]) -> FrameEvents:
         """The events of a frame that made the newest keyframe (``closed``: the submap it closed, if any), after loop

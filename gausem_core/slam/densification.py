@@ -7,11 +7,13 @@ optimised ones. New Gaussians are spawned ``spacing`` pixels apart (radius ``spa
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 from gausem_core.config import MappingConfig
 from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import invert_pose, transform_points
+from gausem_core.geometry import PinholeCamera, invert_pose, transform_points
 from gausem_core.render import render
 from gausem_core.slam.observation import Observation
 
@@ -44,13 +46,16 @@ def gaussians_from_pixels(obs: Observation, cam_to_world: torch.Tensor, pixels: 
                                      obs.semantic.reshape(-1, 3)[pixels].clone(), radii, opacity)
 
 
-def pixel_lattice(height: int, width: int, spacing: int, device: torch.device | str) -> torch.Tensor:
-    """(H, W) bool: the pixels ``spacing`` apart in both directions (the centre of each spacing x spacing block)."""
-    rows = torch.zeros(height, dtype=torch.bool, device=device)
-    cols = torch.zeros(width, dtype=torch.bool, device=device)
-    rows[spacing // 2::spacing] = True
-    cols[spacing // 2::spacing] = True
-    return rows[:, None] & cols[None, :]
+def pixel_lattice(height: int, width: int, spacing: float, device: torch.device | str) -> torch.Tensor:
+    """(H, W) bool: the pixels ``spacing`` (>= 1, not necessarily whole) apart in both directions, the centre of each
+    spacing x spacing block."""
+    def axis(size: int) -> torch.Tensor:
+        picked = torch.zeros(size, dtype=torch.bool, device=device)
+        picked[(torch.arange(math.ceil(size / spacing), device=device) * spacing + spacing / 2).floor().long()
+               .clamp_max(size - 1)] = True
+        return picked
+
+    return axis(height)[:, None] & axis(width)[None, :]
 
 
 class DensificationStrategy:
@@ -61,11 +66,11 @@ class DensificationStrategy:
         self.backend = backend
         self.generator = generator
 
-    def spacing(self, obs: Observation) -> int:
-        """Pixels between new Gaussians in ``obs``'s image."""
+    def spacing(self, obs: Observation) -> float:
+        """Pixels between new Gaussians in ``obs``'s image (at least 1)."""
         if self.cfg.density_width <= 0:
-            return 1
-        return max(1, round(obs.camera.width / self.cfg.density_width))
+            return 1.0
+        return max(1.0, obs.camera.width / self.cfg.density_width)
 
     def initial(self, obs: Observation, cam_to_world: torch.Tensor, opacity: float | None = None) -> GaussianCloud:
         """A new submap's Gaussians from one frame by semantic sampling, before any optimisation (``opacity``:
@@ -77,22 +82,50 @@ class DensificationStrategy:
                                      self.cfg.init_radius_scale * spacing)
 
     def grow(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor) -> GaussianCloud:
-        """Add Gaussians where the map is transparent (silhouette < tau_sil) or a new surface lies in front of it."""
+        """Add Gaussians where the map is transparent (silhouette < tau_sil) or a new surface lies in front of it, on
+        the lattice; and, one pixel apart, where it covers the view but misses its colour by more than
+        ``densify_color_error`` (detail the lattice is too coarse for)."""
         spacing = self.spacing(obs)
         with torch.no_grad():
             out = render(cloud, invert_pose(cam_to_world), obs.camera, backend=self.backend)
             behind = out.expected_depth > obs.depth + self.cfg.densify_depth_margin
-            grow = obs.valid_depth & ((out.alpha < self.cfg.densify_silhouette_threshold) | behind)
+            lacking = obs.valid_depth & ((out.alpha < self.cfg.densify_silhouette_threshold) | behind)
+            detail = torch.zeros_like(lacking)
             if spacing > 1:
-                grow &= pixel_lattice(*grow.shape, spacing, grow.device)
-        pixels = torch.nonzero(grow.reshape(-1)).squeeze(1)
-        if len(pixels) == 0:
-            return cloud
-        grown = gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity,
-                                      self.cfg.init_radius_scale * spacing)
-        return GaussianCloud.cat([cloud, grown])
+                lacking &= pixel_lattice(*lacking.shape, spacing, lacking.device)
+                if self.cfg.densify_color_error > 0:
+                    error = (out.color - obs.rgb * out.alpha[..., None]).abs().mean(-1)
+                    detail = obs.valid_depth & ~lacking & (error > self.cfg.densify_color_error)
+        coarse, fine = (torch.nonzero(mask.reshape(-1)).squeeze(1) for mask in (lacking, detail))
+        grown = [gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity,
+                                       self.cfg.init_radius_scale * footprint)
+                 for pixels, footprint in ((coarse, spacing), (fine, 1.0)) if len(pixels)]
+        return GaussianCloud.cat([cloud, *grown]) if grown else cloud
 
     def prune(self, cloud: GaussianCloud) -> GaussianCloud:
-        """Drop transparent and huge Gaussians."""
+        """Drop transparent and huge Gaussians (after every optimisation)."""
         keep = (cloud.opacities > self.cfg.prune_opacity) & (cloud.radii < self.cfg.prune_radius)
         return cloud if bool(keep.all()) else cloud.prune(keep)
+
+    def prune_hidden(self, cloud: GaussianCloud, views: list[tuple[torch.Tensor, PinholeCamera]]) -> GaussianCloud:
+        """Drop the Gaussians that add less than ``prune_weight`` pixels to all of ``views`` (world-to-camera, camera)
+        together: hidden behind others or outside them (a closed submap's, seen from its keyframes)."""
+        if self.cfg.prune_weight <= 0 or not views or len(cloud) == 0:
+            return cloud
+        weights = blend_weights(cloud, views, self.backend)
+        keep = weights >= self.cfg.prune_weight
+        return cloud if bool(keep.all()) else cloud.prune(keep)
+
+
+def blend_weights(cloud: GaussianCloud, views: list[tuple[torch.Tensor, PinholeCamera]],
+                  backend: str = "auto") -> torch.Tensor:
+    """(N,) each Gaussian's blending weight summed over the pixels of ``views``: the gradient of the rendered image's
+    sum with respect to a colour of one, which every pixel's colour holds with that Gaussian's weight."""
+    ones = torch.ones(len(cloud), dtype=cloud.dtype, device=cloud.device, requires_grad=True)
+    probe = GaussianCloud(cloud.means.detach(), cloud.log_radii.detach(), cloud.opacity_logits.detach(),
+                          ones[:, None].expand(-1, 3), cloud.semantics.detach())
+    total = torch.zeros_like(ones)
+    for world_to_cam, camera in views:
+        image = render(probe, world_to_cam, camera, backend=backend).color[..., 0]
+        total += torch.autograd.grad(image.sum(), ones)[0]
+    return total
