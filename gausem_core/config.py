@@ -142,14 +142,15 @@ class MappingConfig:
     lr_pose: float = 5e-4
     densify_silhouette_threshold: float = 0.5  # tau_sil
     densify_depth_margin: float = 0.05  # metres; new Gaussians where rendered depth lies this far behind the measurement
-    densify_color_error: float = 0.0  # with density_width: one-pixel Gaussians where the map covers the view but its
-    # colour is off by more than this (mean absolute, colours in [0, 1]); 0: off
+    densify_color_error: float = 0.02  # beside a lattice coarser than one pixel: one-pixel Gaussians where the map
+    # covers the view but its colour is off by more than this (mean absolute, colours in [0, 1]); 0: off
     prune_opacity: float = 0.005
     prune_radius: float = 0.5  # metres
     prune_weight: float = 0.0  # a closed submap drops Gaussians adding less than this many pixels' weight to all its
     # keyframes' views together (hidden or outside them); 0: keeps them
-    density_width: int = 0  # new Gaussians as dense as in an image this wide: spawned width / density_width pixels
-    # apart, that many pixels' footprint in radius (slam.densification); 0: one per pixel at any size (the paper)
+    density_width: int = 256  # new Gaussians as dense as in an image this wide: spawned width / density_width pixels
+    # apart (at least 1), that many pixels' footprint in radius (slam.densification); 0: one per pixel at any size (the
+    # paper). 256: one per pixel up to 256 wide, 2.5 pixels apart at 640x480
 
 
 @dataclass
