@@ -8,7 +8,7 @@ from gausem_core.data import open_dataset
 from gausem_core.pipeline import Pipeline
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.render import render
-from gausem_core.slam.densification import DensificationStrategy, blend_weights, pixel_lattice
+from gausem_core.slam.densification import DensificationStrategy, blend_weights, fine_residual, pixel_lattice
 
 
 def first_frame(size):
@@ -43,7 +43,7 @@ def test_a_wider_image_spawns_as_many_gaussians_each_covering_more_pixels():
 
 
 def test_growth_fills_only_what_the_map_lacks_on_the_lattice():
-    cfg = MappingConfig(density_width=80, densify_color_error=0.0)  # the lattice alone (detail: the test below)
+    cfg = MappingConfig(density_width=80)
     obs = first_frame((160, 120))
     strategy = DensificationStrategy(cfg, "torch", torch.Generator().manual_seed(0))
     initial = strategy.initial(obs, torch.eye(4))
@@ -71,24 +71,40 @@ def test_a_lattice_of_non_whole_spacing_keeps_one_pixel_per_block_of_that_size()
     assert DensificationStrategy(MappingConfig(density_width=64)).spacing(first_frame((160, 120))) == 2.5
 
 
-def test_detail_growth_adds_one_pixel_gaussians_only_where_the_covering_map_misses_the_colour():
+def test_detail_goes_only_where_the_view_holds_colour_finer_than_the_lattice():
     obs = first_frame((160, 120))
-    cfg = MappingConfig(density_width=80, densify_color_error=0.2)
+    cfg = MappingConfig(density_width=80, densify_color_error=0.05)
     strategy = DensificationStrategy(cfg, "torch", torch.Generator().manual_seed(0))
     covering = strategy.grow(GaussianCloud.empty(), obs, torch.eye(4))
     for _ in range(2):  # the lattice's Gaussians cover the view
         covering = strategy.grow(covering, obs, torch.eye(4))
-    wrong = covering.clone()
-    upper = wrong.means[:, 1] < 0  # the upper half of the image in colours it does not have
-    wrong.colors[upper] = (covering.colors[upper] < 0.5).to(wrong.colors.dtype)  # each channel off by 0.5 or more
-    grown = strategy.grow(wrong, obs, torch.eye(4))
-    new = grown.means[len(wrong):]
-    assert len(new) > 0.2 * int(obs.valid_depth[:60].sum())  # one-pixel detail where the colour is off ...
+    shifted, striped = obs.rgb.clone(), obs.rgb.clone()
+    shifted[:60] = (shifted[:60] + 0.2).clamp(0, 1)  # the upper half all brighter: a region off, nothing finer
+    striped[:60, ::2] = 1 - striped[:60, ::2]  # the upper half in one-pixel stripes the lattice cannot hold
+    upper_pixels = int(obs.valid_depth[:60].sum())
+    edges = len(strategy.add_detail(covering, obs, torch.eye(4))) - len(covering)  # the view itself: edges only
+    assert edges < 0.05 * obs.valid_depth.sum()
+    brighter = strategy.add_detail(covering, dataclasses.replace(obs, rgb=shifted), torch.eye(4))
+    assert len(brighter) - len(covering) < edges + 0.1 * upper_pixels
+    grown = strategy.add_detail(covering, dataclasses.replace(obs, rgb=striped), torch.eye(4))
+    new = grown.means[len(covering):]
+    assert len(new) > 0.5 * upper_pixels  # one-pixel detail where the view is finer than the lattice ...
     rows = obs.camera.fy * new[:, 1] / new[:, 2] + obs.camera.cy
-    assert bool((rows < 64).all())  # ... and only there (blending blurs the boundary by a few pixels)
-    assert torch.median(grown.radii[len(wrong):]) < 0.75 * torch.median(covering.radii)
-    off = DensificationStrategy(dataclasses.replace(cfg, densify_color_error=0.0), "torch")
-    assert len(off.grow(wrong, obs, torch.eye(4))) - len(wrong) < 0.05 * len(new)
+    assert int((rows >= 64).sum()) <= edges  # ... and only there (blending blurs the boundary by a few pixels)
+    assert torch.median(grown.radii[len(covering):]) < 0.75 * torch.median(covering.radii)
+    for off in (dataclasses.replace(cfg, densify_color_error=0.0), dataclasses.replace(cfg, density_width=0)):
+        unchanged = DensificationStrategy(off, "torch").add_detail(covering, dataclasses.replace(obs, rgb=striped),
+                                                                   torch.eye(4))
+        assert len(unchanged) == len(covering)
+    assert len(strategy.grow(covering, dataclasses.replace(obs, rgb=striped), torch.eye(4))) - len(covering) \
+        < 0.05 * len(new)  # growth is for coverage only
+
+
+def test_the_fine_residual_keeps_what_varies_within_the_lattice_spacing():
+    smooth = torch.linspace(0, 1, 40)[None, :, None].expand(30, 40, 3)  # a ramp: locally linear, nothing finer
+    stripes = (torch.arange(40) % 2).to(torch.float32)[None, :, None].expand(30, 40, 3)
+    assert fine_residual(smooth, 2.5)[:, 3:-3].abs().max() < 1e-5
+    assert fine_residual(stripes, 2.5).abs().mean() > 0.4
 
 
 def test_blend_weights_add_up_to_the_rendered_silhouette():

@@ -181,7 +181,8 @@ class BackEnd:
         return events, loss, decision
 
     def _map_keyframe(self, obs: Observation, pose: torch.Tensor, record: FrameRecord) -> float | None:
-        """Add a keyframe to the active submap: densify, then BA over the recent keyframes."""
+        """Add a keyframe to the active submap: densify, BA over the recent keyframes, then detail where the map still
+        misses the keyframe's colour."""
         submap = self.active
         kf = Keyframe(record.frame_id, obs, pose)
         with self.lock:
@@ -190,7 +191,8 @@ class BackEnd:
         submap.extent.add(obs, pose)
         submap.cloud = self.mapper.strategy.grow(submap.cloud, obs, pose)
         window = submap.keyframes[-self.cfg.mapping.window:]
-        submap.cloud, losses = self.mapper.optimise(submap.cloud, window, self.cfg.mapping.iterations)
+        cloud, losses = self.mapper.optimise(submap.cloud, window, self.cfg.mapping.iterations)
+        submap.cloud = self.mapper.strategy.add_detail(cloud, kf.obs, kf.cam_to_world)
         return losses[-1] if losses else None
 
     def _anchor_record(self, record: FrameRecord | None, submap: Submap, keyframe: Keyframe) -> None:
@@ -247,7 +249,8 @@ class BackEnd:
         every = self.cfg.worker.publish_every if self.worker is not None else 0
         cloud, losses = self.mapper.optimise(submap.cloud, submap.keyframes[:1], self.cfg.mapping.init_iterations,
                                              publish=publish, publish_every=every)
-        publish(cloud)
+        first = submap.keyframes[0]
+        publish(self.mapper.strategy.add_detail(cloud, first.obs, first.cam_to_world))
         return losses[-1] if losses else None
 
     def _boundary_adjust(self, submap: Submap) -> None:

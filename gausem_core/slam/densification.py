@@ -14,7 +14,7 @@ import torch
 from gausem_core.config import MappingConfig
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, invert_pose, transform_points
-from gausem_core.render import render
+from gausem_core.render import RenderOutput, render
 from gausem_core.slam.observation import Observation
 
 
@@ -44,6 +44,15 @@ def gaussians_from_pixels(obs: Observation, cam_to_world: torch.Tensor, pixels: 
     radii = radius_scale * depth / obs.camera.focal
     return GaussianCloud.from_points(means, obs.rgb.reshape(-1, 3)[pixels].clone(),
                                      obs.semantic.reshape(-1, 3)[pixels].clone(), radii, opacity)
+
+
+def fine_residual(residual: torch.Tensor, spacing: float) -> torch.Tensor:
+    """(H, W, C) the part of an image residual finer than ``spacing`` pixels: the residual less its mean over the
+    (2 * round(spacing) + 1)^2 pixels around (what Gaussians that far apart cannot fit, not a region still off)."""
+    size = 2 * round(spacing) + 1
+    image = residual.permute(2, 0, 1)[None]
+    local = torch.nn.functional.avg_pool2d(image, size, stride=1, padding=size // 2, count_include_pad=False)
+    return (image - local)[0].permute(1, 2, 0)
 
 
 def pixel_lattice(height: int, width: int, spacing: float, device: torch.device | str) -> torch.Tensor:
@@ -82,25 +91,43 @@ class DensificationStrategy:
                                      self.cfg.init_radius_scale * spacing)
 
     def grow(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor) -> GaussianCloud:
-        """Add Gaussians where the map is transparent (silhouette < tau_sil) or a new surface lies in front of it, on
-        the lattice; and, one pixel apart, where it covers the view but misses its colour by more than
-        ``densify_color_error`` (detail the lattice is too coarse for)."""
+        """Add Gaussians on the lattice where the map is transparent (silhouette < tau_sil) or a new surface lies in
+        front of it (a new keyframe, before its optimisation)."""
         spacing = self.spacing(obs)
         with torch.no_grad():
             out = render(cloud, invert_pose(cam_to_world), obs.camera, backend=self.backend)
-            behind = out.expected_depth > obs.depth + self.cfg.densify_depth_margin
-            lacking = obs.valid_depth & ((out.alpha < self.cfg.densify_silhouette_threshold) | behind)
-            detail = torch.zeros_like(lacking)
+            lacking = obs.valid_depth & self._lacking(out, obs)
             if spacing > 1:
                 lacking &= pixel_lattice(*lacking.shape, spacing, lacking.device)
-                if self.cfg.densify_color_error > 0:
-                    error = (out.color - obs.rgb * out.alpha[..., None]).abs().mean(-1)
-                    detail = obs.valid_depth & ~lacking & (error > self.cfg.densify_color_error)
-        coarse, fine = (torch.nonzero(mask.reshape(-1)).squeeze(1) for mask in (lacking, detail))
-        grown = [gaussians_from_pixels(obs, cam_to_world, pixels, self.cfg.init_opacity,
-                                       self.cfg.init_radius_scale * footprint)
-                 for pixels, footprint in ((coarse, spacing), (fine, 1.0)) if len(pixels)]
-        return GaussianCloud.cat([cloud, *grown]) if grown else cloud
+        return self._spawn(cloud, obs, cam_to_world, lacking, spacing)
+
+    def add_detail(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor) -> GaussianCloud:
+        """Beside a lattice coarser than one pixel, add one-pixel Gaussians where the map, optimised over this view,
+        covers it but still misses its colour by more than ``densify_color_error``: detail the lattice is too coarse
+        for (not the error of a view the map has not been fitted to yet)."""
+        spacing = self.spacing(obs)
+        if spacing <= 1 or self.cfg.densify_color_error <= 0:
+            return cloud
+        with torch.no_grad():
+            out = render(cloud, invert_pose(cam_to_world), obs.camera, backend=self.backend)
+            error = fine_residual(out.color - obs.rgb * out.alpha[..., None], spacing).abs().mean(-1)
+            missed = obs.valid_depth & ~self._lacking(out, obs) & (error > self.cfg.densify_color_error)
+        return self._spawn(cloud, obs, cam_to_world, missed, 1.0)
+
+    def _lacking(self, out: RenderOutput, obs: Observation) -> torch.Tensor:
+        """(H, W) bool: where the render ``out`` is transparent or lies behind the measured depth."""
+        behind = out.expected_depth > obs.depth + self.cfg.densify_depth_margin
+        return (out.alpha < self.cfg.densify_silhouette_threshold) | behind
+
+    def _spawn(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor, pixels: torch.Tensor,
+               footprint: float) -> GaussianCloud:
+        """``cloud`` plus a Gaussian at each pixel of the mask ``pixels``, ``footprint`` pixels wide."""
+        flat = torch.nonzero(pixels.reshape(-1)).squeeze(1)
+        if len(flat) == 0:
+            return cloud
+        grown = gaussians_from_pixels(obs, cam_to_world, flat, self.cfg.init_opacity,
+                                      self.cfg.init_radius_scale * footprint)
+        return GaussianCloud.cat([cloud, grown])
 
     def prune(self, cloud: GaussianCloud) -> GaussianCloud:
         """Drop transparent and huge Gaussians (after every optimisation)."""
