@@ -142,8 +142,9 @@ class MappingConfig:
     lr_pose: float = 5e-4
     densify_silhouette_threshold: float = 0.5  # tau_sil
     densify_depth_margin: float = 0.05  # metres; new Gaussians where rendered depth lies this far behind the measurement
-    densify_color_error: float = 0.02  # beside a lattice coarser than one pixel: one-pixel Gaussians where the map
-    # covers the view but its colour is off by more than this (mean absolute, colours in [0, 1]); 0: off
+    densify_color_error: float = 0.02  # beside a lattice coarser than one pixel, after a keyframe's optimisation:
+    # one-pixel Gaussians where the map covers the view but its colour residual, less its mean over the lattice
+    # spacing (the part finer than the lattice), exceeds this (mean absolute, colours in [0, 1]); 0: off
     prune_opacity: float = 0.005
     prune_radius: float = 0.5  # metres
     prune_weight: float = 0.0  # a closed submap drops Gaussians adding less than this many pixels' weight to all its

@@ -1,9 +1,10 @@
 """Where a submap gains and loses Gaussians: the densification strategy (gsplat's ``DefaultStrategy`` is the model).
 
 The mapper asks a :class:`DensificationStrategy` for a new submap's first Gaussians (semantic sampling, paper
-§III-A), for the Gaussians a keyframe adds where the map lacks them (silhouette or depth error), and to prune the
-optimised ones. New Gaussians are spawned ``spacing`` pixels apart (radius ``spacing`` pixels' footprint), where
-``spacing = max(1, width / mapping.density_width)``: the map's density, and so its size, does not grow with the image.
+§III-A), for the Gaussians a keyframe adds where the map lacks them (silhouette or depth error), for one-pixel detail
+once the keyframe is optimised (where its colour is off finer than the lattice), and to prune the optimised ones.
+New Gaussians are spawned ``spacing`` pixels apart (radius ``spacing`` pixels' footprint), where ``spacing = max(1,
+width / mapping.density_width)``: the map's density, and so its size, does not grow with the image.
 """
 from __future__ import annotations
 
