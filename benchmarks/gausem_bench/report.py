@@ -73,7 +73,9 @@ CHAPTERS = [
     ("Accuracy against Open3D (Tab. IV, V and VII shape)", [
         "slam_paper_a", "slam_paper_b"]),
     ("Ablations (Tab. VIII shape)", ["slam_ablation"]),
-    ("Map density", ["slam_map_density_640x480_walk", "slam_map_density_640x480", "slam_map_density_320x240"]),
+    ("Map density", ["slam_map_density_640x480_walk", "slam_map_density_640x480_walk_sparser",
+                     "slam_map_density_640x480_walk_earlier_detail", "slam_map_density_640x480_fine_detail",
+                     "slam_map_density_640x480", "slam_map_density_320x240"]),
     ("How good are the references?", [
         "slam_7scenes_depth_x0972", "slam_7scenes_depth_x1029", "depth_consistency_synthetic_loop_noisy",
         "depth_consistency_synthetic_default_noisy", "depth_consistency_7scenes_redkitchen",
