@@ -59,6 +59,8 @@ class GaussNewtonTrackingConfig:
     # compare colour divided by its local mean (a Gaussian of sigma this fraction of the image width), blind to
     # vignetting, exposure and white balance (slam.photometric); 0: raw colour
     color_normalisation_width: float = 0.1
+    fused: bool = True  # on CUDA, with Triton installed: a step's normal equations in one kernel launch
+    # (slam.fused_alignment); false: torch's stream of kernels (the same maths)
 
 
 @dataclass

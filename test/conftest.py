@@ -1,10 +1,14 @@
 """Shared fixtures: deterministic seeds, the shared data folder (tests that need it skip without it), a short synthetic
 sequence as observations."""
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+
+if not torch.cuda.is_available():  # Triton kernels run through its interpreter (read when Triton is imported)
+    os.environ.setdefault("TRITON_INTERPRET", "1")
 
 from gausem_bench.data import SHARED_DATA, VARIABLE
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset

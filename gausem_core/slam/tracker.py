@@ -224,9 +224,11 @@ class Tracker:
         """``motion`` after ``rounds`` rounds of ``level_iterations`` Gauss-Newton steps (fewer once a step is below
         ``min_step``)."""
         cfg = self.cfg.gauss_newton
-        align = align_level if view.depth.device.type == "cpu" else align_level_on_device  # no host sync per step
-        return align(view, level, motion, alignment_weights(self.cfg), cfg.level_iterations * rounds,
-                     min_step=cfg.min_step)[0]
+        iterations, weights = cfg.level_iterations * rounds, alignment_weights(self.cfg)
+        if view.depth.device.type == "cpu":
+            return align_level(view, level, motion, weights, iterations, min_step=cfg.min_step)[0]
+        return align_level_on_device(view, level, motion, weights, iterations, min_step=cfg.min_step,
+                                     fused=cfg.fused)[0]  # no host sync per step
 
     def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
         """The model view with the colour that is compared with the observation's (``slam.photometric``)."""
