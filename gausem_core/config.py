@@ -144,7 +144,7 @@ class MappingConfig:
     lr_pose: float = 5e-4
     densify_silhouette_threshold: float = 0.5  # tau_sil
     densify_depth_margin: float = 0.05  # metres; new Gaussians where rendered depth lies this far behind the measurement
-    densify_color_error: float = 0.02  # beside a lattice coarser than one pixel, after a keyframe's optimisation:
+    densify_color_error: float = 0.01  # beside a lattice coarser than one pixel, after a keyframe's optimisation:
     # one-pixel Gaussians where the map covers the view but its colour residual, less its mean over the lattice
     # spacing (the part finer than the lattice), exceeds this (mean absolute, colours in [0, 1]); 0: off
     prune_opacity: float = 0.005

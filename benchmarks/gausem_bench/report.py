@@ -73,7 +73,8 @@ CHAPTERS = [
     ("Accuracy against Open3D (Tab. IV, V and VII shape)", [
         "slam_paper_a", "slam_paper_b"]),
     ("Ablations (Tab. VIII shape)", ["slam_ablation"]),
-    ("Map density", ["slam_map_density_640x480_walk", "slam_map_density_640x480_walk_sparser",
+    ("Map density", ["slam_map_density_640x480_walk", "slam_map_density_640x480_walk_detail",
+                     "slam_map_density_640x480_walk_sparser",
                      "slam_map_density_640x480_walk_earlier_detail", "slam_map_density_640x480_fine_detail",
                      "slam_map_density_640x480", "slam_map_density_320x240"]),
     ("How good are the references?", [
