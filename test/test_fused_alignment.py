@@ -61,7 +61,7 @@ def test_the_model_behind_the_camera_sums_to_nothing_but_its_cost():
     behind = se3_exp(torch.tensor([0.0, 0.0, -3.0, 0.0, 0.0, 0.0]))
     h, g, cost, count = fused_alignment.fused_normal_equation_sums(observed, behind, WEIGHTS, points, ref)
     assert int(count) == 0 and float(h.abs().max()) == 0 and float(g.abs().max()) == 0
-    assert float(cost) == pytest.approx(len(points) * direct_alignment._cost_cap(WEIGHTS, 0), rel=1e-6)
+    assert float(cost) == pytest.approx(len(points) * direct_alignment.cost_cap(WEIGHTS, 0), rel=1e-6)
 
 
 @pytest.mark.cuda

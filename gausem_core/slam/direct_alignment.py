@@ -158,14 +158,19 @@ def _channel_weights(weights: AlignmentWeights, features: int) -> list[float]:
     return [weights.color] * 3 + [weights.semantic] * 3 + [weights.depth] + [weights.feature] * features
 
 
+def channel_weight_column(weights: AlignmentWeights, features: int, dtype: torch.dtype,
+                          device: torch.device) -> torch.Tensor:
+    """(C, 1) tensor of the channel weights, made once per device: a fresh one would be a host-to-device copy (a wait
+    on the GPU) in every Gauss-Newton step."""
+    return _weight_column(tuple(_channel_weights(weights, features)), dtype, device)
+
+
 @functools.lru_cache(maxsize=32)
-def _channel_weight_column(values: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """(C, 1) tensor of channel weights, made once per device: a fresh one would be a host-to-device copy (a wait on
-    the GPU) in every Gauss-Newton step."""
+def _weight_column(values: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     return torch.tensor(values, dtype=dtype, device=device)[:, None]
 
 
-def _cost_cap(weights: AlignmentWeights, features: int) -> float:
+def cost_cap(weights: AlignmentWeights, features: int) -> float:
     """What a model pixel costs at most: a ``max_depth_residual`` depth error and colour, semantic and feature errors
     of ``_MAX_COLOR_RESIDUAL``."""
     return (weights.depth * weights.max_depth_residual
@@ -178,7 +183,7 @@ def normal_equations(observed: ObservedImages, motion: torch.Tensor, weights: Al
     7 + F channels (colour, semantics, depth, features) of the model ``points`` (N, 3) with values ``ref`` (6 + F, N),
     and the mean cost per model point.
 
-    The cost is the weighted L1 per model pixel, truncated at :func:`_cost_cap`, which is also what a model pixel
+    The cost is the weighted L1 per model pixel, truncated at :func:`cost_cap`, which is also what a model pixel
     without a valid observed counterpart costs: comparable across poses. Depth residuals where the observed depth is
     steeper than ``max_depth_slope`` (discontinuities: sensor noise and mixed pixels, no surface derivative) get no
     IRLS weight. Returns None when fewer than 12 model pixels land on valid observed pixels. On CPU tensors the
@@ -193,7 +198,7 @@ def _kernel_arguments(observed: ObservedImages, weights: AlignmentWeights) -> tu
     """The observed samples, camera, channel weights and tolerances as the compiled kernels take them."""
     cam, features = observed.camera, observed.feature_channels
     return (observed.samples_last, [cam.fx, cam.fy, cam.cx, cam.cy], _channel_weights(weights, features),
-            weights.huber_delta, weights.max_depth_residual, weights.max_depth_slope, _cost_cap(weights, features))
+            weights.huber_delta, weights.max_depth_residual, weights.max_depth_slope, cost_cap(weights, features))
 
 
 def _normal_equations_compiled(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
@@ -238,12 +243,12 @@ def normal_equation_sums(observed: ObservedImages, motion: torch.Tensor, weights
     jac[6] -= dz  # the observed depth moves with the pixel, and so does z
     res = torch.cat([obs[:6] - ref[:6], depth_res[None], obs[7:] - ref[6:]], 0)
     features = observed.feature_channels
-    chan = _channel_weight_column(tuple(_channel_weights(weights, features)), p.dtype, p.device)
+    chan = channel_weight_column(weights, features, p.dtype, p.device)
     irls = chan / res.abs().clamp_min(weights.huber_delta) * valid  # IRLS weights of the L1 norm
     # depth discontinuities: the observed depth's gradient there is no derivative of the surface, leave them out
     slope = (gu[6].abs() * cam.fx + gv[6].abs() * cam.fy) / z
     irls[6] = irls[6] * (slope < weights.max_depth_slope)
-    cap = _cost_cap(weights, features)
+    cap = cost_cap(weights, features)
     cost = torch.where(valid, (chan * res.abs()).sum(0).clamp_max(cap), cap).sum()
     jw = (jac * irls[..., None]).reshape(-1, 6)
     return jw.T @ jac.reshape(-1, 6), jw.T @ res.reshape(-1), cost, valid.sum()

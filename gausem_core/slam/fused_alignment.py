@@ -11,8 +11,7 @@ import os
 
 import torch
 
-from gausem_core.slam.direct_alignment import (AlignmentWeights, ObservedImages, _channel_weight_column,
-                                               _channel_weights, _cost_cap)
+from gausem_core.slam.direct_alignment import AlignmentWeights, ObservedImages, channel_weight_column, cost_cap
 
 try:
     import triton
@@ -41,14 +40,14 @@ def fused_normal_equation_sums(observed: ObservedImages, motion: torch.Tensor, w
                            f"is imported), not on {points.device}")
     features = observed.feature_channels
     cam, dtype = observed.camera, points.dtype
-    chan = _channel_weight_column(tuple(_channel_weights(weights, features)), dtype, points.device)
+    chan = channel_weight_column(weights, features, dtype, points.device)
     out = torch.zeros(64 + 8 + 2, dtype=dtype, device=points.device)
     n = len(points)
     _normal_equations[(triton.cdiv(max(n, 1), _BLOCK),)](
         points.contiguous(), ref.contiguous(), observed.samples_last.to(dtype), motion.to(dtype).contiguous(), chan,
         out, n, cam.height, cam.width, float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy),
         float(weights.huber_delta), float(weights.max_depth_residual), float(weights.max_depth_slope),
-        float(_cost_cap(weights, features)), C=7 + features, BLOCK=_BLOCK)
+        float(cost_cap(weights, features)), C=7 + features, BLOCK=_BLOCK)
     return out[:64].view(8, 8)[:6, :6], out[64:70], out[72], out[73]
 
 
