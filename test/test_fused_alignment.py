@@ -28,7 +28,8 @@ def level(features: int, device: str):
     model = direct_alignment.ModelView(to(model_color), to(model_color.flip(-1)), to(model_depth),
                                        to((model_depth > 0) & sparse), CAMERA, to(extra(model_color)))
     observed = direct_alignment.ObservedImages.build(to(observed_color), to(observed_color.flip(-1)),
-                                                     to(jitter_edges(observed_depth)), CAMERA, to(extra(observed_color)))
+                                                     to(jitter_edges(observed_depth)), CAMERA,
+                                                     to(extra(observed_color)))
     return model, observed
 
 

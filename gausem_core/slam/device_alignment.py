@@ -15,7 +15,8 @@ def align_level_on_device(model: ModelView, observed: ObservedImages, motion: to
                           min_step: float = 1e-6, check_every: int = 4,
                           fused: bool = True) -> tuple[torch.Tensor, float]:
     """:func:`~gausem_core.slam.direct_alignment.align_level` with no host sync per step (the normal equations in one
-    Triton kernel on CUDA where it compiles and ``fused``, ``slam.fused_alignment``; in torch otherwise): returns the refined ``motion`` (on its device) and the last mean cost (nan when no step had 12 valid points).
+    Triton kernel on CUDA where it compiles and ``fused``, ``slam.fused_alignment``; in torch otherwise): returns the
+    refined ``motion`` (on its device) and the last mean cost (nan when no step had 12 valid points).
 
     The solve runs in float64 as on the host. Once converged (|xi| < ``min_step``, or a step with fewer than 12 valid
     points, which moves nothing) the steps leave the motion and the cost as they are, so running on changes nothing.

@@ -94,18 +94,9 @@ def _normal_equations(points, ref, samples, motion, chan, out, n, height, width,
     depth_v = z * 0.0
     depth_w = z * 0.0
     for c in tl.static_range(C):
-        value = (w00 * tl.load(samples + o00 + c, mask=inside, other=0.0)
-                 + w01 * tl.load(samples + o01 + c, mask=inside, other=0.0)
-                 + w10 * tl.load(samples + o10 + c, mask=inside, other=0.0)
-                 + w11 * tl.load(samples + o11 + c, mask=inside, other=0.0))
-        grad_u = (w00 * tl.load(samples + o00 + C + c, mask=inside, other=0.0)
-                  + w01 * tl.load(samples + o01 + C + c, mask=inside, other=0.0)
-                  + w10 * tl.load(samples + o10 + C + c, mask=inside, other=0.0)
-                  + w11 * tl.load(samples + o11 + C + c, mask=inside, other=0.0))
-        grad_v = (w00 * tl.load(samples + o00 + 2 * C + c, mask=inside, other=0.0)
-                  + w01 * tl.load(samples + o01 + 2 * C + c, mask=inside, other=0.0)
-                  + w10 * tl.load(samples + o10 + 2 * C + c, mask=inside, other=0.0)
-                  + w11 * tl.load(samples + o11 + 2 * C + c, mask=inside, other=0.0))
+        value = _bilinear(samples + c, o00, o01, o10, o11, w00, w01, w10, w11, inside)
+        grad_u = _bilinear(samples + C + c, o00, o01, o10, o11, w00, w01, w10, w11, inside)
+        grad_v = _bilinear(samples + 2 * C + c, o00, o01, o10, o11, w00, w01, w10, w11, inside)
         weight = tl.load(chan + c)
         if c == 6:  # depth: its residual moves with z, and steep observed depth (a discontinuity) gets no weight
             depth = value
@@ -157,5 +148,14 @@ def _normal_equations(points, ref, samples, motion, chan, out, n, height, width,
     tl.atomic_add(out + 73, tl.sum(keep, 0))
 
 
-if triton is not None:
+def _bilinear(channel, o00, o01, o10, o11, w00, w01, w10, w11, inside):
+    """One channel's bilinear samples from its four corners' offsets and weights (0 outside)."""
+    return (w00 * tl.load(channel + o00, mask=inside, other=0.0)
+            + w01 * tl.load(channel + o01, mask=inside, other=0.0)
+            + w10 * tl.load(channel + o10, mask=inside, other=0.0)
+            + w11 * tl.load(channel + o11, mask=inside, other=0.0))
+
+
+if triton is not None:  # jitted here, not decorated: the module imports without Triton
+    _bilinear = triton.jit(_bilinear)
     _normal_equations = triton.jit(_normal_equations)
