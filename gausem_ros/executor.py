@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 
 from rclpy.executors import MultiThreadedExecutor
 
@@ -18,6 +19,23 @@ class NodeExecutor(MultiThreadedExecutor):
     def shutdown(self, timeout_sec: float | None = None) -> bool:
         self._executor.shutdown(wait=True)  # the worker pool: its running and queued callbacks run to their end
         return super().shutdown(timeout_sec)
+
+    def retire_node(self, node, timeout_sec: float = 10.0) -> bool:
+        """Remove ``node`` from a running executor and destroy it once none of its callbacks is in progress or queued
+        on the worker threads (waiting up to ``timeout_sec``): destroyed under a running callback, its publishers
+        fail mid-callback ('cannot use Destroyable'). Whether its callbacks ended in time. Call it from the thread
+        that spins, between spins."""
+        self.remove_node(node)
+        end = time.monotonic() + timeout_sec
+        while self._callbacks_pending(node) and time.monotonic() < end:
+            time.sleep(0.005)
+        ended = not self._callbacks_pending(node)
+        node.destroy_node()
+        return ended
+
+    def _callbacks_pending(self, node) -> bool:
+        with self._tasks_lock:
+            return any(owner is node and not task.done() for task, _, owner in self._tasks)
 
 
 def exit_now(code: int) -> None:

@@ -472,3 +472,33 @@ def test_executor_shutdown_waits_for_the_callbacks_and_leaves_no_failed_task(cap
     del executor
     gc.collect()
     assert "never retrieved" not in capfd.readouterr().err
+
+
+def test_a_retired_node_is_destroyed_only_after_its_callback_in_progress():
+    """retire_node removes a node from the running executor and destroys it once its callback on a worker thread has
+    ended: that callback's publish still finds its publisher (destroyed under it: 'cannot use Destroyable', raised
+    by the next spin)."""
+    context = Context()
+    rclpy.init(context=context, domain_id=164)
+    executor = NodeExecutor(num_threads=2, context=context)
+    node = rclpy.create_node("slow_publisher", context=context)
+    publisher = node.create_publisher(Image, "slow", 1)
+    started, published = [], []
+
+    def slow():
+        started.append(True)
+        time.sleep(0.2)
+        publisher.publish(Image())
+        published.append(True)
+
+    node.create_timer(0.005, slow)
+    executor.add_node(node)
+    try:
+        assert spin_until(executor, lambda: started, 30.0)
+        assert executor.retire_node(node)
+        assert published and node not in executor.get_nodes()
+        spin_for(executor, 0.1)  # collects the finished handlers: one that failed would raise here
+        assert len(published) == 1  # the node's timer is gone
+    finally:
+        executor.shutdown()
+        rclpy.shutdown(context=context)

@@ -119,8 +119,7 @@ def test_reset_then_replaying_the_same_frames_gives_the_same_trajectory():
             player = Player(frames, rate=0.0, lockstep=True, timeout=30.0, context=ctx)
             executor.add_node(player)
             assert spin_until(executor, lambda: player.done, 60.0)
-            executor.remove_node(player)
-            player.destroy_node()
+            assert executor.retire_node(player)
             runs.append(_trajectory(tracking))
             future = reset.call_async(Trigger.Request())
             assert spin_until(executor, future.done, 10.0) and future.result().success
@@ -256,8 +255,7 @@ def test_a_restarted_tracker_resumes_from_its_checkpoint_relocalises_and_goes_on
         # the player is done once the last odometry is out, the tracker still publishing the rest of that frame
         assert spin_until(executor, lambda: tracking._queue.idle, 10.0)
         for node in (tracking, player):  # the tracker "crashes": nothing saved after the last checkpoint
-            executor.remove_node(node)
-            node.destroy_node()
+            assert executor.retire_node(node)
 
         graph = PoseGraphNode(context=ctx)
         executor.add_node(graph)

@@ -476,15 +476,13 @@ def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
             executor.add_node(player)
             assert spin_until(executor, lambda: player.done, 90.0)
             assert player.timeouts == 0 and tracking.frames_processed == last
-            executor.remove_node(player)
-            player.destroy_node()
+            assert executor.retire_node(player)
 
         loop_detection, pose_graph = start_helpers()
         play(0, 4)
         assert spin_until(executor, lambda: tracking.loop_candidates, 5.0)  # keyframe 2 -> 0
         for node in (loop_detection, pose_graph):  # both "crash"
-            executor.remove_node(node)
-            node.destroy_node()
+            assert executor.retire_node(node)
         candidates_before = len(tracking.loop_candidates)
         play(4, 6)  # keyframe 4 reaches nobody; tracking goes on
         assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == 6, 5.0)

@@ -98,8 +98,7 @@ def _play(ctx, executor, frames) -> None:
     player = Player(frames, rate=0.0, lockstep=True, timeout=30.0, context=ctx)
     executor.add_node(player)
     assert spin_until(executor, lambda: player.done, 50.0)
-    executor.remove_node(player)
-    player.destroy_node()
+    assert executor.retire_node(player)
 
 
 @needs_tf2_msgs
