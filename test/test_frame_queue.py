@@ -59,3 +59,18 @@ def test_a_frame_waits_while_not_ready():
     queue.wake()
     node.callback()
     assert handed == ["a"]
+
+
+def test_a_drop_newer_than_the_pending_frame_counts_towards_the_frame_after_it():
+    node, handed = ManualGuard(), []
+    queue = NewestFrameQueue(node, lambda item, arrived, skipped: handed.append((item, skipped)), lambda _: None)
+    queue.put("a", stamp=1.0)
+    queue.skip(stamp=0.5)  # older than a: before it
+    queue.skip(stamp=2.0)  # dropped after a arrived: after it
+    queue.skip()  # no stamp: before the pending frame
+    node.callback()
+    queue.put("c", stamp=3.0)
+    queue.skip(stamp=4.0)
+    queue.put("e", stamp=5.0)  # c superseded, and the drop after it is now before e
+    node.callback()
+    assert handed == [("a", 2), ("e", 3)]  # e: the drop after a, c and the drop after c

@@ -161,14 +161,17 @@ class NewestFrameQueue:
     ``process(item, arrived, skipped)`` gets the monotonic time the item was put and how many frames were skipped
     since the last item it got: those superseded here and those the node reported with :meth:`skip` (frames dropped
     before they were put), counted under one lock as the item is taken, so a frame dropped while another is being
-    processed counts towards the next one. While ``ready()`` is false the pending frame waits; call :meth:`wake`
-    when it may have become true."""
+    processed counts towards the next one. A frame dropped with a stamp newer than the pending frame's counts towards
+    the frame after that one (a synchroniser may drop a newer frame before the pending one is taken). While
+    ``ready()`` is false the pending frame waits; call :meth:`wake` when it may have become true."""
 
     def __init__(self, node, process: Callable, on_superseded: Callable, callback_group=None,
                  ready: Callable[[], bool] = lambda: True):
         self._process, self._on_superseded, self._ready = process, on_superseded, ready
         self._pending: tuple[object, float] | None = None
-        self._skipped = 0  # frames superseded or reported skipped since the last item taken
+        self._pending_stamp: float | None = None
+        self._skipped = 0  # frames superseded or reported skipped since the last item taken, before the pending one
+        self._skipped_after = 0  # reported skipped with a stamp after the pending one's
         self._running = 0
         self._lock = threading.Lock()
         self._guard = node.create_guard_condition(self._run, callback_group=callback_group)
@@ -184,24 +187,31 @@ class NewestFrameQueue:
         with self._lock:
             return self._pending is None and not self._running
 
-    def put(self, item) -> None:
+    def put(self, item, stamp: float | None = None) -> None:
         with self._lock:
             old, self._pending = self._pending, (item, time.monotonic())
-            self._skipped += old is not None
+            self._pending_stamp = stamp
+            self._skipped += (old is not None) + self._skipped_after
+            self._skipped_after = 0
             idle = not self._running
         if old is not None:
             self._on_superseded(old[0])
         if idle:  # else _run triggers when done: a guard condition ready in a busy group would spin the executor
             self._guard.trigger()
 
-    def skip(self, count: int = 1) -> None:
-        """Count frames dropped before they reached the queue: the next item taken hears of them."""
+    def skip(self, count: int = 1, stamp: float | None = None) -> None:
+        """Count frames dropped before they reached the queue: the next item taken hears of them, or the one after it
+        when ``stamp`` is newer than the pending item's."""
         with self._lock:
-            self._skipped += count
+            pending = None if self._pending is None else self._pending_stamp
+            if None not in (stamp, pending) and stamp > pending:
+                self._skipped_after += count
+            else:
+                self._skipped += count
 
     def clear(self) -> None:
         with self._lock:
-            self._pending, self._skipped = None, 0
+            self._pending, self._skipped, self._skipped_after = None, 0, 0
 
     def wake(self) -> None:
         """Process the pending frame now if it is waiting for ``ready()``."""
@@ -218,7 +228,7 @@ class NewestFrameQueue:
             if entry is None:
                 return
             self._running += 1
-            skipped, self._skipped = self._skipped, 0
+            skipped, self._skipped, self._skipped_after = self._skipped, self._skipped_after, 0
         try:
             self._process(*entry, skipped)
         finally:

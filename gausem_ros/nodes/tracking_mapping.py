@@ -377,7 +377,7 @@ class TrackingMappingNode(Node):
         return None if self._camera is None else (self._camera[1].camera if self._camera[1] else self._camera[0])
 
     def _on_frame(self, *msgs: Image) -> None:
-        self._queue.put(msgs)
+        self._queue.put(msgs, ma.header_seconds(msgs[0].header))
 
     def _on_sync_drop(self, index: int, reason: str, detail: str, stamp: float | None) -> None:
         """The synchroniser dropped a message: an rgb image is a lost frame (counted by reason; the diagnostics name
@@ -392,12 +392,15 @@ class TrackingMappingNode(Node):
         if reason == "unmatched" and silent:
             reason = f"no_{silent[0]}"
             detail += NO_LABELS_HINT if silent[0] == "labels" else ""
-        self._skip(SYNC_REASONS.get(reason, reason), detail)
+        if reason == "lost_in_transport":  # unstamped, but after the last rgb received, so after any pending frame
+            stamp = math.inf
+        self._skip(SYNC_REASONS.get(reason, reason), detail, stamp)
 
-    def _skip(self, reason: str, detail: str) -> None:
-        """A frame dropped before it reached the core: counted by reason, and passed on to the core with the next
-        frame as a skipped one (its motion model then knows that the camera moved on for longer)."""
-        self._queue.skip()
+    def _skip(self, reason: str, detail: str, stamp: float | None = None) -> None:
+        """A frame (stamped ``stamp`` where known) dropped before it reached the core: counted by reason, and passed
+        on to the core with the next frame after it as a skipped one (its motion model then knows that the camera
+        moved on for longer)."""
+        self._queue.skip(stamp=stamp)
         self.drops.drop(reason, detail)
 
     def _observation(self, rgb_msg: Image, depth_msg: Image, labels_msg: Image | None = None) -> Observation:
