@@ -12,8 +12,9 @@ import torch
 from gausem_core.config import HealthConfig, load_config
 from gausem_core.data import open_dataset
 from gausem_core.eval.health import PlantedFailure, flag_scores, relative_errors
-from gausem_core.geometry import invert_pose, make_pose, so3_exp, so3_log
+from gausem_core.geometry import PinholeCamera, invert_pose, make_pose, so3_exp, so3_log
 from gausem_core.pipeline import Pipeline
+from gausem_core.slam.direct_alignment import ModelView
 from gausem_core.slam.health import SIGNALS, HealthMonitor, condition, image_signals, thresholds
 from gausem_core.slam.system import GauSemSLAM
 
@@ -63,16 +64,24 @@ def test_every_level_threshold_of_the_config_is_in_the_table_under_its_own_field
 
 
 def test_image_signals_measure_the_map_in_view_and_the_share_it_explains():
+    camera = PinholeCamera(8.0, 8.0, 5.0, 4.0, 10, 8)
     depth = torch.full((8, 10), 2.0)
     mask = torch.zeros(8, 10, dtype=torch.bool)
     mask[:, :4] = True  # the map covers 32 of 80 pixels
     rendered = depth.clone()
     rendered[:2, :4] += 0.5  # 8 of them disagree with the observed depth
-    view = SimpleNamespace(mask=mask, depth=rendered, color=torch.zeros(8, 10, 3))
-    obs = SimpleNamespace(valid_depth=torch.ones(8, 10, dtype=torch.bool), depth=depth, rgb=torch.zeros(8, 10, 3))
+    rgb = torch.zeros(8, 10, 3)
+    view = ModelView(rgb, rgb, rendered, mask, camera)
+    obs = SimpleNamespace(valid_depth=torch.ones(8, 10, dtype=torch.bool), depth=depth, rgb=rgb, camera=camera)
     signals = image_signals(view, obs, None, HealthConfig())
     assert signals["coverage"] == pytest.approx(0.4) and signals["inlier_fraction"] == pytest.approx(24 / 32)
     assert signals["valid_depth"] == 1.0 and signals["condition"] == math.inf
+    # the same view moved a pixel to the right (0.25 m at 2 m): all 32 land, each on the observed pixel one column on
+    shifted = image_signals(view, obs, None, HealthConfig(), make_pose(torch.eye(3), torch.tensor([0.25, 0.0, 0.0])))
+    assert shifted["coverage"] == pytest.approx(0.4) and shifted["inlier_fraction"] == pytest.approx(24 / 32)
+    beside = image_signals(view, obs, None, HealthConfig(), make_pose(torch.eye(3), torch.tensor([-0.5, 0.0, 0.0])))
+    assert beside["coverage"] == pytest.approx(16 / 80)  # two columns of four leave the image
+    assert beside["inlier_fraction"] == pytest.approx(12 / 16)
 
 
 def test_residual_is_judged_against_its_recent_distribution_not_its_level():

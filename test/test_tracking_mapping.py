@@ -13,7 +13,8 @@ from gausem_core.pipeline import Pipeline
 from gausem_core.render import render
 from gausem_core.slam.densification import semantic_sample
 from gausem_core.slam.mapper import Keyframe, Mapper
-from gausem_core.slam.tracker import Tracker, constant_velocity, repeat_motion
+from gausem_core.slam.health import image_signals
+from gausem_core.slam.tracker import Tracker, constant_velocity, inspect_pose, repeat_motion
 from gausem_core.tools.run import default_params_file
 
 
@@ -394,6 +395,34 @@ def test_per_frame_keeps_a_start_only_when_it_explains_the_frame_better_by_the_m
     with pytest.raises(ValueError, match="keep_start_margin"):
         Tracker(dataclasses.replace(tracking, gauss_newton=dataclasses.replace(tracking.gauss_newton,
                                                                                keep_start_margin=-0.1)))
+
+
+def test_health_is_judged_on_the_view_tracking_aligned_against_without_a_render(scene, monkeypatch):
+    """inspect_pose takes the view that tracking last rendered, moved by the result's motion, while that motion is
+    within rerender_motion: no render, and signals and Hessian as from a view rendered at the pose; a result that
+    moved further from its view, or none, gets the model rendered at the pose."""
+    from gausem_core.slam import tracker as tracker_module
+
+    cfg, cloud, observations, truths, _ = scene
+    tracking = dataclasses.replace(cfg.tracking, gauss_newton=dataclasses.replace(cfg.tracking.gauss_newton,
+                                                                                   model_views="per_frame"))
+    obs = observations[1]
+    tracked = Tracker(tracking, "torch").track(cloud, obs, torch.eye(4))  # from frame 0's pose
+    assert pose_error(tracked.cam_to_world, truths[1])[0] < 0.01 and tracked.view is not None
+    calls = []
+    monkeypatch.setattr(tracker_module, "render", lambda *a, _render=render, **k: (calls.append(1),
+                                                                                   _render(*a, **k))[1])
+    reused = inspect_pose(cloud, obs, tracked.cam_to_world, tracking, "torch", tracked)
+    assert not calls and reused[0] is tracked.view
+    fresh = inspect_pose(cloud, obs, tracked.cam_to_world, tracking, "torch")
+    assert len(calls) == 1 and torch.equal(fresh[1], torch.eye(4))
+    signals = [image_signals(view, obs, hessian, cfg.health, motion) for view, motion, hessian in (reused, fresh)]
+    for name in ("coverage", "inlier_fraction"):
+        assert abs(signals[0][name] - signals[1][name]) < 0.03, (name, signals)
+    assert abs(signals[0]["condition"] - signals[1]["condition"]) < 0.2, signals
+    far = dataclasses.replace(tracked, motion=tracked.motion @ se3_exp(torch.tensor([0.2, 0, 0, 0, 0, 0.0])))
+    assert inspect_pose(cloud, obs, tracked.cam_to_world, tracking, "torch", far)[0] is not tracked.view
+    assert len(calls) == 2
 
 
 def test_a_checkerboard_model_view_keeps_every_other_pixel_of_its_silhouette():

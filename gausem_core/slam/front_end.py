@@ -200,8 +200,9 @@ class FrontEnd:
         it, degraded at least (``relocalised``)."""
         if relocalised is not None:
             return self._relocalised_health(obs, relocalised)
-        view, hessian = inspect_pose(cloud, obs, tracked.cam_to_world, self.cfg.tracking, self.cfg.backend)
-        image = image_signals(view, obs, hessian, self.cfg.health)
+        view, moved, hessian = inspect_pose(cloud, obs, tracked.cam_to_world, self.cfg.tracking, self.cfg.backend,
+                                            tracked)  # the view tracking aligned against where it still holds
+        image = image_signals(view, obs, hessian, self.cfg.health, moved)
         return self.health.assess(tracked.loss, image, tracked.cam_to_world, motion.previous,
                                   motion.previous if motion.predicted is None else motion.predicted, motion.steps)
 
@@ -251,8 +252,9 @@ class FrontEnd:
         ``health.recovery_residual_z``."""
         submap = self.back_end.submaps[placed.submap_id]
         local = invert_pose(submap.anchor) @ placed.cam_to_world
-        view, hessian = inspect_pose(submap.load_cloud(self.device), obs, local, self.cfg.tracking, self.cfg.backend)
-        health = self.health.judge(placed.tracking_loss, image_signals(view, obs, hessian, self.cfg.health), local,
-                                   None)
+        view, moved, hessian = inspect_pose(submap.load_cloud(self.device), obs, local, self.cfg.tracking,
+                                            self.cfg.backend)
+        health = self.health.judge(placed.tracking_loss, image_signals(view, obs, hessian, self.cfg.health, moved),
+                                   local, None)
         fits = health.status != "lost" and health.residual_z <= self.cfg.health.recovery_residual_z
         return replace(placed, accepted=fits, health=health)

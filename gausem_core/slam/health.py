@@ -66,18 +66,28 @@ class TrackingHealth:
         return {name: values[name] for name in SIGNALS}
 
 
-def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig) -> dict[str, float]:
-    """``inlier_fraction``, ``condition``, ``valid_depth`` and ``coverage`` of a frame from the model ``view`` rendered
-    at its pose and the alignment ``hessian`` there (see :func:`gausem_core.slam.tracker.inspect_pose`)."""
-    valid = obs.valid_depth
-    silhouette = view.mask
-    depth_ok = (view.depth - obs.depth).abs() < cfg.inlier_depth
-    color_ok = (view.color - obs.rgb).abs().mean(-1) < cfg.inlier_color
-    inliers = silhouette & torch.where(valid, depth_ok, color_ok)
-    covered = int(silhouette.sum())
+def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig,
+                  motion: torch.Tensor | None = None) -> dict[str, float]:
+    """``inlier_fraction``, ``condition``, ``valid_depth`` and ``coverage`` of a frame from the model ``view`` (a
+    :class:`~gausem_core.slam.direct_alignment.ModelView`, colour as rendered) and the alignment ``hessian`` at its
+    pose (see :func:`gausem_core.slam.tracker.inspect_pose`). ``motion`` (observed-from-model camera; None: the view
+    was rendered at the pose) moves the view's silhouette pixels into the frame, each compared with the observed
+    pixel it lands on; at the identity that is the pixel it was rendered at."""
+    points, values = view.samples
+    if motion is not None:
+        points = points @ motion[:3, :3].T.to(points) + motion[:3, 3].to(points)
+    cam, z = obs.camera, points[:, 2]
+    u = cam.fx * points[:, 0] / z.clamp_min(1e-6) + cam.cx
+    v = cam.fy * points[:, 1] / z.clamp_min(1e-6) + cam.cy
+    landed = (z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    row, col = v[landed].long(), u[landed].long()
+    depth_ok = (z[landed] - obs.depth[row, col]).abs() < cfg.inlier_depth
+    color_ok = (values[:3, landed].T - obs.rgb[row, col]).abs().mean(-1) < cfg.inlier_color
+    inliers = torch.where(obs.valid_depth[row, col], depth_ok, color_ok)
+    covered = len(row)
     inlier_fraction = float(inliers.sum()) / covered if covered else math.nan
-    return {"inlier_fraction": inlier_fraction, "condition": condition(hessian, view.depth[silhouette]),
-            "valid_depth": float(valid.float().mean()), "coverage": covered / silhouette.numel()}
+    return {"inlier_fraction": inlier_fraction, "condition": condition(hessian, z[landed]),
+            "valid_depth": float(obs.valid_depth.float().mean()), "coverage": covered / (cam.width * cam.height)}
 
 
 def condition(hessian: torch.Tensor | None, depths: torch.Tensor) -> float:

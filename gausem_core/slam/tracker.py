@@ -29,6 +29,8 @@ class TrackingResult:
     cam_to_world: torch.Tensor  # (4, 4), in the frame of the cloud (the submap)
     loss: float
     iterations: int
+    view: ModelView | None = None  # the full-resolution model view (colour as rendered) the pose was aligned against
+    motion: torch.Tensor | None = None  # observed-from-model camera: from where ``view`` was rendered to the pose
 
 
 def constant_velocity(previous: torch.Tensor, before_previous: torch.Tensor | None) -> torch.Tensor:
@@ -74,16 +76,24 @@ def motion_size(motion: torch.Tensor, view: ModelView) -> float:
 
 
 def inspect_pose(cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor, cfg: TrackingConfig,
-                 backend: str) -> tuple[ModelView, torch.Tensor | None]:
-    """The model view at ``cam_to_world`` and the Gauss-Newton Hessian (6, 6) of the full-resolution alignment
-    there (None when the views barely overlap): what tracking health is judged from."""
+                 backend: str, tracked: TrackingResult | None = None
+                 ) -> tuple[ModelView, torch.Tensor, torch.Tensor | None]:
+    """What tracking health is judged from: a model view, the motion (observed-from-model camera) that brings it to
+    ``cam_to_world``, and the Gauss-Newton Hessian (6, 6) of the full-resolution alignment there (None when the views
+    barely overlap). The view that ``tracked`` (the result at ``cam_to_world``) was aligned against serves when the
+    pose moved at most ``rerender_motion`` from it, as it would in tracking; else the model is rendered at the pose
+    (identity motion)."""
     with torch.no_grad():
-        cloud = cloud.detach()
-        view = model_view(cloud, cam_to_world.detach().to(cloud.dtype), obs.camera, cfg, backend)
+        if (tracked is not None and tracked.view is not None
+                and motion_size(tracked.motion, tracked.view) <= cfg.gauss_newton.rerender_motion):
+            view, motion = tracked.view, tracked.motion
+        else:
+            cloud = cloud.detach()
+            view = model_view(cloud, cam_to_world.detach().to(cloud.dtype), obs.camera, cfg, backend)
+            motion = torch.eye(4, dtype=cloud.dtype, device=cloud.means.device)
         observed = ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera)
-        eye = torch.eye(4, dtype=cloud.dtype, device=cloud.means.device)
-        step = normal_equations(observed, eye, alignment_weights(cfg), *model_samples(view, observed))
-    return view, None if step is None else step[0]
+        step = normal_equations(observed, motion, alignment_weights(cfg), *model_samples(view, observed))
+    return view, motion, None if step is None else step[0]
 
 
 class Tracker:
@@ -171,7 +181,8 @@ class Tracker:
         image under any of the poses left out), all costs from the views already rendered; the pose kept carries its
         cost."""
         cfg = self.cfg.gauss_newton
-        base, views = starts[0], self._view_pyramid(cloud, starts[0], pyramid)
+        base = starts[0]
+        rendered, views = self._view_pyramid(cloud, base, pyramid)
         begun = [invert_pose(start) @ base for start in starts]
         best, motion = self._best_start(views[-1], pyramid[-1], begun)
         renders = 1
@@ -179,13 +190,13 @@ class Tracker:
         for index in rounds:
             if motion_size(motion, views[0]) > cfg.rerender_motion:
                 base, motion = base @ invert_pose(motion), torch.eye(4, dtype=motion.dtype, device=motion.device)
-                views, renders = self._view_pyramid(cloud, base, pyramid), renders + 1
+                (rendered, views), renders = self._view_pyramid(cloud, base, pyramid), renders + 1
             motion = self._align_level(views[index], pyramid[index], motion)
         poses = [project_to_se3(base @ invert_pose(motion)), *starts]
         costs = compared_costs(views[0], pyramid[0], [invert_pose(pose) @ base for pose in poses], weights)
         start = min(range(1, len(poses)), key=costs.__getitem__)
         kept = start if costs[start] * (1 + cfg.keep_start_margin) < costs[0] else 0
-        return TrackingResult(poses[kept], costs[kept], renders)
+        return TrackingResult(poses[kept], costs[kept], renders, rendered, invert_pose(poses[kept]) @ base)
 
     def _best_start(self, view: ModelView, level: ObservedImages,
                     motions: list[torch.Tensor]) -> tuple[int, torch.Tensor]:
@@ -201,16 +212,17 @@ class Tracker:
         return best, aligned[best]
 
     def _view_pyramid(self, cloud: GaussianCloud, cam_to_world: torch.Tensor,
-                      pyramid: list[ObservedImages]) -> list[ModelView]:
-        """The model rendered once at ``cam_to_world`` at full resolution, its colour compared as the observation's
-        is, and halved to match ``pyramid``'s levels (as the observation's pyramid is made); the full-resolution
-        view keeps ``full_resolution_points``."""
-        views = [self._model_view(cloud, cam_to_world, pyramid[0].camera)]
+                      pyramid: list[ObservedImages]) -> tuple[ModelView, list[ModelView]]:
+        """The model rendered once at ``cam_to_world`` at full resolution (returned as rendered too), its colour
+        compared as the observation's is, and halved to match ``pyramid``'s levels (as the observation's pyramid is
+        made); the full-resolution view keeps ``full_resolution_points``."""
+        rendered = model_view(cloud, cam_to_world, pyramid[0].camera, self.cfg, self.backend)
+        views = [self._compared(rendered)]
         while len(views) < len(pyramid):
             views.append(views[-1].downsampled())
         if self.cfg.gauss_newton.full_resolution_points == "checkerboard":
             views[0] = views[0].checkerboard()
-        return views
+        return rendered, views
 
     def _align(self, cloud: GaussianCloud, pose: torch.Tensor, level: ObservedImages, weights: AlignmentWeights,
                eye: torch.Tensor) -> torch.Tensor:
@@ -232,7 +244,10 @@ class Tracker:
 
     def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
         """The model view with the colour that is compared with the observation's (``slam.photometric``)."""
-        view = model_view(cloud, cam_to_world, camera, self.cfg, self.backend)
+        return self._compared(model_view(cloud, cam_to_world, camera, self.cfg, self.backend))
+
+    def _compared(self, view: ModelView) -> ModelView:
+        """``view`` with its colour as it is compared with the observation's (``slam.photometric``)."""
         return replace(view, color=local_contrast(view.color, self.cfg.gauss_newton.color_normalisation_width,
                                                   view.mask))
 
