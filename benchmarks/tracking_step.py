@@ -6,7 +6,9 @@ dataset's parameter file, mapping as the SLAM system maps a keyframe), then ever
 the constant-velocity prediction of its variant's own previous estimates (the previous estimate as the alternative
 start, as the system does). The variants take turns frame by frame, so that load on a shared machine falls on both.
 Per variant: median and 90th-percentile milliseconds of ``Tracker.track``, renders per frame, translation error
-(RMSE, mm) and rotation error (median, degrees) against the ground truth. From the repository root:
+(RMSE, mm) and rotation error (median, degrees) against the ground truth, and the median milliseconds of the health
+signals the front end then takes (``inspect_pose``), on the view tracking aligned against as the system does and on
+a view rendered at the pose. From the repository root:
 
     python benchmarks/tracking_step.py --dataset synthetic:loop
     python benchmarks/tracking_step.py --dataset 'tum:$GAUSEM_SHARED_DATA/tum_fr1_rpy'
@@ -20,13 +22,14 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from gausem_core.config import load_config
+from gausem_core.config import TrackingConfig, load_config
 from gausem_core.data import open_dataset
 from gausem_core.geometry import invert_pose, so3_log
 from gausem_core.pipeline import Pipeline
 from gausem_core.slam import tracker as tracker_module
 from gausem_core.slam.mapper import Keyframe, Mapper
-from gausem_core.slam.tracker import Tracker, constant_velocity
+from gausem_core.slam.health import image_signals
+from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity, inspect_pose
 from gausem_core.tools.run import default_params_file
 
 from gausem_bench import results
@@ -36,7 +39,8 @@ WHAT = ("Tracker.track against a fixed map built at the ground-truth poses of ev
         "constant-velocity prediction of its variant's own estimates (variants take turns frame by frame); "
         "model views rendered at every pyramid level (per_level) or once per frame at full resolution and "
         "downsampled, again only when the estimate moved rerender_motion (per_frame); other tracking.gauss_newton "
-        "values after commas.")
+        "values after commas. Health: inspect_pose + image_signals after each frame, on the tracked view where it "
+        "holds (as the system does) and on a view rendered at the pose.")
 
 
 def fixed_map(pipeline: Pipeline, poses: list[torch.Tensor], every: int):
@@ -50,6 +54,13 @@ def fixed_map(pipeline: Pipeline, poses: list[torch.Tensor], every: int):
         cloud = mapper.strategy.grow(cloud, keyframes[-1].obs, poses[i])
         cloud, _ = mapper.optimise(cloud, keyframes[-cfg.window:], cfg.iterations)
     return cloud
+
+
+def judge_health(cloud, obs, pose: torch.Tensor, tracking: TrackingConfig, cfg, tracked: TrackingResult | None):
+    """What the front end does after tracking a frame: the health signals at ``pose``, on the view ``tracked`` was
+    aligned against where it holds (None: a view rendered at the pose)."""
+    view, motion, hessian = inspect_pose(cloud, obs, pose, tracking, cfg.backend, tracked)
+    return image_signals(view, obs, hessian, cfg.health, motion)
 
 
 def with_variant(cfg, name: str):
@@ -97,24 +108,31 @@ def main() -> None:
                 for v in args.variants}
     counter = RenderCounter()
     estimates = {v: [truths[0]] for v in args.variants}
-    stats = {v: {"ms": [], "renders": [], "t_err": [], "r_err": []} for v in args.variants}
+    stats = {v: {"ms": [], "renders": [], "t_err": [], "r_err": [], "health_ms": [], "rendered_health_ms": []}
+             for v in args.variants}
     for i in range(1, len(dataset)):
         for variant in args.variants if i % 2 else reversed(args.variants):
             chain = estimates[variant]
             start = constant_velocity(chain[-1], chain[-2] if len(chain) > 1 else None)
             before, t0 = counter.count, time.perf_counter()
-            pose = trackers[variant].track(cloud, observations[i], start, [chain[-1]]).cam_to_world
+            tracked = trackers[variant].track(cloud, observations[i], start, [chain[-1]])
             stats[variant]["ms"].append(1000 * (time.perf_counter() - t0))
             stats[variant]["renders"].append(counter.count - before)
+            for key, given in (("health_ms", tracked), ("rendered_health_ms", None)):
+                t0 = time.perf_counter()
+                judge_health(cloud, observations[i], tracked.cam_to_world, trackers[variant].cfg, cfg, given)
+                stats[variant][key].append(1000 * (time.perf_counter() - t0))
+            pose = tracked.cam_to_world
             delta = invert_pose(pose) @ truths[i]
             stats[variant]["t_err"].append(1000 * float(delta[:3, 3].norm()))
             stats[variant]["r_err"].append(float(np.degrees(float(so3_log(delta[:3, :3]).norm()))))
             chain.append(pose)
     columns = ["model views", "track ms median", "track ms p90", "renders per frame", "translation RMSE mm",
-               "rotation median deg"]
+               "rotation median deg", "health ms median", "health ms median, rendered"]
     rows = [[v, round(float(np.median(s["ms"])), 1), round(float(np.percentile(s["ms"], 90)), 1),
              round(float(np.mean(s["renders"])), 2), round(float(np.sqrt(np.mean(np.square(s["t_err"])))), 2),
-             round(float(np.median(s["r_err"])), 3)] for v, s in stats.items()]
+             round(float(np.median(s["r_err"])), 3), round(float(np.median(s["health_ms"])), 1),
+             round(float(np.median(s["rendered_health_ms"])), 1)] for v, s in stats.items()]
     ratios = ", ".join(f"{row[0]} {rows[0][1] / row[1]:.2f}x" for row in rows[1:])
     name = args.name or f"tracking_step_{results.label(args.dataset).replace(' ', '_')}_{args.size}"
     results.write(results.RESULTS / name, results.record(
