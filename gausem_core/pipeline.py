@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import resource
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -157,7 +158,7 @@ class Pipeline:
             camera.stop()
 
 
-def percentile(values: list[float], q: float) -> float | None:
+def percentile(values: Iterable[float], q: float) -> float | None:
     """The ``q``-quantile (0..1, nearest rank) of ``values``; None when empty."""
     ordered = sorted(values)
     return ordered[min(int(q * len(ordered)), len(ordered) - 1)] if ordered else None

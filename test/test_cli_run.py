@@ -42,6 +42,8 @@ def test_gausem_run_writes_the_outputs(tmp_path, capsys):
     assert metrics["rendering"]["psnr"] > 10 and metrics["rendering"]["frames"] == 2
     assert 0 < metrics["rendering"]["miou"] <= 1
     assert metrics["grid"]["floor"] == "class" and 0 < metrics["grid"]["layout"]["iou"] <= 1
+    for phase in ("frame", "tracking", "mapping"):  # a process call, a frame's tracking, a keyframe's mapping
+        assert 0 < metrics[f"{phase}_ms_median"] <= metrics[f"{phase}_ms_p95"], phase
 
 
 @pytest.mark.slow

@@ -182,6 +182,9 @@ def test_async_tracks_every_frame_while_the_worker_opens_submaps():
         assert len(slam.submaps) >= 3 and sum(c.opened for e in events for c in e.submaps) == len(slam.submaps)
         estimate = [pose for _, pose in slam.trajectory()]
         errors[mode] = max(float((e[:3, 3] - t[:3, 3]).norm()) for e, t in zip(estimate, truth))
+        assert len(slam.front_end.tracking_seconds) == len(frames) - 1  # every frame after the first, timed
+        assert len(slam.back_end.mapping_seconds) == len(keyframes)  # every keyframe's mapping, where it ran
+        assert min(slam.front_end.tracking_seconds) > 0 and min(slam.back_end.mapping_seconds) > 0
         if mode == "async":
             stats = slam.back_end.worker.stats
             assert stats.mapped == len(keyframes) and stats.superseded == 0

@@ -10,8 +10,9 @@ with the keyframe's pose in the old submap, and it is initialised from the keyfr
 """
 from __future__ import annotations
 
+import time
 import weakref
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Sequence
 from functools import partial
 
@@ -34,6 +35,9 @@ from gausem_core.slam.submap import FrameRecord, Submap
 from gausem_core.slam.submap_store import SubmapStore
 from gausem_core.slam.vignetting import Vignetting
 from gausem_core.slam.worker import Job, MappingWorker, split_threads
+
+
+TIMES_KEPT = 10_000  # the latest keyframes' mapping times kept (and the front end's tracking times)
 
 
 def _float64(pose: torch.Tensor) -> torch.Tensor:
@@ -72,6 +76,7 @@ class BackEnd:
                                         device) if cfg.loop.enabled else None
         self.worker = self._start_worker() if cfg.worker.mode == "async" else None
         self._mapped: list[FrameEvents] = []  # async: finished keyframes' events not yet handed out
+        self.mapping_seconds: deque[float] = deque(maxlen=TIMES_KEPT)  # wall time of the latest keyframes' mapping
         self._close = weakref.finalize(self, _shut_down, self.worker, self.store)
 
     def _start_worker(self) -> MappingWorker:
@@ -129,9 +134,9 @@ class BackEnd:
         worker, the unoptimised Gaussians trackable at once)."""
         submap = self._place_submap(obs, frame_id, torch.eye(4, device=self.device))
         if self.worker is not None:
-            self.worker.submit(Job(frame_id, "open", lambda: self._first_job(submap, obs)[0]))
+            self.worker.submit(Job(frame_id, "open", lambda: self._timed(self._first_job, submap, obs)[0]))
             return None, None
-        return self._first_job(submap, obs)
+        return self._timed(self._first_job, submap, obs)
 
     def add_keyframe(self, obs: Observation, record: FrameRecord,
                      pose: torch.Tensor) -> tuple[FrameEvents, float | None, Decision] | None:
@@ -139,9 +144,17 @@ class BackEnd:
         submap, as a keyframe (see :meth:`_map`): now in sync mode, returning its events, the last mapping loss and
         the allocation decision; async: queued for the worker (None), mapped at its pose as corrected by then."""
         if self.worker is None:
-            return self._map(obs, pose, record)
-        self.worker.submit(Job(record.frame_id, "keyframe", partial(self._keyframe_job, obs, record)))
+            return self._timed(self._map, obs, pose, record)
+        self.worker.submit(Job(record.frame_id, "keyframe", partial(self._timed, self._keyframe_job, obs, record)))
         return None
+
+    def _timed(self, run, *args):
+        """``run(*args)``, its wall time kept in :attr:`mapping_seconds` (a keyframe's mapping: optimisation, a new
+        submap's opening, loop closure; in sync mode or on the worker)."""
+        start = time.perf_counter()
+        result = run(*args)
+        self.mapping_seconds.append(time.perf_counter() - start)
+        return result
 
     def _first_job(self, submap: Submap, obs: Observation) -> tuple[FrameEvents, float | None]:
         """The mapping half of :meth:`start` (async: on the worker): optimisation, vignetting calibration, the

@@ -8,6 +8,8 @@ changes Gaussians or keyframe poses.
 from __future__ import annotations
 
 import math
+import time
+from collections import deque
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -16,7 +18,7 @@ import torch
 from gausem_core.config import SlamConfig, gap_mode_applies
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose
-from gausem_core.slam.back_end import BackEnd
+from gausem_core.slam.back_end import TIMES_KEPT, BackEnd
 from gausem_core.slam.feature_start import FeatureStart
 from gausem_core.slam.health import HealthMonitor, TrackingHealth, image_signals
 from gausem_core.slam.keyframes import KeyframePolicy
@@ -76,6 +78,8 @@ class FrontEnd:
         self.dropped = 0  # frames dropped (not relocalised while lost) since the last recorded frame
         self.skipped = 0  # frames the caller skipped since the last recorded frame
         self.coverage = math.nan  # the share of the image the map covered at the last tracked frame
+        self.tracking_seconds: deque[float] = deque(maxlen=TIMES_KEPT)  # wall time of the latest frames' :meth:`place`
+        # (not counting its waits for the mapping worker)
 
     @property
     def frames(self) -> list[FrameRecord]:
@@ -95,6 +99,13 @@ class FrontEnd:
         if self.coverage < self.cfg.worker.wait_below_coverage:  # leaving the published map: let the worker catch up
             self.back_end.catch_up()
         self.back_end.tracked_submap()  # async: waits for the map's first Gaussians (not under the worker's lock)
+        start = time.perf_counter()
+        placement = self._place(obs, frame_id)
+        self.tracking_seconds.append(time.perf_counter() - start)
+        return placement
+
+    def _place(self, obs: Observation, frame_id: int) -> Placement:
+        """:meth:`place` once the map to track against is there."""
         with self.back_end.lock:  # the map the frame is tracked against, and the poses behind the motion model
             submap = self.back_end.tracked_submap()
             cloud = submap.cloud
