@@ -112,13 +112,14 @@ with `.gpu` carried, `bash benchmarks/gpu/live.sh` sources `benchmarks/gpu/env.s
 `RUNS`) with per-thread stack samples and CPU times, and the CUDA-marked tests. `bash benchmarks/gpu/phases.sh`
 profiles `gausem run` on the GPU (`PROFILE=0`: its fps alone; `STRIDES`, `FRAMES`, `SIZE`).
 
-`bash benchmarks/gpu/acceptance.sh` runs the GPU acceptance checks of the fast-steps work in one call: the CUDA
-tests, `gausem run` on the synthetic loop at 640x480 in sync mode with the torch tracking step and with the defaults,
-the same at the recorded pace (`--realtime 1`), and the live node at 30 Hz (`STAGES` picks and orders them); each
-run's `metrics.json` lands under `$OUT`, and `python benchmarks/gpu/acceptance.py FOLDER` writes the record
-`gpu_acceptance` from them (each criterion, its target, what was measured). TUM fr1/rpy does not fit beside the
-prefix: `python benchmarks/gpu/pack_tum.py SOURCE .gpu/tum_fr1_rpy` makes a 41 MiB copy (colour as JPEG) to carry
-in a call of its own with `STAGES=tum`. `SIZE=80x60 FRAMES=12 DEVICE=cpu` dry-runs the script on a CPU.
+`bash benchmarks/gpu/acceptance.sh` runs the GPU acceptance checks of the fast-steps work: `gausem run` on the
+synthetic loop at 640x480 in sync mode with the defaults, the same at the recorded pace (`--realtime 1`), its first 90
+frames with the torch tracking step, the CUDA tests and the live node at 30 Hz (`STAGES` picks and orders them, to fit
+a call's 600 s); each run's `metrics.json` lands under `$OUT`, and `python benchmarks/gpu/acceptance.py FOLDER`
+writes the record `gpu_acceptance` from the calls' files (each criterion, its target, what was measured). TUM fr1/rpy
+does not fit beside the prefix: `python benchmarks/gpu/pack_tum.py SOURCE .gpu/tum_fr1_rpy` makes a 41 MiB copy
+(colour as JPEG) to carry in a call of its own with `STAGES=tum`. `SIZE=80x60 FRAMES=12 DEVICE=cpu` dry-runs the
+script on a CPU.
 """
 
 

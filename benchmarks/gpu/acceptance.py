@@ -1,9 +1,9 @@
 """The results record of ``benchmarks/gpu/acceptance.sh``: each acceptance criterion of the fast-steps work against
-what the call measured (the stages it ran; a stage left out or failed reads "not measured").
+what the calls measured (a stage left out or failed reads "not measured").
 
     .venv/bin/python benchmarks/gpu/acceptance.py FOLDER [--name gpu_acceptance_h200]
 
-FOLDER: what the call wrote under $OUT (the device tool's files_at).
+FOLDER: what the calls wrote under $OUT (the device tool's files_at), copied into one folder.
 """
 from __future__ import annotations
 
@@ -16,11 +16,12 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gausem_bench import results  # noqa: E402
 
-WHAT = ("`benchmarks/gpu/acceptance.sh` in one call on the GPU machine: the CUDA tests; `gausem run` on the synthetic "
-        "loop in sync mode with the torch tracking step and with the defaults (the fused step), at the recorded pace "
-        "(`--realtime 1`), the same on TUM fr1/rpy where carried; the tracking node fed at 30 Hz by the player in "
-        "another process. Tracking: the median of a frame's tracking (health and keyframe decision included); "
-        "mapping: the median of a keyframe's mapping (a new submap's opening and loop closure included).")
+WHAT = ("`benchmarks/gpu/acceptance.sh` on the GPU machine: `gausem run` at 640x480 on the synthetic loop (360 frames) "
+        "in sync mode with the defaults (the fused tracking step) and at the recorded pace (`--realtime 1`), its first "
+        "90 frames with the torch tracking step, the same two runs on TUM fr1/rpy where carried; the CUDA tests; the "
+        "tracking node fed at 30 Hz by the player in another process. Tracking: the median of a frame's tracking "
+        "(health and keyframe decision included); mapping: the median of a keyframe's mapping (a new submap's "
+        "opening and loop closure included).")
 
 
 def metrics(folder: Path, stage: str) -> dict | None:

@@ -1,15 +1,20 @@
 #!/bin/bash
-# The GPU acceptance checks of the fast-steps work in one call, run there from the repository root with .gpu carried
-# (see live.sh); benchmarks/gpu/acceptance.py turns what lands in $OUT into a results record. STAGES picks and orders
-# them (default: all, cheapest first, each under a timeout):
-#   tests     the CUDA-marked tests;
-#   torch     `gausem run` on the synthetic loop in sync mode with the torch tracking step (fused=false): the "before";
-#   sync      the same with the defaults (the fused step on CUDA): tracking ms a frame, mapping ms a keyframe, fps;
+# The GPU acceptance checks of the fast-steps work, run there from the repository root with .gpu carried (see
+# live.sh); benchmarks/gpu/acceptance.py turns what lands in $OUT into a results record. STAGES picks and orders them
+# (default: all, most telling first, each under a timeout):
+#   sync      `gausem run` on the synthetic loop (360 frames) in sync mode with the defaults (the fused step on CUDA):
+#             tracking ms a frame, mapping ms a keyframe, fps;
 #   realtime  the same at the recorded pace (--realtime 1, the mapping worker beside the tracker);
-#   tum       sync and --realtime 1 on TUM fr1/rpy, when TUM is at $TUM (carry it: too large beside the prefix);
-#   live      the tracking node fed at 30 Hz by the player in another process (live.sh's `apart` run).
+#   torch     the first TORCH_FRAMES (90) in sync mode with the torch tracking step (fused=false): the "before";
+#   tests     the CUDA-marked tests;
+#   live      the tracking node fed at 30 Hz by the player in another process (live.sh's `apart` run);
+#   tum       sync and --realtime 1 on TUM fr1/rpy, when TUM is at $TUM (benchmarks/gpu/pack_tum.py; carry it in a
+#             call of its own: it does not fit beside the prefix).
+# A call runs at most 600 s: e.g. STAGES="sync realtime torch" in the first (with gsplat's build), STAGES="tests live"
+# in the next, STAGES=tum with .gpu/tum_fr1_rpy carried in a third; acceptance.py reads their files copied into one
+# folder.
 # SIZE (640x480), FRAMES (all), DEVICE (cuda) allow a dry run on a CPU without the bundle:
-#   SIZE=80x60 FRAMES=12 DEVICE=cpu STAGES="torch sync realtime" OUT=/tmp/acc bash benchmarks/gpu/acceptance.sh
+#   SIZE=80x60 FRAMES=12 DEVICE=cpu STAGES="sync realtime torch tum" OUT=/tmp/acc bash benchmarks/gpu/acceptance.sh
 set -u
 DEVICE=${DEVICE:-cuda} SIZE=${SIZE:-640x480} TUM=${TUM:-.gpu/tum_fr1_rpy}
 if [ "$DEVICE" = cuda ]; then
@@ -30,13 +35,13 @@ EOF
 T0=$SECONDS
 stage() { echo "== $((SECONDS - T0)) s: $*"; }
 
-run() {  # run NAME TIMEOUT DATASET [ARGS...]: `gausem run` into $OUT/NAME (metrics.json and the log)
-  local name=$1 limit=$2 dataset=$3
-  shift 3
+run() {  # run NAME TIMEOUT FRAMES DATASET [ARGS...]: `gausem run` into $OUT/NAME (metrics.json and the log)
+  local name=$1 limit=$2 frames=$3 dataset=$4
+  shift 4
   mkdir -p "$OUT/$name"
   stage "$name"
   timeout "$limit" python3 -m gausem_core.cli run --dataset "$dataset" --size "$SIZE" \
-    ${FRAMES:+--frames $FRAMES} --set device="$DEVICE" "$@" --quiet --out "/tmp/acceptance_$name" \
+    ${frames:+--frames $frames} --set device="$DEVICE" "$@" --quiet --out "/tmp/acceptance_$name" \
     > "$OUT/$name/log" 2>&1
   echo "exit $?" >> "$OUT/$name/log"
   cp "/tmp/acceptance_$name/metrics.json" "$OUT/$name/" 2>/dev/null
@@ -44,16 +49,18 @@ run() {  # run NAME TIMEOUT DATASET [ARGS...]: `gausem run` into $OUT/NAME (metr
     "$OUT/$name/log"
 }
 
-for s in ${STAGES:-tests torch sync realtime tum live}; do
+FRAMES=${FRAMES:-}
+for s in ${STAGES:-sync realtime torch tests live tum}; do
   case $s in
+    sync) run sync 240 "$FRAMES" synthetic:loop --set worker.mode=sync ;;
+    realtime) run realtime 120 "$FRAMES" synthetic:loop --realtime 1 ;;
+    torch) run torch 150 "${FRAMES:-${TORCH_FRAMES:-90}}" synthetic:loop --set worker.mode=sync \
+             --set tracking.gauss_newton.fused=false ;;
     tests) stage tests; timeout 240 python3 -m pytest -m cuda -q -p no:cacheprovider > "$OUT/tests.txt" 2>&1
            tail -3 "$OUT/tests.txt" ;;
-    torch) run torch 200 synthetic:loop --set worker.mode=sync --set tracking.gauss_newton.fused=false ;;
-    sync) run sync 150 synthetic:loop --set worker.mode=sync ;;
-    realtime) run realtime 90 synthetic:loop --realtime 1 ;;
     tum) if [ -d "$TUM" ]; then
-           run tum_sync 120 "tum:$TUM" --set worker.mode=sync
-           run tum_realtime 90 "tum:$TUM" --realtime 1
+           run tum_sync 150 "$FRAMES" "tum:$TUM" --set worker.mode=sync
+           run tum_realtime 90 "$FRAMES" "tum:$TUM" --realtime 1
          else stage "tum: no $TUM, skipped"; fi ;;
     live) stage live; RUNS=apart:$SIZE:0.005:$DEVICE TESTS=0 bash benchmarks/gpu/live.sh > "$OUT/live.txt" 2>&1
           grep -E "^processed|ERROR" "$OUT/live.txt" ;;
