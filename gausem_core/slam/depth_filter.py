@@ -22,7 +22,6 @@ from gausem_core.config import DepthFilterConfig
 from gausem_core.slam.observation import Observation
 
 
-_STRIP_ELEMENTS = 1 << 22  # window taps x pixels filtered at once: bounds the memory at any resolution
 _TAPS_PER_SIDE = 4  # at most this many taps each side of the centre: wider windows are sampled every few pixels
 
 
@@ -30,29 +29,31 @@ def bilateral_depth(depth: torch.Tensor, spatial_sigma: float, range_sigma: floa
     """(H, W) depth (metres, 0 = none) smoothed by a bilateral filter: Gaussian spatial kernel of ``spatial_sigma``
     pixels (window radius ceil(2 sigma)), range kernel of sigma ``range_sigma`` z^2 metres at the centre's depth z.
     A window wider than 9x9 taps is sampled every ``step`` pixels (a 640x480 image's radius-13 window as 7x7 taps 4
-    pixels apart), and the image is filtered in strips of rows: cost and memory stay bounded at any resolution."""
+    pixels apart). The weighted sums are accumulated tap by tap over shifted views of the padded image, in place:
+    memory stays a few images at any resolution, and no window-sized buffer is made (whose page faults cost more
+    than its arithmetic)."""
     if spatial_sigma <= 0 or range_sigma <= 0:
         raise ValueError(f"bilateral_depth: sigmas must be > 0, got {spatial_sigma} and {range_sigma}")
     radius = max(1, math.ceil(2 * spatial_sigma))
     step = math.ceil(radius / _TAPS_PER_SIDE)
     taps = math.ceil(radius / step)
-    size, radius = 2 * taps + 1, taps * step
-    offsets = step * torch.arange(-taps, taps + 1, dtype=depth.dtype, device=depth.device)
-    spatial = torch.exp(-(offsets[:, None] ** 2 + offsets[None] ** 2) / (2 * spatial_sigma**2)).reshape(-1, 1, 1)
-    padded = F.pad(depth, (radius, radius, radius, radius))  # zeros: no reading
+    radius = taps * step
     height, width = depth.shape
-    rows = max(1, _STRIP_ELEMENTS // (size * size * width))
-    strips = []
-    for top in range(0, height, rows):
-        centre = depth[top:top + rows]
-        window = padded[top:top + len(centre) + 2 * radius]
-        neighbours = F.unfold(window[None, None], size, dilation=step)[0].reshape(size * size, *centre.shape)
-        sigma_r = range_sigma * centre.square()
-        closeness = ((neighbours - centre) / sigma_r.clamp_min(1e-12)).square()
-        weights = spatial * torch.exp(-0.5 * closeness) * (neighbours > 0)
-        smoothed = (weights * neighbours).sum(0) / weights.sum(0).clamp_min(1e-12)
-        strips.append(torch.where(centre > 0, smoothed, torch.zeros_like(centre)))
-    return torch.cat(strips)
+    padded = F.pad(depth, (radius, radius, radius, radius))  # zeros: no reading
+    has_reading = (padded > 0).to(depth.dtype)
+    inverse_sigma = (range_sigma * depth.square()).clamp_min_(1e-12).reciprocal_()
+    total, weighted, weight = torch.zeros_like(depth), torch.zeros_like(depth), torch.empty_like(depth)
+    for dy in range(-taps, taps + 1):
+        for dx in range(-taps, taps + 1):
+            rows = slice(radius + dy * step, radius + dy * step + height)
+            cols = slice(radius + dx * step, radius + dx * step + width)
+            neighbour = padded[rows, cols]
+            spatial = math.exp(-((dy * step) ** 2 + (dx * step) ** 2) / (2 * spatial_sigma**2))
+            torch.sub(neighbour, depth, out=weight)
+            weight.mul_(inverse_sigma).square_().mul_(-0.5).exp_().mul_(has_reading[rows, cols]).mul_(spatial)
+            total.add_(weight)
+            weighted.addcmul_(weight, neighbour)
+    return torch.where(depth > 0, weighted.div_(total.clamp_min_(1e-12)), torch.zeros_like(depth))
 
 
 def filter_observation(obs: Observation, cfg: DepthFilterConfig) -> Observation:
