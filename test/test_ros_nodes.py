@@ -450,7 +450,8 @@ def test_a_node_given_a_renamed_parameter_fails_naming_the_new_name():
 
 def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
     """Frames 0-3 with every node up, 4-5 with loop_detection and pose_graph down, 6-9 after fresh instances start."""
-    slam = {**FAST_SLAM, "mapping.every": 2, "worker.mode": "sync"}  # keyframes 0, 2, 4, 6, 8, each mapped in its frame
+    slam = {**FAST_SLAM, "mapping.every": 2, "worker.mode": "sync",  # keyframes 0, 2, 4, 6, 8, each mapped in its frame
+            "submaps.policy": "motion", "submaps.motion_translation": 100.0}  # all in one submap: the loop is intra
     # a loop per check
     loops = {"loop.keyframe_every": 2, "loop.check_every": 1, "loop.exclude_recent": 0,
              "loop.place_recognition": "descriptor", "loop.max_fallback_descriptor_distance": 2.0,
