@@ -4,6 +4,7 @@ import torch
 
 from gausem_core.config import DepthFilterConfig
 from gausem_core.geometry import PinholeCamera
+from gausem_core.slam import depth_filter
 from gausem_core.slam.depth_filter import bilateral_depth, filter_observation
 from gausem_core.slam.observation import Observation
 
@@ -67,11 +68,15 @@ def window_reference(depth: torch.Tensor, spatial_sigma: float, range_sigma: flo
     return torch.where(depth > 0, smoothed, torch.zeros_like(depth))
 
 
-def test_the_filter_is_its_formula_and_wide_windows_still_filter():
+def test_the_filter_is_its_formula_and_wide_windows_still_filter(monkeypatch):
     noisy = slanted_wall(noise=0.002)
     holed = noisy.clone()
     holed[10:14, 20:30] = 0  # holes neither contribute nor get a value
     reference = window_reference(holed, 1.6, 0.005, radius=4)
+    assert torch.allclose(bilateral_depth(holed, 1.6, 0.005), reference, rtol=0, atol=1e-9)
+    # CUDA's sums (every tap at once, in strips of rows) agree, here on the CPU in strips of 7 rows
+    monkeypatch.setattr(depth_filter, "_STRIP_ELEMENTS", 81 * 80 * 7)
+    monkeypatch.setattr(depth_filter, "_sums_tap_by_tap", depth_filter._sums_at_once)
     assert torch.allclose(bilateral_depth(holed, 1.6, 0.005), reference, rtol=0, atol=1e-9)
     # a 640-wide image's sigma (6.4 px, radius 13) is sampled with 7x7 taps 4 pixels apart: still less noise, no bias
     wide = torch.nn.functional.interpolate(noisy[None, None], scale_factor=4, mode="nearest")[0, 0]

@@ -23,37 +23,63 @@ from gausem_core.slam.observation import Observation
 
 
 _TAPS_PER_SIDE = 4  # at most this many taps each side of the centre: wider windows are sampled every few pixels
+_STRIP_ELEMENTS = 1 << 22  # CUDA: window taps x pixels filtered at once, bounding the memory at any resolution
 
 
 def bilateral_depth(depth: torch.Tensor, spatial_sigma: float, range_sigma: float) -> torch.Tensor:
     """(H, W) depth (metres, 0 = none) smoothed by a bilateral filter: Gaussian spatial kernel of ``spatial_sigma``
     pixels (window radius ceil(2 sigma)), range kernel of sigma ``range_sigma`` z^2 metres at the centre's depth z.
     A window wider than 9x9 taps is sampled every ``step`` pixels (a 640x480 image's radius-13 window as 7x7 taps 4
-    pixels apart). The weighted sums are accumulated tap by tap over shifted views of the padded image, in place:
-    memory stays a few images at any resolution, and no window-sized buffer is made (whose page faults cost more
-    than its arithmetic)."""
+    pixels apart). The weighted sums are taken tap by tap on the CPU, every tap at once on CUDA."""
     if spatial_sigma <= 0 or range_sigma <= 0:
         raise ValueError(f"bilateral_depth: sigmas must be > 0, got {spatial_sigma} and {range_sigma}")
     radius = max(1, math.ceil(2 * spatial_sigma))
     step = math.ceil(radius / _TAPS_PER_SIDE)
-    taps = math.ceil(radius / step)
-    radius = taps * step
-    height, width = depth.shape
-    padded = F.pad(depth, (radius, radius, radius, radius))  # zeros: no reading
-    has_reading = (padded > 0).to(depth.dtype)
+    offsets = [step * k for k in range(-math.ceil(radius / step), math.ceil(radius / step) + 1)]
+    spatial = [math.exp(-(dy**2 + dx**2) / (2 * spatial_sigma**2)) for dy in offsets for dx in offsets]
+    padded = F.pad(depth, (offsets[-1],) * 4)  # zeros: no reading
     inverse_sigma = (range_sigma * depth.square()).clamp_min_(1e-12).reciprocal_()
+    sums = _sums_at_once if depth.is_cuda else _sums_tap_by_tap
+    total, weighted = sums(depth, padded, offsets, spatial, inverse_sigma)
+    return torch.where(depth > 0, weighted.div_(total.clamp_min_(1e-12)), torch.zeros_like(depth))
+
+
+def _sums_tap_by_tap(depth: torch.Tensor, padded: torch.Tensor, offsets: list[int], spatial: list[float],
+                     inverse_sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The filter's weight sum and weighted depth sum, accumulated in place over shifted views of ``padded``: no
+    window-sized buffer, whose page faults cost a CPU more than its arithmetic (a few kernel launches a tap)."""
+    height, width = depth.shape
+    radius = offsets[-1]
+    has_reading = (padded > 0).to(depth.dtype)
     total, weighted, weight = torch.zeros_like(depth), torch.zeros_like(depth), torch.empty_like(depth)
-    for dy in range(-taps, taps + 1):
-        for dx in range(-taps, taps + 1):
-            rows = slice(radius + dy * step, radius + dy * step + height)
-            cols = slice(radius + dx * step, radius + dx * step + width)
+    for i, dy in enumerate(offsets):
+        for j, dx in enumerate(offsets):
+            rows, cols = slice(radius + dy, radius + dy + height), slice(radius + dx, radius + dx + width)
             neighbour = padded[rows, cols]
-            spatial = math.exp(-((dy * step) ** 2 + (dx * step) ** 2) / (2 * spatial_sigma**2))
             torch.sub(neighbour, depth, out=weight)
-            weight.mul_(inverse_sigma).square_().mul_(-0.5).exp_().mul_(has_reading[rows, cols]).mul_(spatial)
+            weight.mul_(inverse_sigma).square_().mul_(-0.5).exp_().mul_(has_reading[rows, cols])
+            weight.mul_(spatial[i * len(offsets) + j])
             total.add_(weight)
             weighted.addcmul_(weight, neighbour)
-    return torch.where(depth > 0, weighted.div_(total.clamp_min_(1e-12)), torch.zeros_like(depth))
+    return total, weighted
+
+
+def _sums_at_once(depth: torch.Tensor, padded: torch.Tensor, offsets: list[int], spatial: list[float],
+                  inverse_sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_sums_tap_by_tap`'s sums from every tap at once, in strips of rows (a few kernel launches a strip)."""
+    size, step, radius = len(offsets), offsets[1] - offsets[0], offsets[-1]
+    spatial_weights = torch.tensor(spatial, dtype=depth.dtype, device=depth.device).reshape(-1, 1, 1)
+    rows = max(1, _STRIP_ELEMENTS // (size * size * depth.shape[1]))
+    totals, weighted = [], []
+    for top in range(0, depth.shape[0], rows):
+        centre = depth[top:top + rows]
+        window = padded[top:top + len(centre) + 2 * radius]
+        neighbours = F.unfold(window[None, None], size, dilation=step)[0].reshape(size * size, *centre.shape)
+        weights = (neighbours - centre).mul_(inverse_sigma[top:top + rows]).square_().mul_(-0.5).exp_()
+        weights.mul_(neighbours > 0).mul_(spatial_weights)
+        totals.append(weights.sum(0))
+        weighted.append(weights.mul_(neighbours).sum(0))
+    return torch.cat(totals), torch.cat(weighted)
 
 
 def filter_observation(obs: Observation, cfg: DepthFilterConfig) -> Observation:
