@@ -1,10 +1,14 @@
 """The fused alignment step (one Triton kernel) computes the torch reference's normal equations: on the CPU through
 Triton's interpreter (test/conftest.py sets it without CUDA), on CUDA compiled."""
 import dataclasses
+import importlib.util
+from pathlib import Path
 
 import pytest
 import torch
-from test_direct_alignment import CAMERA, MOTION, WEIGHTS, jitter_edges, ray_cast
+from rounding import assert_within_rounding
+from test_direct_alignment import (CAMERA, MOTION, WEIGHTS, assert_normal_equations_within_rounding, jitter_edges,
+                                   ray_cast)
 
 from gausem_core.geometry import invert_pose, se3_exp
 from gausem_core.slam import direct_alignment
@@ -33,10 +37,9 @@ def level(features: int, device: str):
     return model, observed
 
 
-def assert_same_sums(fused, reference):
-    for got, want in zip(fused, reference):
-        got, want = torch.as_tensor(got).double().cpu(), torch.as_tensor(want).double().cpu()
-        assert (got - want).abs().max() <= 1e-5 * max(1.0, float(want.abs().max())), (got, want)
+def assert_within_float32(sums, *args):
+    """``(H, g, cost, count)`` of a float32 implementation within float32's rounding of the float64 sums."""
+    assert_normal_equations_within_rounding(sums, torch.float32, *args)
 
 
 @pytest.mark.parametrize("features", [0, 2])
@@ -47,11 +50,40 @@ def test_the_fused_step_sums_what_the_torch_step_sums_on_the_cpu(features, motio
     weights = dataclasses.replace(WEIGHTS, feature=0.3 if features else 0.0)
     model, observed = level(features, "cpu")
     points, ref = direct_alignment.model_samples(model, observed)
-    reference = direct_alignment.normal_equation_sums(observed, motion, weights, points, ref)
-    fused = fused_alignment.fused_normal_equation_sums(observed, motion, weights, points, ref)
+    args = (observed, motion, weights, points, ref)
+    reference = direct_alignment.normal_equation_sums(*args)
     assert float(reference[3]) > 1000  # most of the model lands on valid observed pixels
-    assert_same_sums(fused, reference)
+    assert_within_float32(fused_alignment.fused_normal_equation_sums(*args), *args)
+    assert_within_float32(reference, *args)  # and so does the torch reference
     assert not fused_alignment.fused_available("cpu")  # the tracker never runs the interpreter
+
+
+# one term of the kernel written wrong: a Jacobian entry's sign or part of it, a residual's IRLS weight, the depth
+# residual's motion with z
+MUTANTS = {"du_dwy_without_its_1": ("(1 + xn * xn)[:, None]", "(xn * xn)[:, None]"),
+           "dz_dwx_of_the_wrong_sign": ("tl.where(col == 3, y[:, None], 0.0)", "tl.where(col == 3, -y[:, None], 0.0)"),
+           "colour_without_irls": ("irls = weight / tl.maximum(tl.abs(residual), huber)", "irls = weight"),
+           "depth_residual_without_z": ("jd = depth_u[:, None] * du + depth_v[:, None] * dv - dz",
+                                        "jd = depth_u[:, None] * du + depth_v[:, None] * dv")}
+
+
+@pytest.mark.parametrize("mutant", MUTANTS)
+def test_a_kernel_with_one_term_wrong_fails_the_bound(mutant, tmp_path):
+    if not fused_alignment._INTERPRETED:
+        pytest.skip("the mutant runs through Triton's interpreter")
+    right, wrong = MUTANTS[mutant]
+    source = Path(fused_alignment.__file__).read_text()
+    assert source.count(right) == 1, right
+    path = tmp_path / "fused_mutant.py"  # a file: Triton reads a kernel's source
+    path.write_text(source.replace(right, wrong))
+    spec = importlib.util.spec_from_file_location("fused_mutant", path)
+    mutated = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mutated)
+    model, observed = level(2, "cpu")
+    points, ref = direct_alignment.model_samples(model, observed)
+    args = (observed, MOTIONS[1], dataclasses.replace(WEIGHTS, feature=0.3), points, ref)
+    with pytest.raises(AssertionError, match="rounding in"):
+        assert_within_float32(mutated.fused_normal_equation_sums(*args), *args)
 
 
 def test_the_model_behind_the_camera_sums_to_nothing_but_its_cost():
@@ -62,7 +94,8 @@ def test_the_model_behind_the_camera_sums_to_nothing_but_its_cost():
     behind = se3_exp(torch.tensor([0.0, 0.0, -3.0, 0.0, 0.0, 0.0]))
     h, g, cost, count = fused_alignment.fused_normal_equation_sums(observed, behind, WEIGHTS, points, ref)
     assert int(count) == 0 and float(h.abs().max()) == 0 and float(g.abs().max()) == 0
-    assert float(cost) == pytest.approx(len(points) * direct_alignment.cost_cap(WEIGHTS, 0), rel=1e-6)
+    cap = direct_alignment.cost_cap(WEIGHTS, 0)  # every point's, summed in float32
+    assert_within_rounding(cost, len(points) * cap, len(points) * cap, len(points), torch.float32, "cost")
 
 
 @pytest.mark.cuda
@@ -74,9 +107,9 @@ def test_the_fused_step_sums_what_the_torch_step_sums_on_cuda_and_tracks_as_the_
     points, ref = direct_alignment.model_samples(model, observed)
     assert fused_alignment.fused_available("cuda")
     for motion in MOTIONS:
-        motion = motion.cuda()
-        assert_same_sums(fused_alignment.fused_normal_equation_sums(observed, motion, weights, points, ref),
-                         direct_alignment.normal_equation_sums(observed, motion, weights, points, ref))
+        args = (observed, motion.cuda(), weights, points, ref)
+        assert_within_float32(fused_alignment.fused_normal_equation_sums(*args), *args)
+        assert_within_float32(direct_alignment.normal_equation_sums(*args), *args)
     # a whole level on the device (the fused sums) takes the host level's steps
     on_cuda, cost = align_level_on_device(model, observed, torch.eye(4, device="cuda"), weights, 8)
     on_host, host_cost = direct_alignment.align_level(*level(features, "cpu"), torch.eye(4), weights, 8)

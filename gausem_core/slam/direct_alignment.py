@@ -218,10 +218,22 @@ def _normal_equations_torch(observed: ObservedImages, motion: torch.Tensor, weig
     return None if count < 12 else (h, g, cost / len(points))
 
 
-def normal_equation_sums(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
-                         points: torch.Tensor, ref: torch.Tensor):
-    """The sums of :func:`normal_equations` as tensors on the points' device, nothing read back: ``H`` (6, 6), ``g``
-    (6), the summed (not mean) cost and the count of valid model points. Every model point is weighted (invalid ones
+@dataclass
+class AlignmentTerms:
+    """One Gauss-Newton step's terms per channel c and model point k, before they are summed: the Jacobian (C, N, 6)
+    of each residual (C, N), its IRLS weight (C, N; zero where the point has no valid observed counterpart), the
+    point's truncated cost (N) and whether it is valid (N). H = sum w J J^T, g = sum w J r."""
+
+    jacobian: torch.Tensor
+    weight: torch.Tensor
+    residual: torch.Tensor
+    cost: torch.Tensor
+    valid: torch.Tensor
+
+
+def alignment_terms(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights, points: torch.Tensor,
+                    ref: torch.Tensor) -> AlignmentTerms:
+    """The terms of :func:`normal_equation_sums`, on the points' device. Every model point is weighted (invalid ones
     by zero) rather than selected, so that on a GPU the step is one stream of kernels."""
     cam = observed.camera
     p = points @ motion[:3, :3].T + motion[:3, 3]
@@ -249,9 +261,18 @@ def normal_equation_sums(observed: ObservedImages, motion: torch.Tensor, weights
     slope = (gu[6].abs() * cam.fx + gv[6].abs() * cam.fy) / z
     irls[6] = irls[6] * (slope < weights.max_depth_slope)
     cap = cost_cap(weights, features)
-    cost = torch.where(valid, (chan * res.abs()).sum(0).clamp_max(cap), cap).sum()
-    jw = (jac * irls[..., None]).reshape(-1, 6)
-    return jw.T @ jac.reshape(-1, 6), jw.T @ res.reshape(-1), cost, valid.sum()
+    cost = torch.where(valid, (chan * res.abs()).sum(0).clamp_max(cap), cap)
+    return AlignmentTerms(jac, irls, res, cost, valid)
+
+
+def normal_equation_sums(observed: ObservedImages, motion: torch.Tensor, weights: AlignmentWeights,
+                         points: torch.Tensor, ref: torch.Tensor):
+    """The sums of :func:`normal_equations` as tensors on the points' device, nothing read back: ``H`` (6, 6), ``g``
+    (6), the summed (not mean) cost and the count of valid model points."""
+    terms = alignment_terms(observed, motion, weights, points, ref)
+    jacobian = terms.jacobian.reshape(-1, 6)
+    jw = (terms.jacobian * terms.weight[..., None]).reshape(-1, 6)
+    return jw.T @ jacobian, jw.T @ terms.residual.reshape(-1), terms.cost.sum(), terms.valid.sum()
 
 
 def model_samples(model: ModelView, observed: ObservedImages) -> tuple[torch.Tensor, torch.Tensor]:
