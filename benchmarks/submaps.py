@@ -67,7 +67,7 @@ class GroundTruthPoses:
         self.slam: GauSemSLAM | None = None
         self.first = torch.as_tensor(dataset[0].gt_pose)
 
-    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False) -> TrackingResult:
+    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False, keyframe=None) -> TrackingResult:
         result = self.tracker.track(cloud, obs, init_cam_to_world, alternatives, search)
         world = invert_pose(self.first) @ torch.as_tensor(self.dataset[len(self.slam.frames)].gt_pose)
         local = invert_pose(self.slam.active.anchor.double()) @ world.to(self.slam.device)

@@ -104,6 +104,10 @@ class TrackingConfig:
     w_depth: float = 0.5
     w_semantic: float = 0.5
     silhouette_threshold: float = 0.99
+    # frame-to-keyframe where the map is thin: the newest keyframe's own depth and colour fill the model view's pixels
+    # outside the silhouette ("async": in worker.mode async, where a keyframe's Gaussians are tracked against before
+    # any optimisation; "always"; "never")
+    keyframe_fill: str = "async"
     constant_velocity: bool = True
     gauss_newton: GaussNewtonTrackingConfig = field(default_factory=GaussNewtonTrackingConfig)
     feature_start: FeatureStartConfig = field(default_factory=FeatureStartConfig)
@@ -360,14 +364,11 @@ class WorkerConfig:
     tracker_threads: int = 0  # async: torch intra-op threads of the tracker (0: half the cores, rounded up) ...
     threads: int = 0  # ... and of the worker (0: half the cores)
     publish_every: int = 20  # async: a new submap's first optimisation publishes its Gaussians every this many steps
-    first_opacity: float = 0.9  # async: a new submap's Gaussians start this opaque, so that the first publication
-    # is trackable (at 0.5 the map reaches the tracker's 0.99 silhouette only after some 40-80 steps)
-    # async: when the last tracked frame's map covered less than this fraction of the image (health's
-    # degraded_coverage: the camera leaving the published map, or a new map's early publication), the tracker waits
-    # for the worker's queued keyframes before the next frame, at most max_map_wait_s seconds (a live camera's frames
-    # meanwhile are superseded, not tracked off the map)
-    wait_below_coverage: float = 0.3
-    max_map_wait_s: float = 2.0
+    idle_iterations: int = 10  # async: while no keyframe waits, the worker goes on optimising the newest keyframes'
+    # window in rounds of this many steps (anytime mapping; 0: off) ...
+    max_idle_iterations: int = 300  # ... at most this many per newest keyframe (a camera at rest leaves the core free)
+    first_opacity: float = 0.9  # async: a new submap's Gaussians start this opaque, so that the tracker can track
+    # against them before any optimisation (at 0.5 the map reaches its 0.99 silhouette only after some 40-80 steps)
 
 
 WORKER_MODES = ("sync", "async")

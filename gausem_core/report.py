@@ -175,7 +175,8 @@ def performance_metrics(result: RunResult, device: torch.device) -> dict:
            "gaussians_per_submap": [len(s.cloud) for s in slam.submaps],
            "num_keyframes": sum(len(s.keyframes) for s in slam.submaps), "peak_rss_mb": peak_rss_mb()}
     phases = {"frame": result.frame_seconds, "tracking": slam.front_end.tracking_seconds,
-              "mapping": back.mapping_seconds}  # a process call; a frame's tracking; a keyframe's mapping
+              "mapping": back.mapping_seconds, "growth": back.growth_seconds}  # a process call; a frame's tracking;
+    # a keyframe's mapping; async: a keyframe's growth on the tracker's clock
     for phase, seconds in phases.items():
         if seconds:
             out[f"{phase}_ms_median"] = 1e3 * percentile(seconds, 0.5)
@@ -185,7 +186,10 @@ def performance_metrics(result: RunResult, device: torch.device) -> dict:
                                 "new_submaps": back.allocation_rules[rule, True]} for rule in rules}
     out["worker"] = {"mode": slam.cfg.worker.mode, **(back.worker.stats.summary() if back.worker is not None else {}),
                      "map_age_frames_median": percentile(result.map_ages, 0.5),
-                     "map_age_frames_p95": percentile(result.map_ages, 0.95)}
+                     "map_age_frames_p95": percentile(result.map_ages, 0.95),
+                     "iterations_per_keyframe_median": percentile(list(back.window_iterations.values()), 0.5),
+                     "window_age_frames_median": percentile(back.window_ages, 0.5),
+                     "window_age_frames_p95": percentile(back.window_ages, 0.95)}
     if result.live is not None:
         out["live"] = result.live
     if device.type == "cuda":

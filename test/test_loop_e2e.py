@@ -50,7 +50,7 @@ class DriftingOdometry:
     def __init__(self, slam: GauSemSLAM, truth: list[torch.Tensor]):
         self.slam, self.truth = slam, truth
 
-    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False) -> TrackingResult:
+    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False, keyframe=None) -> TrackingResult:
         n = len(self.slam.frames)
         world = self.slam.frames[-1].cam_to_world @ invert_pose(self.truth[n - 1]) @ self.truth[n] @ BIAS
         return TrackingResult(rigid(invert_pose(self.slam.active.anchor) @ world), 0.0, 0)

@@ -271,6 +271,7 @@ def test_a_restarted_tracker_resumes_from_its_checkpoint_relocalises_and_goes_on
         assert spin_until(executor, lambda: player.done, 60.0)
         assert restarted.frames_processed == 4 and not restarted.slam.lost and not restarted.drops.counts
         assert len(restarted.slam.frames) == 9
+        assert spin_until(executor, lambda: restarted._queue.idle, 10.0)  # its last checkpoint written, not in flight
 
         (session / "session.json").write_text("{")
         with pytest.raises(ValueError, match="cannot load map_path"):

@@ -36,7 +36,7 @@ class OracleTracker:
     def __init__(self, slam: GauSemSLAM, world_poses: list[torch.Tensor]):
         self.slam, self.world_poses = slam, world_poses
 
-    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False) -> TrackingResult:
+    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False, keyframe=None) -> TrackingResult:
         world = self.world_poses[len(self.slam.frames)].to(self.slam.device)
         return TrackingResult(invert_pose(self.slam.active.anchor) @ world, 0.0, 0)
 

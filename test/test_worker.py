@@ -9,9 +9,12 @@ import torch
 
 from gausem_core.config import from_flat, load_config
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
+from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose
 from gausem_core.live import LiveCamera
 from gausem_core.slam.observation import Observation
+from gausem_core.slam.submap import Submap
+from gausem_core.slam.submap_store import SubmapStore
 from gausem_core.slam.system import GauSemSLAM
 from gausem_core.slam.tracker import TrackingResult
 from gausem_core.slam.worker import Job, MappingWorker, split_threads
@@ -19,12 +22,17 @@ from gausem_core.slam.worker import Job, MappingWorker, split_threads
 REPO = Path(__file__).resolve().parents[1]
 
 
-def wait_until_running(worker: MappingWorker) -> None:
-    for _ in range(1000):
-        if worker.depth == 0 and not worker.idle:
-            return
+def wait_for(condition, seconds: float = 10) -> bool:
+    """Whether ``condition()`` came true within ``seconds``."""
+    for _ in range(int(seconds / 0.01)):
+        if condition():
+            return True
         threading.Event().wait(0.01)
-    raise AssertionError("the worker never took the job")
+    return False
+
+
+def wait_until_running(worker: MappingWorker) -> None:
+    assert wait_for(lambda: worker.depth == 0 and not worker.idle), "the worker never took the job"
 
 
 class Gate:
@@ -88,17 +96,54 @@ def test_a_job_error_reaches_the_caller_once():
     worker.stop()
 
 
-def test_catch_up_waits_for_the_queued_jobs_at_most_its_timeout_and_counts_only_real_waits():
-    gate, worker = Gate(), MappingWorker(lambda: 0)
-    worker.catch_up(10)  # idle: nothing to wait for
-    assert worker.stats.tracker_waits == 0
-    worker.submit(gate.job(1))
-    worker.submit(gate.job(2))
-    worker.catch_up(0.05)  # both still blocked: back after the timeout
-    assert gate.ran == [] and worker.stats.tracker_waits == 1 and worker.stats.tracker_wait_s > 0
-    threading.Timer(0.05, gate.release.set).start()
-    worker.catch_up(10)
-    assert gate.ran == [1, 2] and worker.idle and worker.stats.tracker_waits == 2
+def test_the_trackers_gaussians_wait_pending_and_survive_the_workers_optimisation():
+    """A submap's Gaussians from two threads: grown ones are part of the map at once; the worker takes them in before
+    it optimises and assigns its result back, and what grew meanwhile stays; an offloaded submap takes its pending
+    Gaussians with it and grows no more."""
+    def cloud(n, x=0.0):
+        return GaussianCloud.from_points(torch.full((n, 3), x), torch.rand(n, 3), torch.rand(n, 3), torch.ones(n),
+                                         torch.full((n,), 0.5))
+    submap = Submap(0, torch.eye(4), cloud(3))
+    assert submap.grow(lambda current: cloud(2, 1.0) if len(current) == 3 else None) == 2
+    assert len(submap.cloud) == submap.num_gaussians == 5 and float(submap.cloud.means[3:, 0].min()) == 1.0
+    taken = submap.take_cloud()  # the worker's optimisation starts
+    assert len(taken) == 5
+    assert submap.grow(lambda current: cloud(4, 2.0)) == 4  # the tracker meanwhile
+    submap.cloud = cloud(5, 9.0)  # the optimised Gaussians come back
+    assert len(submap.cloud) == submap.num_gaussians == 9
+    assert submap.cloud.means[:, 0].tolist() == [9.0] * 5 + [2.0] * 4
+    store = SubmapStore(2**20)
+    submap.offload(store)
+    assert len(submap.cloud) == 9 and submap.grow(lambda current: cloud(1)) == 0 and len(submap.cloud) == 9
+    store.close()
+
+
+def test_between_jobs_the_worker_does_its_idle_work_until_it_has_none_left():
+    rounds = []
+    worker = MappingWorker(lambda: 0, idle=lambda: rounds.append(1) or len(rounds) % 4 != 0)
+    threading.Event().wait(0.05)
+    assert rounds == []  # nothing to refine before the first job
+    worker.submit(Job(0, "open", lambda: "opened"))
+    assert wait_for(lambda: len(rounds) == 4 and worker.idle)
+    threading.Event().wait(0.05)
+    assert len(rounds) == 4  # it said there was nothing left: the worker waits for the next job
+    worker.submit(Job(1, "keyframe", lambda: "mapped"))
+    assert wait_for(lambda: len(rounds) == 8 and worker.idle)
+    assert worker.take_events() == ["opened", "mapped"]
+    worker.stop()
+
+
+def test_a_drain_holds_the_idle_work_until_the_next_job():
+    rounds = []
+    worker = MappingWorker(lambda: 0, idle=lambda: rounds.append(1) or threading.Event().wait(0.001) or True)
+    worker.submit(Job(0, "open", lambda: None))
+    assert wait_for(lambda: len(rounds) >= 3)
+    assert worker.drain(10)  # waits for the round in progress, then holds
+    held = len(rounds)
+    threading.Event().wait(0.05)
+    assert len(rounds) == held and worker.idle
+    worker.submit(Job(1, "keyframe", lambda: None))
+    assert wait_for(lambda: len(rounds) > held)
     worker.stop()
 
 
@@ -199,7 +244,7 @@ class InitOdometry:
     def __init__(self, truth, bias):
         self.truth, self.bias, self.n = truth, bias, 0
 
-    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False) -> TrackingResult:
+    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False, keyframe=None) -> TrackingResult:
         self.n += 1
         step = invert_pose(self.truth[self.n - 1]) @ self.truth[self.n] @ self.bias
         from test_loop_e2e import rigid
@@ -241,21 +286,46 @@ def test_async_closes_a_loop_while_frames_keep_coming():
     slam.close()
 
 
-def test_async_tracks_no_frame_before_the_worker_caught_up_while_the_map_covers_too_little():
-    """With ``wait_below_coverage`` above any coverage the tracker waits for the worker before every frame after the
-    first tracked one (which the map's first published Gaussians serve): each later keyframe is mapped before the next
-    frame is tracked (lag 0), as in sync mode."""
+def test_async_a_keyframes_gaussians_join_the_map_before_the_next_frame_while_the_worker_is_busy():
+    """The worker held in the map's first optimisation: the tracker does not wait for it, and each keyframe it hands
+    over adds its Gaussians to the map it tracks the next frame against; once released, the worker takes them into
+    its optimisations."""
     data = SyntheticDataset("default", resolution=(40, 30))
-    slam = GauSemSLAM(from_flat({**CHEAP, "worker.wait_below_coverage": 1.01, "worker.max_map_wait_s": 600}), "cpu",
-                      len(SYNTHETIC_CLASSES))
-    results = [slam.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
-                                                    f.timestamp)) for f in (data[i] for i in range(8))]
+    slam = GauSemSLAM(from_flat({**CHEAP, "worker.queue_size": 100}), "cpu", len(SYNTHETIC_CLASSES))
+    release, optimise = threading.Event(), slam.back_end.mapper.optimise
+    slam.back_end.mapper.optimise = lambda *args, **kwargs: release.wait(60) and optimise(*args, **kwargs)
+    observations = [Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
+                                            f.timestamp) for f in (data[i] for i in range(12))]
+    counts = []
+    for obs in observations:
+        result = slam.process(obs)
+        counts.append((result.is_keyframe, slam.active.num_gaussians))
+    worker = slam.back_end.worker
+    assert worker.stats.mapped == 0 and not worker.idle  # still held: every frame was tracked without it
+    grown = [after > before for (_, before), (keyframe, after) in zip(counts, counts[1:]) if keyframe]
+    assert sum(k for k, _ in counts[1:]) >= 3 and len(slam.back_end.growth_seconds) == sum(k for k, _ in counts[1:])
+    assert counts[-1][1] > counts[0][1] and any(grown)
+    release.set()
     slam.finish()
-    stats = slam.back_end.worker.stats
-    keyframes = sum(r.is_keyframe for r in results)
-    assert keyframes >= 3 and stats.mapped == keyframes and stats.superseded == 0
-    assert stats.lag_frames[1:] == [0] * (keyframes - 1)
-    assert stats.tracker_waits >= 1 and stats.summary()["tracker_waits"] == stats.tracker_waits
+    assert worker.stats.mapped == sum(k for k, _ in counts) and worker.stats.superseded == 0
+    assert all(len(s.load_cloud()) == s.num_gaussians for s in slam.submaps)
+    slam.close()
+
+
+def test_async_between_keyframes_the_worker_goes_on_optimising_the_newest_window_up_to_its_budget():
+    """Anytime mapping: with time between keyframes, the newest keyframe's window gets its mapping steps and then
+    ``worker.idle_iterations`` more at a time, up to ``worker.max_idle_iterations``; a drain holds it."""
+    data = SyntheticDataset("default", resolution=(40, 30))
+    slam = GauSemSLAM(from_flat({**CHEAP, "submaps.motion_translation": 100.0, "worker.idle_iterations": 4,
+                                 "worker.max_idle_iterations": 12}), "cpu", len(SYNTHETIC_CLASSES))
+    back = slam.back_end
+    for f in (data[i] for i in range(5)):  # keyframes 0, 2 and 4 (mapping.every 2), one submap
+        slam.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette,
+                                             f.timestamp))
+    assert wait_for(lambda: back.window_iterations.get(4) == 5 + 12, 60), back.window_iterations  # 5: its mapping
+    slam.drain()
+    assert back.window_iterations[4] == 5 + 12 and back.worker.idle and len(slam.submaps) == 1
+    assert len(back.window_ages) >= 3
     slam.close()
 
 

@@ -74,9 +74,14 @@ class BackEnd:
                                           device=device) if cfg.loop.enabled or cfg.refinement.enabled else None
         self.loop_closure = LoopClosure(cfg.loop, self.mapper, self.descriptor, cfg.backend,
                                         device) if cfg.loop.enabled else None
-        self.worker = self._start_worker() if cfg.worker.mode == "async" else None
         self._mapped: list[FrameEvents] = []  # async: finished keyframes' events not yet handed out
         self.mapping_seconds: deque[float] = deque(maxlen=TIMES_KEPT)  # wall time of the latest keyframes' mapping
+        self.growth_seconds: deque[float] = deque(maxlen=TIMES_KEPT)  # async: the tracker's growth of keyframes
+        self.window_iterations: dict[int, int] = {}  # optimisation steps over each newest keyframe's window
+        self._idle_spent = (-1, 0)  # (newest keyframe, idle steps given to its window)
+        self.window_ages: deque[int] = deque(maxlen=TIMES_KEPT)  # tracker frames past the newest keyframe, per
+        # optimisation (a job's or an idle round's)
+        self.worker = self._start_worker() if cfg.worker.mode == "async" else None
         self._close = weakref.finalize(self, _shut_down, self.worker, self.store)
 
     def _start_worker(self) -> MappingWorker:
@@ -86,7 +91,32 @@ class BackEnd:
         tracker_threads, worker_threads = split_threads(cfg.tracker_threads, cfg.threads)
         torch.set_num_threads(tracker_threads)
         self.mapper.min_iteration_fraction = cfg.min_iteration_fraction
-        return MappingWorker(lambda: len(self.frames), cfg.queue_size, worker_threads, self.mapper.pressure)
+        idle = self._refine_window if cfg.idle_iterations > 0 and cfg.max_idle_iterations > 0 else None
+        return MappingWorker(lambda: len(self.frames), cfg.queue_size, worker_threads, self.mapper.pressure, idle)
+
+    def _refine_window(self) -> bool:
+        """Anytime mapping (the worker's idle work): ``worker.idle_iterations`` more steps over the active submap's
+        newest keyframes' window; False once the newest keyframe's window has had ``worker.max_idle_iterations``."""
+        submap, cfg = self.active, self.cfg.worker
+        newest = submap.keyframes[-1].frame_id
+        spent = self._idle_spent[1] if self._idle_spent[0] == newest else 0
+        budget = min(cfg.idle_iterations, cfg.max_idle_iterations - spent)
+        if budget <= 0:
+            return False
+        cloud, losses = self._optimise_window(submap, budget)
+        submap.cloud = cloud
+        self._idle_spent = (newest, spent + budget)
+        return bool(losses)
+
+    def _optimise_window(self, submap: Submap, iterations: int) -> tuple[GaussianCloud, list[float]]:
+        """``iterations`` steps over ``submap``'s newest keyframes (``mapping.window``), the pending Gaussians taken
+        in; counted for the newest keyframe, with the window's age."""
+        newest = submap.keyframes[-1].frame_id
+        self.window_ages.append(len(self.frames) - 1 - newest)
+        cloud, losses = self.mapper.optimise(submap.take_cloud(), submap.keyframes[-self.cfg.mapping.window:],
+                                             iterations)
+        self.window_iterations[newest] = self.window_iterations.get(newest, 0) + len(losses)
+        return cloud, losses
 
     @property
     def active(self) -> Submap:
@@ -94,20 +124,9 @@ class BackEnd:
         return self.submaps[-1]
 
     def tracked_submap(self) -> Submap:
-        """The submap frames are tracked against: the newest one whose Gaussians are trackable (async: a new submap
-        once its first optimisation published them; the map's first one is waited for)."""
-        submap = next((s for s in reversed(self.submaps) if s.trackable.is_set()), None)
-        if submap is None:
-            submap = self.submaps[0]
-            while not submap.trackable.wait(0.1):
-                self.raise_error()
-        return submap
-
-    def catch_up(self) -> None:
-        """Async: wait for the worker's queued keyframes, at most ``worker.max_map_wait_s`` (the published map covers
-        too little of the view); nothing in sync mode."""
-        if self.worker is not None:
-            self.worker.catch_up(self.cfg.worker.max_map_wait_s)
+        """The submap frames are tracked against: the newest (its Gaussians from its first keyframe's depth are a map
+        before any optimisation)."""
+        return self.submaps[-1]
 
     def raise_error(self) -> None:
         """Raise the mapping worker's error, if a job failed (nothing in sync mode)."""
@@ -131,7 +150,7 @@ class BackEnd:
     def start(self, obs: Observation, frame_id: int) -> tuple[FrameEvents | None, float | None]:
         """The map's first frame, which defines the world frame: a submap from its depth (semantic sampling), then
         optimised. Returns its events and last mapping loss (async: (None, None); the optimisation runs on the
-        worker, the unoptimised Gaussians trackable at once)."""
+        worker, the unoptimised Gaussians tracked against meanwhile)."""
         submap = self._place_submap(obs, frame_id, torch.eye(4, device=self.device))
         if self.worker is not None:
             self.worker.submit(Job(frame_id, "open", lambda: self._timed(self._first_job, submap, obs)[0]))
@@ -140,11 +159,16 @@ class BackEnd:
 
     def add_keyframe(self, obs: Observation, record: FrameRecord,
                      pose: torch.Tensor) -> tuple[FrameEvents, float | None, Decision] | None:
-        """Map the frame the front end recorded as ``record`` (the last one), tracked to ``pose`` in the active
-        submap, as a keyframe (see :meth:`_map`): now in sync mode, returning its events, the last mapping loss and
-        the allocation decision; async: queued for the worker (None), mapped at its pose as corrected by then."""
+        """Map the frame the front end recorded as ``record`` (the last one), tracked to ``pose`` in its submap, as a
+        keyframe (see :meth:`_map`): now in sync mode, returning its events, the last mapping loss and the allocation
+        decision. Async: its new Gaussians (where the map lacks its view) join the map now, on the tracker's clock,
+        and it is queued for the worker (None), mapped at its pose as corrected by then."""
         if self.worker is None:
             return self._timed(self._map, obs, pose, record)
+        start = time.perf_counter()
+        opacity = self.cfg.worker.first_opacity
+        record.submap.grow(lambda cloud: self.mapper.strategy.new_gaussians(cloud, obs, pose, opacity))
+        self.growth_seconds.append(time.perf_counter() - start)
         self.worker.submit(Job(record.frame_id, "keyframe", partial(self._timed, self._keyframe_job, obs, record)))
         return None
 
@@ -186,7 +210,7 @@ class BackEnd:
             self._boundary_adjust(old)
             submap = self._place_submap(obs, record.frame_id, rigid_product(old.anchor, pose), record)
             loss = self._optimise_first(submap)
-            old.offload(self.store)  # after: the tracker tracks against it until the new one is trackable
+            old.offload(self.store)  # after: its pending Gaussians go with it
         else:
             loss = self._map_keyframe(obs, pose, record)
         events = self._keyframe_events(closed)
@@ -194,17 +218,17 @@ class BackEnd:
         return events, loss, decision
 
     def _map_keyframe(self, obs: Observation, pose: torch.Tensor, record: FrameRecord) -> float | None:
-        """Add a keyframe to the active submap: densify, BA over the recent keyframes, then detail where the map still
-        misses the keyframe's colour."""
+        """Add a keyframe to the active submap: densify (async: done by :meth:`add_keyframe`), BA over the recent
+        keyframes, then detail where the map still misses the keyframe's colour."""
         submap = self.active
         kf = Keyframe(record.frame_id, obs, pose)
         with self.lock:
             submap.keyframes.append(kf)
             self._anchor_record(record, submap, kf)
         submap.extent.add(obs, pose)
-        submap.cloud = self.mapper.strategy.grow(submap.cloud, obs, pose)
-        window = submap.keyframes[-self.cfg.mapping.window:]
-        cloud, losses = self.mapper.optimise(submap.cloud, window, self.cfg.mapping.iterations)
+        if self.worker is None:
+            submap.cloud = self.mapper.strategy.grow(submap.cloud, obs, pose)
+        cloud, losses = self._optimise_window(submap, self.cfg.mapping.iterations)
         submap.cloud = self.mapper.strategy.add_detail(cloud, kf.obs, kf.cam_to_world)
         return losses[-1] if losses else None
 
@@ -240,13 +264,13 @@ class BackEnd:
     def _place_submap(self, obs: Observation, frame_id: int, anchor: torch.Tensor,
                       record: FrameRecord | None = None) -> Submap:
         """A new active submap anchored (world-from-submap) at ``anchor``: its first keyframe is ``obs``, fixed at the
-        identity, and its Gaussians come from semantic sampling of its depth, usable for tracking at once (before
+        identity, and its Gaussians come from semantic sampling of its depth, tracked against at once (async: before
         :meth:`_optimise_first`). ``record``: the frame's record (None for the map's first frame)."""
         eye = torch.eye(4, device=self.device)
         kf = Keyframe(frame_id, obs, eye, fixed=True)
         opacity = self.cfg.worker.first_opacity if self.worker is not None else None
         submap = Submap(len(self.submaps), anchor, self.mapper.strategy.initial(obs, eye, opacity), [kf],
-                        SubmapExtent.start(obs, eye, self.num_classes), trackable=self.worker is None)
+                        SubmapExtent.start(obs, eye, self.num_classes))
         with self.lock:
             self.submaps.append(submap)
             self._anchor_record(record, submap, kf)
@@ -254,14 +278,13 @@ class BackEnd:
 
     def _optimise_first(self, submap: Submap) -> float | None:
         """The initial optimisation of a new submap's Gaussians over its first keyframe; the last loss. Async: the
-        Gaussians are published every ``worker.publish_every`` steps, the first publication making them trackable."""
+        Gaussians are published every ``worker.publish_every`` steps."""
         def publish(cloud: GaussianCloud) -> None:
             submap.cloud = cloud
-            submap.trackable.set()
 
         every = self.cfg.worker.publish_every if self.worker is not None else 0
-        cloud, losses = self.mapper.optimise(submap.cloud, submap.keyframes[:1], self.cfg.mapping.init_iterations,
-                                             publish=publish, publish_every=every)
+        cloud, losses = self.mapper.optimise(submap.take_cloud(), submap.keyframes[:1],
+                                             self.cfg.mapping.init_iterations, publish=publish, publish_every=every)
         first = submap.keyframes[0]
         publish(self.mapper.strategy.add_detail(cloud, first.obs, first.cam_to_world))
         return losses[-1] if losses else None
@@ -270,7 +293,7 @@ class BackEnd:
         """Boundary local BA over a submap's last keyframes, then the Gaussians hidden from all its keyframes pruned,
         before it is closed (offloaded)."""
         window = submap.keyframes[-self.cfg.submaps.boundary_window:]
-        cloud, _ = self.mapper.optimise(submap.cloud, window, self.cfg.submaps.boundary_iterations)
+        cloud, _ = self.mapper.optimise(submap.take_cloud(), window, self.cfg.submaps.boundary_iterations)
         views = [(invert_pose(kf.cam_to_world), kf.obs.camera) for kf in submap.keyframes]
         submap.cloud = self.mapper.strategy.prune_hidden(cloud, views)
 

@@ -92,15 +92,20 @@ class DensificationStrategy:
                                      self.cfg.init_radius_scale * spacing)
 
     def grow(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor) -> GaussianCloud:
-        """Add Gaussians on the lattice where the map is transparent (silhouette < tau_sil) or a new surface lies in
-        front of it (a new keyframe, before its optimisation)."""
+        """``cloud`` and :meth:`new_gaussians` for the keyframe ``obs``."""
+        return _joined(cloud, self.new_gaussians(cloud, obs, cam_to_world))
+
+    def new_gaussians(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor,
+                      opacity: float | None = None) -> GaussianCloud:
+        """Gaussians on the lattice where the map ``cloud`` is transparent (silhouette < tau_sil) or a new surface
+        lies in front of it (a new keyframe, before its optimisation); ``opacity``: default ``init_opacity``."""
         spacing = self.spacing(obs)
         with torch.no_grad():
             out = render(cloud, invert_pose(cam_to_world), obs.camera, backend=self.backend)
             lacking = obs.valid_depth & self._lacking(out, obs)
             if spacing > 1:
                 lacking &= pixel_lattice(*lacking.shape, spacing, lacking.device)
-        return self._spawn(cloud, obs, cam_to_world, lacking, spacing)
+        return self._spawned(obs, cam_to_world, lacking, spacing, cloud, opacity)
 
     def add_detail(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor) -> GaussianCloud:
         """Beside a lattice coarser than one pixel, add one-pixel Gaussians where the map, optimised over this view,
@@ -113,22 +118,22 @@ class DensificationStrategy:
             out = render(cloud, invert_pose(cam_to_world), obs.camera, backend=self.backend)
             error = fine_residual(out.color - obs.rgb * out.alpha[..., None], spacing).abs().mean(-1)
             missed = obs.valid_depth & ~self._lacking(out, obs) & (error > self.cfg.densify_color_error)
-        return self._spawn(cloud, obs, cam_to_world, missed, 1.0)
+        return _joined(cloud, self._spawned(obs, cam_to_world, missed, 1.0, cloud))
 
     def _lacking(self, out: RenderOutput, obs: Observation) -> torch.Tensor:
         """(H, W) bool: where the render ``out`` is transparent or lies behind the measured depth."""
         behind = out.expected_depth > obs.depth + self.cfg.densify_depth_margin
         return (out.alpha < self.cfg.densify_silhouette_threshold) | behind
 
-    def _spawn(self, cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor, pixels: torch.Tensor,
-               footprint: float) -> GaussianCloud:
-        """``cloud`` plus a Gaussian at each pixel of the mask ``pixels``, ``footprint`` pixels wide."""
+    def _spawned(self, obs: Observation, cam_to_world: torch.Tensor, pixels: torch.Tensor, footprint: float,
+                 like: GaussianCloud, opacity: float | None = None) -> GaussianCloud:
+        """A Gaussian at each pixel of the mask ``pixels``, ``footprint`` pixels wide, ``opacity`` (default
+        ``init_opacity``) opaque (dtype and device of ``like``)."""
         flat = torch.nonzero(pixels.reshape(-1)).squeeze(1)
         if len(flat) == 0:
-            return cloud
-        grown = gaussians_from_pixels(obs, cam_to_world, flat, self.cfg.init_opacity,
-                                      self.cfg.init_radius_scale * footprint)
-        return GaussianCloud.cat([cloud, grown])
+            return GaussianCloud.empty(like.dtype, like.device)
+        return gaussians_from_pixels(obs, cam_to_world, flat, opacity or self.cfg.init_opacity,
+                                     self.cfg.init_radius_scale * footprint).to(like.device, like.dtype)
 
     def prune(self, cloud: GaussianCloud) -> GaussianCloud:
         """Drop transparent and huge Gaussians (after every optimisation)."""
@@ -143,6 +148,11 @@ class DensificationStrategy:
         weights = blend_weights(cloud, views, self.backend)
         keep = weights >= self.cfg.prune_weight
         return cloud if bool(keep.all()) else cloud.prune(keep)
+
+
+def _joined(cloud: GaussianCloud, added: GaussianCloud) -> GaussianCloud:
+    """``cloud`` followed by ``added`` (``cloud`` itself when nothing was added)."""
+    return GaussianCloud.cat([cloud, added]) if len(added) else cloud
 
 
 def blend_weights(cloud: GaussianCloud, views: list[tuple[torch.Tensor, PinholeCamera]],

@@ -23,7 +23,8 @@ from gausem_core.native import kernel_available, require_kernel
 @dataclass
 class ModelView:
     """A rendered model view: colour and semantic colour (H,W,3), expected depth (H,W), valid mask (H,W), and
-    optional dense features (H,W,F) matching the observation's feature channels."""
+    optional dense features (H,W,F) matching the observation's feature channels; ``filled`` (H,W): the pixels of the
+    mask taken from a keyframe's own images rather than rendered (``slam.keyframe_view``; None: all rendered)."""
 
     color: torch.Tensor
     semantic: torch.Tensor
@@ -31,6 +32,7 @@ class ModelView:
     mask: torch.Tensor
     camera: PinholeCamera
     features: torch.Tensor | None = None
+    filled: torch.Tensor | None = None
 
     @functools.cached_property
     def samples(self) -> tuple[torch.Tensor, torch.Tensor]:

@@ -7,7 +7,6 @@ changes Gaussians or keyframe poses.
 """
 from __future__ import annotations
 
-import math
 import time
 from collections import deque
 from dataclasses import dataclass, replace
@@ -21,6 +20,7 @@ from gausem_core.geometry import invert_pose
 from gausem_core.slam.back_end import TIMES_KEPT, BackEnd
 from gausem_core.slam.feature_start import FeatureStart
 from gausem_core.slam.health import HealthMonitor, TrackingHealth, image_signals
+from gausem_core.slam.keyframe_view import FILL_MODES, KeyframeView
 from gausem_core.slam.keyframes import KeyframePolicy
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.relocalisation import RelocalisationResult, Start, relocalisation_starts, track_from_starts
@@ -72,12 +72,17 @@ class FrontEnd:
         self.feature_start = FeatureStart(cfg.tracking.feature_start)
         self.health = HealthMonitor(cfg.health)
         self.keyframes = KeyframePolicy(cfg.mapping)
+        if cfg.tracking.keyframe_fill not in FILL_MODES:
+            raise ValueError(f"tracking.keyframe_fill must be one of {FILL_MODES}, got {cfg.tracking.keyframe_fill!r}")
+        self.fill = cfg.tracking.keyframe_fill == "always" or (cfg.tracking.keyframe_fill == "async"
+                                                             and cfg.worker.mode == "async")
+        self._keyframe: tuple[KeyframeView, FrameRecord | None] | None = None  # the newest keyframe handed over and
+        # its record (None: the map's first frame)
         self.lost = False  # the next frame is relocalised (set by load; a caller may set it after a tracking failure)
         self.segment_start = 0  # first frame id of the current tracking segment (the motion model stays inside it;
         # load starts a new one when it relocalises)
         self.dropped = 0  # frames dropped (not relocalised while lost) since the last recorded frame
         self.skipped = 0  # frames the caller skipped since the last recorded frame
-        self.coverage = math.nan  # the share of the image the map covered at the last tracked frame
         self.tracking_seconds: deque[float] = deque(maxlen=TIMES_KEPT)  # wall time of the latest frames' :meth:`place`
         # (not counting its waits for the mapping worker)
 
@@ -90,15 +95,13 @@ class FrontEnd:
         self.skipped = 0
         self.feature_start.remember(obs)
         self.keyframes.remember(0, torch.eye(4, device=self.device))
+        self._keyframe = (KeyframeView.of(obs, torch.eye(4, device=self.device)), None) if self.fill else None
 
     def place(self, obs: Observation, frame_id: int, skipped: int) -> Placement:
         """Track the frame against the newest trackable submap (while :attr:`lost`: relocalise it, or drop it), judge
         its health, record it and decide whether it is a keyframe. ``skipped``: camera frames the caller did not pass
         on since the previous call (see :meth:`GauSemSLAM.process <gausem_core.slam.system.GauSemSLAM.process>`)."""
         self.skipped += skipped
-        if self.coverage < self.cfg.worker.wait_below_coverage:  # leaving the published map: let the worker catch up
-            self.back_end.catch_up()
-        self.back_end.tracked_submap()  # async: waits for the map's first Gaussians (not under the worker's lock)
         start = time.perf_counter()
         placement = self._place(obs, frame_id)
         self.tracking_seconds.append(time.perf_counter() - start)
@@ -110,15 +113,15 @@ class FrontEnd:
             submap = self.back_end.tracked_submap()
             cloud = submap.cloud
             motion = self.motion_model(obs.timestamp)
+            keyframe = self._keyframe_view(submap)
         placement = Placement(submap, frame_id - submap.keyframes[-1].frame_id)
-        tracked, relocalised = self._track_or_relocalise(obs, motion, submap, cloud)
+        tracked, relocalised = self._track_or_relocalise(obs, motion, submap, cloud, keyframe)
         if tracked is None:
             self.dropped += 1
             judged = relocalised.health or TrackingHealth("lost")
             return replace(placement, relocalised=relocalised,
                            health=replace(judged, status="lost", reasons=(*judged.reasons, "relocalisation_failed")))
         health = self._assess(obs, tracked, relocalised, motion, cloud)
-        self.coverage = health.coverage
         missed, self.dropped, self.skipped = self.dropped + self.skipped, 0, 0
         pose = tracked.cam_to_world.detach()
         self.lost = health.status == "lost"
@@ -132,15 +135,18 @@ class FrontEnd:
             world = record.cam_to_world
         keyframe = not self.lost and self.keyframes.is_keyframe(frame_id, world, obs, health,
                                                                 motion.gap or relocalised is not None)
+        if keyframe and self.fill:
+            self._keyframe = (KeyframeView.of(obs, pose), record)
         return replace(placement, record=record, pose=pose, tracked=tracked, relocalised=relocalised, health=health,
                        keyframe=keyframe)
 
-    def _track_or_relocalise(self, obs: Observation, motion: MotionPrediction, submap: Submap,
-                             cloud: GaussianCloud) -> tuple[TrackingResult | None, RelocalisationResult | None]:
-        """The frame's pose in ``submap`` (its Gaussians ``cloud`` as published): tracked, or relocalised while
-        :attr:`lost` (None when that fails)."""
+    def _track_or_relocalise(self, obs: Observation, motion: MotionPrediction, submap: Submap, cloud: GaussianCloud,
+                             keyframe: KeyframeView | None
+                             ) -> tuple[TrackingResult | None, RelocalisationResult | None]:
+        """The frame's pose in ``submap`` (its Gaussians ``cloud`` as published, ``keyframe`` filling where they render
+        no silhouette): tracked, or relocalised while :attr:`lost` (None when that fails)."""
         if not self.lost:
-            return self._track(obs, motion, cloud), None
+            return self._track(obs, motion, cloud, keyframe), None
         relocalised = self.relocalise(obs)
         if not relocalised.accepted:
             return None, relocalised
@@ -149,7 +155,8 @@ class FrontEnd:
             local = invert_pose(submap.anchor) @ relocalised.cam_to_world
         return TrackingResult(local, relocalised.tracking_loss, relocalised.iterations), relocalised
 
-    def _track(self, obs: Observation, motion: MotionPrediction, cloud: GaussianCloud) -> TrackingResult:
+    def _track(self, obs: Observation, motion: MotionPrediction, cloud: GaussianCloud,
+               keyframe: KeyframeView | None) -> TrackingResult:
         """Track from the motion model's prediction; where the motion since the last good frame is unknown (frames were
         missed, or there is no motion model yet: a segment's second frame) the gap measures apply
         (``gauss_newton.search``, ``feature_start``)."""
@@ -158,8 +165,17 @@ class FrontEnd:
         featured = self.feature_start.predict(obs, motion.previous) if self.feature_start.wanted(unknown) else None
         alternatives = [] if featured is None else [featured]
         if motion.predicted is None:
-            return self.tracker.track(cloud, obs, motion.previous, alternatives, search=search)
-        return self.tracker.track(cloud, obs, motion.predicted, [motion.previous, *alternatives], search=search)
+            return self.tracker.track(cloud, obs, motion.previous, alternatives, search=search, keyframe=keyframe)
+        return self.tracker.track(cloud, obs, motion.predicted, [motion.previous, *alternatives], search=search,
+                                  keyframe=keyframe)
+
+    def _keyframe_view(self, submap: Submap) -> KeyframeView | None:
+        """The newest keyframe handed over, posed in ``submap``, where ``tracking.keyframe_fill`` applies; under the
+        back end's lock."""
+        if self._keyframe is None:
+            return None
+        keyframe, record = self._keyframe
+        return keyframe.posed(invert_pose(submap.anchor) @ (record or self.frames[0]).cam_to_world)
 
     def motion_model(self, timestamp: float) -> MotionPrediction:
         """For a frame stamped ``timestamp``: the last good (not lost) frame's pose in the submap tracked against, the

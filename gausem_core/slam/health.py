@@ -68,12 +68,14 @@ class TrackingHealth:
 
 def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig,
                   motion: torch.Tensor | None = None) -> dict[str, float]:
-    """``inlier_fraction``, ``condition``, ``valid_depth`` and ``coverage`` of a frame from the model ``view`` (a
+    """``inlier_fraction``, ``condition``, ``valid_depth`` and ``coverage`` (of the map's own pixels, a keyframe's
+    filled ones left out) of a frame from the model ``view`` (a
     :class:`~gausem_core.slam.direct_alignment.ModelView`, colour as rendered) and the alignment ``hessian`` at its
     pose (see :func:`gausem_core.slam.tracker.inspect_pose`). ``motion`` (observed-from-model camera; None: the view
     was rendered at the pose) moves the view's silhouette pixels into the frame, each compared with the observed
     pixel it lands on; at the identity that is the pixel it was rendered at."""
     points, values = view.samples
+    rendered = None if view.filled is None else ~view.filled[view.mask]  # the map's own pixels, not a keyframe's
     if motion is not None:
         points = points @ motion[:3, :3].T.to(points) + motion[:3, 3].to(points)
     cam, z = obs.camera, points[:, 2]
@@ -86,8 +88,9 @@ def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig,
     inliers = torch.where(obs.valid_depth[row, col], depth_ok, color_ok)
     covered = len(row)
     inlier_fraction = float(inliers.sum()) / covered if covered else math.nan
+    mapped = covered if rendered is None else int(rendered[landed].sum())
     return {"inlier_fraction": inlier_fraction, "condition": condition(hessian, z[landed]),
-            "valid_depth": float(obs.valid_depth.float().mean()), "coverage": covered / (cam.width * cam.height)}
+            "valid_depth": float(obs.valid_depth.float().mean()), "coverage": mapped / (cam.width * cam.height)}
 
 
 def condition(hessian: torch.Tensor | None, depths: torch.Tensor) -> float:

@@ -549,7 +549,7 @@ class LoopClosure:
         keyframes = [Keyframe(kf.frame_id, submap.observation(kf, self.device), kf.cam_to_world.to(self.device),
                               True) for kf in submap.keyframes]
         iterations = self.cfg.remap_iterations_per_keyframe * displaced
-        submap.cloud, _ = self.mapper.optimise(submap.load_cloud(self.device), keyframes, iterations,
+        submap.cloud, _ = self.mapper.optimise(submap.take_cloud(self.device), keyframes, iterations,
                                                optimise_poses=False)
 
     @staticmethod

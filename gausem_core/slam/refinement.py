@@ -125,7 +125,7 @@ def global_refinement(submaps: Sequence, mapper: Mapper, cfg: RefinementConfig, 
         if not submap.keyframes or cfg.iterations_per_keyframe <= 0:
             continue
         observations = [submap.observation(kf, device) for kf in submap.keyframes]
-        submap.cloud, losses = refine_submap(submap.load_cloud(device), submap.keyframes, observations, mapper,
+        submap.cloud, losses = refine_submap(submap.take_cloud(device), submap.keyframes, observations, mapper,
                                              cfg.iterations_per_keyframe, features, registration.lambda_feat,
                                              backend, cfg.w_depth, cfg.final_lr_means_fraction,
                                              cfg.final_lr_pose_fraction)

@@ -9,6 +9,7 @@ the active submap (Gaussians and keyframe images) lives on the compute device; a
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -40,21 +41,26 @@ class StoredObservation:
 class Submap:
     """Gaussians and keyframes in a local frame anchored at the first keyframe; ``anchor`` is world-from-submap.
 
-    While active, ``cloud`` and the keyframes' ``obs`` are tensors on the compute device. After :meth:`offload`
+    While active, the Gaussians and the keyframes' ``obs`` are tensors on the compute device. After :meth:`offload`
     (inactive) they live in a :class:`SubmapStore`: ``cloud`` reads a CPU copy back (assigning it writes the store)
     and each keyframe's ``obs`` is a :class:`StoredObservation`. Anchor and keyframe poses always stay in memory.
+
+    Two threads change an active submap's Gaussians (``worker.mode: async``). The tracker only adds: a keyframe's new
+    Gaussians (:meth:`grow`) wait in a pending cloud, part of the map at once. The mapping worker owns the rest: it
+    takes the pending ones in with :meth:`take_cloud` before it optimises, and assigns ``cloud`` after; Gaussians
+    grown meanwhile stay pending, so neither thread's work is lost. Readers (``cloud``, :meth:`load_cloud`) see both.
     """
 
     def __init__(self, submap_id: int, anchor: torch.Tensor, cloud: GaussianCloud,
-                 keyframes: list[Keyframe] | None = None, extent: SubmapExtent | None = None, trackable: bool = True):
+                 keyframes: list[Keyframe] | None = None, extent: SubmapExtent | None = None):
         self.submap_id = submap_id
-        self.trackable = threading.Event()  # its Gaussians are fit to track against (a new one's: once published)
-        if trackable:
-            self.trackable.set()
         self.anchor = anchor
         self.keyframes = list(keyframes or [])
         self.extent = extent  # what allocation needs while the submap is active
         self._cloud: GaussianCloud | None = cloud
+        self._pending: GaussianCloud | None = None  # grown by the tracker, not yet taken in by the mapping worker
+        self._whole: GaussianCloud | None = cloud  # both, as readers get them (made once per change)
+        self._growth = threading.Lock()  # guards the swaps of _cloud, _pending and _whole (never held while mapping)
         self._store: SubmapStore | None = None
         self.num_gaussians = len(cloud)
 
@@ -65,23 +71,55 @@ class Submap:
 
     @property
     def cloud(self) -> GaussianCloud:
-        """The Gaussians in the submap frame (for an inactive submap: a copy read from the store)."""
+        """The Gaussians in the submap frame, pending ones included (for an inactive submap: a copy read from the
+        store)."""
         return self.load_cloud()
 
     @cloud.setter
     def cloud(self, cloud: GaussianCloud) -> None:
-        if self._store is None:
-            self._cloud = cloud
-        else:
-            self._store.store(self._cloud_key, cloud.tensors())
-        self.num_gaussians = len(cloud)
+        """The mapping worker's Gaussians replaced (those grown since its :meth:`take_cloud` stay pending)."""
+        with self._growth:
+            if self._store is None:
+                self._cloud = cloud
+                self._whole = None
+            else:
+                self._store.store(self._cloud_key, cloud.tensors())
+            self.num_gaussians = len(cloud) + (len(self._pending) if self._pending is not None else 0)
+
+    def take_cloud(self, device: torch.device | str | None = None) -> GaussianCloud:
+        """The mapping worker's Gaussians with the pending ones taken in: what it optimises and then assigns back to
+        :attr:`cloud`."""
+        with self._growth:
+            if self._store is None:
+                self._cloud, self._pending = self._merged(), None
+        return self.load_cloud(device)
+
+    def grow(self, new_gaussians: Callable[[GaussianCloud], GaussianCloud]) -> int:
+        """Add ``new_gaussians(current Gaussians)`` to the map as pending (the tracker's keyframes, before any
+        optimisation); how many were added (none to an inactive submap)."""
+        added = new_gaussians(self.load_cloud())
+        with self._growth:
+            if self._store is not None or len(added) == 0:
+                return 0
+            self._pending = added if self._pending is None else GaussianCloud.cat([self._pending, added])
+            self._whole = None
+            self.num_gaussians += len(added)
+        return len(added)
 
     def load_cloud(self, device: torch.device | str | None = None) -> GaussianCloud:
         """The Gaussians on ``device`` (default: where they are; the CPU for an inactive submap). An inactive
         submap's come back as a bit-identical copy; an active submap's are its own tensors (moved if asked)."""
-        if self._store is None:
-            return self._cloud if device is None else self._cloud.to(device)
+        with self._growth:
+            whole = self._merged() if self._store is None else None
+        if whole is not None:
+            return whole if device is None else whole.to(device)
         return GaussianCloud(**self._store.load(self._cloud_key, device or "cpu"))
+
+    def _merged(self) -> GaussianCloud:
+        """An active submap's Gaussians and the pending ones, as one cloud (made once per change); under _growth."""
+        if self._whole is None:
+            self._whole = self._cloud if self._pending is None else GaussianCloud.cat([self._cloud, self._pending])
+        return self._whole
 
     def observation(self, keyframe: Keyframe, device: torch.device | str = "cpu") -> Observation:
         """One of the keyframes' observation: an active submap's own, an inactive one's read back onto ``device``."""
@@ -93,15 +131,18 @@ class Submap:
         return self.anchor @ keyframe.cam_to_world
 
     def offload(self, store: SubmapStore) -> None:
-        """Move the Gaussians and the keyframe images into ``store``; the submap becomes inactive."""
+        """Move the Gaussians (pending ones included) and the keyframe images into ``store``; the submap becomes
+        inactive."""
         if self._store is not None:
             raise ValueError(f"submap {self.submap_id} is already offloaded")
-        store.store(self._cloud_key, self._cloud.tensors())
+        with self._growth:
+            store.store(self._cloud_key, self._merged().tensors())
+            self._cloud = self._pending = self._whole = None
+            self._store = store
         for kf in self.keyframes:
             key = ("keyframe", self.submap_id, kf.frame_id)
             store.store(key, {name: getattr(kf.obs, name) for name in KEYFRAME_IMAGES})
             kf.obs = StoredObservation(store, key, kf.obs.camera, kf.obs.timestamp)
-        self._cloud, self._store = None, store
 
     @property
     def _cloud_key(self) -> tuple:

@@ -15,6 +15,7 @@ from gausem_core.slam.adam import AdamSteps, ParameterGroup, has_stalled
 from gausem_core.slam.device_alignment import align_level_on_device
 from gausem_core.slam.direct_alignment import (AlignmentWeights, ModelView, ObservedImages, align_level,
                                                 alignment_cost, compared_costs, model_samples, normal_equations)
+from gausem_core.slam.keyframe_view import KeyframeView, fill_from_keyframe
 from gausem_core.slam.losses import tracking_loss
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.photometric import local_contrast
@@ -60,10 +61,12 @@ def alignment_weights(cfg: TrackingConfig) -> AlignmentWeights:
 
 
 def model_view(cloud: GaussianCloud, cam_to_world: torch.Tensor, camera, cfg: TrackingConfig,
-               backend: str) -> ModelView:
-    """The map rendered at ``cam_to_world``, masked to its silhouette (alpha above ``silhouette_threshold``)."""
+               backend: str, keyframe: KeyframeView | None = None) -> ModelView:
+    """The map rendered at ``cam_to_world``, masked to its silhouette (alpha above ``silhouette_threshold``); with a
+    ``keyframe``, its own images fill the pixels outside the silhouette (frame-to-keyframe, ``slam.keyframe_view``)."""
     out = render(cloud, invert_pose(cam_to_world), camera, backend=backend)
-    return ModelView(out.color, out.semantic, out.expected_depth, out.alpha > cfg.silhouette_threshold, camera)
+    view = ModelView(out.color, out.semantic, out.expected_depth, out.alpha > cfg.silhouette_threshold, camera)
+    return view if keyframe is None else fill_from_keyframe(view, cam_to_world, keyframe)
 
 
 def motion_size(motion: torch.Tensor, view: ModelView) -> float:
@@ -123,14 +126,16 @@ class Tracker:
         self.backend = backend
 
     def track(self, cloud: GaussianCloud, obs: Observation, init_cam_to_world: torch.Tensor,
-              alternatives: Sequence[torch.Tensor] = (), search: bool = False) -> TrackingResult:
+              alternatives: Sequence[torch.Tensor] = (), search: bool = False,
+              keyframe: KeyframeView | None = None) -> TrackingResult:
         """Optimise the pose from ``init_cam_to_world``; Gauss-Newton also tries ``alternatives`` (e.g. the previous
-        pose when the motion model overshoots a sudden stop) on the coarsest level and goes on from the best, and with
-        ``search`` the starts around ``init_cam_to_world`` that ``gauss_newton.search_*`` describe."""
+        pose when the motion model overshoots a sudden stop) on the coarsest level and goes on from the best, with
+        ``search`` the starts around ``init_cam_to_world`` that ``gauss_newton.search_*`` describe, and with a
+        ``keyframe`` its own images where the map renders no silhouette (see :func:`model_view`)."""
         if self.cfg.method == "gauss_newton":
             init = init_cam_to_world.detach()
             starts = [init, *alternatives, *(self._search_starts(init) if search else [])]
-            return self._track_gauss_newton(cloud.detach(), obs, starts)
+            return self._track_gauss_newton(cloud.detach(), obs, starts, keyframe)
         return self._track_adam(cloud, obs, init_cam_to_world)
 
     def _search_starts(self, pose: torch.Tensor) -> list[torch.Tensor]:
@@ -142,8 +147,8 @@ class Tracker:
                    for step, axes in steps if step > 0 for axis in axes for sign in (1, -1)]
         return [pose @ se3_exp(offset).to(pose) for offset in offsets]
 
-    def _track_gauss_newton(self, cloud: GaussianCloud, obs: Observation,
-                            starts: list[torch.Tensor]) -> TrackingResult:
+    def _track_gauss_newton(self, cloud: GaussianCloud, obs: Observation, starts: list[torch.Tensor],
+                            keyframe: KeyframeView | None) -> TrackingResult:
         """Coarse-to-fine Gauss-Newton from the start whose coarsest-level alignment costs least; keeps that start if
         the result explains the full-resolution frame worse (coarse levels can leave the basin of convergence when
         the map covers little of the view)."""
@@ -153,25 +158,28 @@ class Tracker:
                                                                                          cfg.coarsest_width)
         if cfg.model_views == "per_frame":
             with torch.no_grad():
-                return self._track_per_frame(cloud, [start.to(cloud.dtype) for start in starts], pyramid, weights)
+                return self._track_per_frame(cloud, [start.to(cloud.dtype) for start in starts], pyramid, weights,
+                                             keyframe)
         eye = torch.eye(4, dtype=cloud.dtype, device=cloud.means.device)
         with torch.no_grad():
-            coarse = [self._align(cloud, start.to(cloud.dtype), pyramid[-1], weights, eye) for start in starts]
+            coarse = [self._align(cloud, start.to(cloud.dtype), pyramid[-1], weights, eye, keyframe)
+                      for start in starts]
             best = min(range(len(starts)), key=lambda i: alignment_cost(
-                self._model_view(cloud, coarse[i], pyramid[-1].camera), pyramid[-1], eye, weights))
+                self._model_view(cloud, coarse[i], pyramid[-1].camera, keyframe), pyramid[-1], eye, weights))
             initial, pose = starts[best].to(cloud.dtype), coarse[best]
             for level in reversed(pyramid[:-1]):
-                pose = self._align(cloud, pose, level, weights, eye)
+                pose = self._align(cloud, pose, level, weights, eye, keyframe)
             iterations = cfg.renders_per_level * (len(pyramid) - 1 + len(starts))
             full = pyramid[0]
-            cost = alignment_cost(self._model_view(cloud, pose, full.camera), full, eye, weights)
-            initial_cost = alignment_cost(self._model_view(cloud, initial, full.camera), full, eye, weights)
+            cost = alignment_cost(self._model_view(cloud, pose, full.camera, keyframe), full, eye, weights)
+            initial_cost = alignment_cost(self._model_view(cloud, initial, full.camera, keyframe), full, eye,
+                                          weights)
         if initial_cost < cost:
             return TrackingResult(initial, initial_cost, iterations)
         return TrackingResult(project_to_se3(pose), cost, iterations)
 
     def _track_per_frame(self, cloud: GaussianCloud, starts: list[torch.Tensor], pyramid: list[ObservedImages],
-                         weights: AlignmentWeights) -> TrackingResult:
+                         weights: AlignmentWeights, keyframe: KeyframeView | None) -> TrackingResult:
         """Coarse-to-fine Gauss-Newton, ``renders_per_level`` rounds of ``level_iterations`` per level, against one
         model view rendered at the first start and downsampled for the coarser levels; the estimate is the view's
         pose moved by ``motion`` (observed-from-model camera), and a round renders the view again at the estimate
@@ -182,7 +190,7 @@ class Tracker:
         cost."""
         cfg = self.cfg.gauss_newton
         base = starts[0]
-        rendered, views = self._view_pyramid(cloud, base, pyramid)
+        rendered, views = self._view_pyramid(cloud, base, pyramid, keyframe)
         begun = [invert_pose(start) @ base for start in starts]
         best, motion = self._best_start(views[-1], pyramid[-1], begun)
         renders = 1
@@ -190,7 +198,7 @@ class Tracker:
         for index in rounds:
             if motion_size(motion, views[0]) > cfg.rerender_motion:
                 base, motion = base @ invert_pose(motion), torch.eye(4, dtype=motion.dtype, device=motion.device)
-                (rendered, views), renders = self._view_pyramid(cloud, base, pyramid), renders + 1
+                (rendered, views), renders = self._view_pyramid(cloud, base, pyramid, keyframe), renders + 1
             motion = self._align_level(views[index], pyramid[index], motion)
         poses = [project_to_se3(base @ invert_pose(motion)), *starts]
         costs = compared_costs(views[0], pyramid[0], [invert_pose(pose) @ base for pose in poses], weights)
@@ -211,12 +219,12 @@ class Tracker:
         best = min(range(len(motions)), key=costs.__getitem__)
         return best, aligned[best]
 
-    def _view_pyramid(self, cloud: GaussianCloud, cam_to_world: torch.Tensor,
-                      pyramid: list[ObservedImages]) -> tuple[ModelView, list[ModelView]]:
+    def _view_pyramid(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, pyramid: list[ObservedImages],
+                      keyframe: KeyframeView | None) -> tuple[ModelView, list[ModelView]]:
         """The model rendered once at ``cam_to_world`` at full resolution (returned as rendered too), its colour
         compared as the observation's is, and halved to match ``pyramid``'s levels (as the observation's pyramid is
         made); the full-resolution view keeps ``full_resolution_points``."""
-        rendered = model_view(cloud, cam_to_world, pyramid[0].camera, self.cfg, self.backend)
+        rendered = model_view(cloud, cam_to_world, pyramid[0].camera, self.cfg, self.backend, keyframe)
         views = [self._compared(rendered)]
         while len(views) < len(pyramid):
             views.append(views[-1].downsampled())
@@ -225,10 +233,11 @@ class Tracker:
         return rendered, views
 
     def _align(self, cloud: GaussianCloud, pose: torch.Tensor, level: ObservedImages, weights: AlignmentWeights,
-               eye: torch.Tensor) -> torch.Tensor:
+               eye: torch.Tensor, keyframe: KeyframeView | None) -> torch.Tensor:
         """``renders_per_level`` rounds of render-at-the-estimate + Gauss-Newton on one pyramid level."""
         for _ in range(self.cfg.gauss_newton.renders_per_level):
-            pose = pose @ invert_pose(self._align_level(self._model_view(cloud, pose, level.camera), level, eye))
+            view = self._model_view(cloud, pose, level.camera, keyframe)
+            pose = pose @ invert_pose(self._align_level(view, level, eye))
         return pose
 
     def _align_level(self, view: ModelView, level: ObservedImages, motion: torch.Tensor,
@@ -242,9 +251,10 @@ class Tracker:
         return align_level_on_device(view, level, motion, weights, iterations, min_step=cfg.min_step,
                                      fused=cfg.fused)[0]  # no host sync per step
 
-    def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera) -> ModelView:
+    def _model_view(self, cloud: GaussianCloud, cam_to_world: torch.Tensor, camera,
+                    keyframe: KeyframeView | None) -> ModelView:
         """The model view with the colour that is compared with the observation's (``slam.photometric``)."""
-        return self._compared(model_view(cloud, cam_to_world, camera, self.cfg, self.backend))
+        return self._compared(model_view(cloud, cam_to_world, camera, self.cfg, self.backend, keyframe))
 
     def _compared(self, view: ModelView) -> ModelView:
         """``view`` with its colour as it is compared with the observation's (``slam.photometric``)."""

@@ -5,9 +5,11 @@ Keyframes reach it through a bounded queue. When the queue is full, a new keyfra
 waiting (that frame stays a tracked frame; counted as ``superseded``), so the worker maps the freshest views instead
 of falling ever further behind. While a newer keyframe waits, :attr:`pressure` is set: the mapper cuts the
 optimisation in progress short (``worker.min_iteration_fraction``), the budget that keeps the worker level with the
-keyframe rate. Each job's result (the keyframe's :class:`~gausem_core.slam.events.FrameEvents`) is collected for the
-tracker's caller (:meth:`take_events`), with the worker's lag: frames the tracker processed between the keyframe's
-arrival and the end of its mapping.
+keyframe rate. While none waits, the worker calls its ``idle`` work (anytime mapping: a short round of optimisation
+over the newest keyframes' window) until that says it has nothing left to do, a new job arrives, or :meth:`drain`
+holds it (until the next job: a caller that drained reads and changes the map undisturbed). Each job's result (the
+keyframe's :class:`~gausem_core.slam.events.FrameEvents`) is collected for the tracker's caller (:meth:`take_events`),
+with the worker's lag: frames the tracker processed between the keyframe's arrival and the end of its mapping.
 
 A thread, not a process: the tracker reads the Gaussians the worker publishes without a copy (a cloud is replaced,
 never edited in place, so a reference is a consistent snapshot), and the compiled kernels and torch's operators
@@ -18,7 +20,6 @@ from __future__ import annotations
 
 import os
 import threading
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -37,8 +38,7 @@ def split_threads(tracker: int, worker: int) -> tuple[int, int]:
 @dataclass
 class WorkerStats:
     """What the worker did: keyframes submitted, superseded in the queue and mapped; optimisations cut short under
-    pressure; each mapped keyframe's lag (tracker frames between its arrival and its mapping's end); how often and
-    how long the tracker waited for it (:meth:`MappingWorker.catch_up`)."""
+    pressure; each mapped keyframe's lag (tracker frames between its arrival and its mapping's end)."""
 
     submitted: int = 0
     superseded: int = 0
@@ -46,16 +46,13 @@ class WorkerStats:
     shortened: int = 0
     lag_frames: list[int] = field(default_factory=list)
     queue_peak: int = 0
-    tracker_waits: int = 0
-    tracker_wait_s: float = 0.0
 
     def summary(self) -> dict:
         lags = sorted(self.lag_frames)
         return {"keyframes_submitted": self.submitted, "keyframes_superseded": self.superseded,
                 "keyframes_mapped": self.mapped, "optimisations_shortened": self.shortened,
-                "queue_peak": self.queue_peak, "tracker_waits": self.tracker_waits,
-                "tracker_wait_s": round(self.tracker_wait_s, 3),
-                "lag_frames_median": lags[len(lags) // 2] if lags else None, "lag_frames_max": lags[-1] if lags else None}
+                "queue_peak": self.queue_peak, "lag_frames_median": lags[len(lags) // 2] if lags else None,
+                "lag_frames_max": lags[-1] if lags else None}
 
 
 @dataclass
@@ -74,7 +71,7 @@ class MappingWorker:
     a newer job waits behind the one running (the mapper's, which then cuts its optimisations short)."""
 
     def __init__(self, frames: Callable[[], int], queue_size: int = 2, threads: int = 1,
-                 pressure: threading.Event | None = None):
+                 pressure: threading.Event | None = None, idle: Callable[[], bool] | None = None):
         if queue_size < 1:
             raise ValueError(f"worker.queue_size must be >= 1, got {queue_size}")
         self.queue_size = queue_size
@@ -82,6 +79,9 @@ class MappingWorker:
         self.pressure = pressure or threading.Event()  # a newer keyframe waits: cut the optimisation in progress short
         self._frames = frames
         self._threads = threads
+        self._idle_work = idle  # a round of work between jobs; False when there is nothing left to do
+        self._idle_done = True  # until the first job
+        self._held = False  # drained: no idle work until the next job
         self._jobs: deque[Job] = deque()
         self._events: list = []
         self._error: BaseException | None = None
@@ -100,6 +100,7 @@ class MappingWorker:
                 superseded = self._jobs.pop()
                 self.stats.superseded += 1
             self._jobs.append(job)
+            self._held, self._idle_done = False, self._idle_work is None
             self.stats.submitted += 1
             self.stats.queue_peak = max(self.stats.queue_peak, len(self._jobs))
             if self._busy:
@@ -118,21 +119,14 @@ class MappingWorker:
             return not self._jobs and not self._busy
 
     def drain(self, timeout: float | None = None) -> bool:
-        """Wait until every queued job is done (True), or ``timeout`` seconds pass (False); re-raises a job's error."""
+        """Wait until every queued job is done (True), or ``timeout`` seconds pass (False), and hold idle work until
+        the next job; re-raises a job's error."""
         with self._cond:
+            self._held = True
             done = self._cond.wait_for(lambda: (not self._jobs and not self._busy) or self._error is not None,
                                        timeout)
         self.raise_error()
         return done
-
-    def catch_up(self, timeout: float) -> None:
-        """The tracker waits until every queued job is done, at most ``timeout`` seconds (counted when busy)."""
-        if self.idle:
-            return
-        start = time.monotonic()
-        self.drain(timeout)
-        self.stats.tracker_waits += 1
-        self.stats.tracker_wait_s += time.monotonic() - start
 
     def take_events(self) -> list:
         """The finished jobs' results since the last call, in order."""
@@ -159,20 +153,18 @@ class MappingWorker:
         torch.set_num_threads(self._threads)  # this thread's share (torch keeps the count per thread once set)
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: self._jobs or self._stopping)
+                self._cond.wait_for(lambda: self._jobs or self._stopping or not (self._idle_done or self._held))
                 if self._stopping:
                     return
-                job = self._jobs.popleft()
+                job = self._jobs.popleft() if self._jobs else None
                 self._busy = True
                 self.pressure.clear()
                 if self._jobs:
                     self.pressure.set()
-            try:
-                events = job.run()
-            except BaseException as exc:  # noqa: BLE001 -- handed to the tracker's thread (raise_error)
-                events, error = None, exc
-            else:
-                error = None
+            if job is None:
+                self._idle()
+                continue
+            events, error = _attempt(job.run)
             with self._cond:
                 self._busy = False
                 if error is not None:
@@ -182,3 +174,21 @@ class MappingWorker:
                     self.stats.lag_frames.append(self._frames() - 1 - job.frame)
                     self._events.append(events)
                 self._cond.notify_all()
+
+    def _idle(self) -> None:
+        """One round of idle work; an error is handed over as a job's is."""
+        more, error = _attempt(self._idle_work)
+        with self._cond:
+            self._busy = False
+            self._idle_done = not more
+            if error is not None:
+                self._error = error
+            self._cond.notify_all()
+
+
+def _attempt(run: Callable[[], Any]) -> tuple[Any, BaseException | None]:
+    """``run()``'s result and None, or None and the error it raised (for the tracker's thread: raise_error)."""
+    try:
+        return run(), None
+    except BaseException as exc:  # noqa: BLE001 -- handed over, not lost
+        return None, exc
