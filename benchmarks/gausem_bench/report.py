@@ -88,7 +88,8 @@ CHAPTERS = [
     ("Tracking health", ["health_160x120"]),
     ("Submaps", ["submap_allocation", "submaps_allocation", "submaps_memory"]),
     ("Following a camera", [
-        "live_replay_synthetic_loop_160x120", "live_replay_tum_fr1_rpy_160x120", "first_frame_synthetic_loop_160x120",
+        "live_replay_synthetic_loop_160x120_rate1", "live_replay_tum_fr1_rpy_160x120_rate1",
+        "first_frame_synthetic_loop_160x120",
         "keyframe_policy_tum_fr1_rpy_160x120", "frame_gaps_tum_fr1_rpy", "frame_gaps_synthetic",
         "frame_gaps_synthetic_step4", "feature_pose", "tracking_step_tum_fr1_rpy_160x120",
         "tracking_step_synthetic_loop_160x120", "slam_tracking_tum_fr1_rpy", "slam_tracking_synthetic_loop",
