@@ -12,7 +12,7 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     packages=find_packages(include=["gausem_core*", "msg_adapters*", "gausem_ros*"]),
-    package_data={"gausem_core": ["data/assets/*", "native/*.cpp", "native/*.h"]},
+    package_data={"gausem_core": ["data/assets/*", "native/*.cpp", "native/*.h", "semantics/*.txt"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -24,6 +24,7 @@ setup(
         "loop": ["gtsam>=4.3.0"],
         "faiss": ["faiss-cpu"],
         "dinov2": ["transformers"],
+        "ade20k": ["ai-edge-litert"],
         "cuda": ["gsplat"],
         "bags": ["rosbags"],
         "viewer": ["rerun-sdk>=0.41,<0.42"],  # gausem_core.viewer; Rerun's API changes between minor versions

@@ -182,9 +182,11 @@ class SubmapConfig:
 
 @dataclass
 class SemanticsConfig:
-    segmenter: str = "labels"  # "labels" (class ids with the data) or "dinov2"
+    segmenter: str = "labels"  # "labels" (class ids with the data), "ade20k" (the shared pretrained model) or "dinov2"
     dinov2_weights: str = ""
     head_weights: str = ""
+    ade20k_model: str = ""  # the ade20k segmenter's .tflite file ("": $GAUSEM_SHARED_MODELS, ../shared/models)
+    segmenter_threads: int = 1  # CPU threads of the ade20k segmenter
     descriptor: str = "auto"  # "auto", "dinov2" or "fallback"
 
 

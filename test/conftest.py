@@ -29,6 +29,16 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="session")
+def ade20k_model() -> Path:
+    """The shared ADE20K segmentation model (tests that need it skip without it)."""
+    from gausem_core.semantics.ade20k import MODEL_FILE, MODELS_VARIABLE, shared_models
+    model = shared_models() / MODEL_FILE
+    if not model.is_file():
+        pytest.skip(f"the shared ADE20K model {model} is absent (set {MODELS_VARIABLE})")
+    return model
+
+
 @pytest.fixture(scope="module")
 def sequence(request):
     """Every ``SEQUENCE_STRIDE``-th frame (the requesting module's constant) of the default synthetic sequence at

@@ -90,7 +90,7 @@ def test_a_run_without_labels_says_once_what_is_inert(tmp_path, capsys):
     assert main(["run", "--dataset", f"tum:{folder}", *FAST, "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert printed.count("the dataset has no labels") == 1
-    assert "class-aware submap allocation" in printed and "semantics.segmenter: dinov2" in printed
+    assert "class-aware submap allocation" in printed and "semantics.segmenter: ade20k" in printed
     metrics = json.loads((out / "metrics.json").read_text())["metrics"]
     assert metrics["semantics"]["source"] == "unlabelled" and metrics["semantics"]["inert"] == list(
         INERT_WITHOUT_LABELS)

@@ -14,9 +14,9 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 import msg_adapters as ma  # noqa: E402
-from gausem_core.data import SYNTHETIC_CLASSES, open_dataset  # noqa: E402
+from gausem_core.data import NYU40_CLASSES, SYNTHETIC_CLASSES, open_dataset  # noqa: E402
 from gausem_core.geometry import PinholeCamera  # noqa: E402
-from gausem_core.semantics import Segmenter  # noqa: E402
+from gausem_core.semantics import Ade20kSegmenter, Segmenter  # noqa: E402
 from gausem_ros.nodes.loop_detection import LoopDetectionNode  # noqa: E402
 from gausem_ros.nodes.pose_graph import PoseGraphNode  # noqa: E402
 from gausem_ros.nodes.segmentation import SegmentationNode  # noqa: E402
@@ -279,26 +279,46 @@ class _BrightnessSegmenter(Segmenter):
         return (rgb[..., 0] > 127).astype(np.int64)
 
 
+def _segmented(ctx, executor, seg: SegmentationNode, image: Image) -> tuple[Image, Image]:
+    """The labels and colour messages ``seg`` publishes for ``image``."""
+    recorder = Recorder(ctx, [(Image, "semantic/labels", IMAGE_QOS), (Image, "semantic/color", IMAGE_QOS)])
+    pub = recorder.node.create_publisher(Image, "rgb/image", IMAGE_QOS)
+    executor.add_node(seg)
+    executor.add_node(recorder.node)
+    assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 5.0)
+    pub.publish(image)
+    assert spin_until(executor, lambda: recorder.messages["semantic/color"], 20.0)
+    return recorder.messages["semantic/labels"][0], recorder.messages["semantic/color"][0]
+
+
 def test_segmentation_node_publishes_labels_and_colours_and_refuses_the_labels_kind():
     rgb = np.zeros((4, 6, 3), np.uint8)
     rgb[:, 3:, 0] = 200
     with ros_session(104) as (ctx, executor):
         with pytest.raises(ValueError, match="cannot segment an image by itself"):
             SegmentationNode(context=ctx)
-        seg = SegmentationNode(_BrightnessSegmenter(), context=ctx)
-        recorder = Recorder(ctx, [(Image, "semantic/labels", IMAGE_QOS), (Image, "semantic/color", IMAGE_QOS)])
-        pub = recorder.node.create_publisher(Image, "rgb/image", IMAGE_QOS)
-        executor.add_node(seg)
-        executor.add_node(recorder.node)
-        assert spin_until(executor, lambda: pub.get_subscription_count() > 0, 5.0)
-        pub.publish(ma.rgb_to_image(rgb, ma.make_header(3.0, "cam"), "bgr8"))
-        assert spin_until(executor, lambda: recorder.messages["semantic/color"], 5.0)
-        labels_msg, color_msg = recorder.messages["semantic/labels"][0], recorder.messages["semantic/color"][0]
+        labels_msg, color_msg = _segmented(ctx, executor, SegmentationNode(_BrightnessSegmenter(), context=ctx),
+                                           ma.rgb_to_image(rgb, ma.make_header(3.0, "cam"), "bgr8"))
     expected = np.zeros((4, 6), np.int64)  # sent as bgr8, read back as RGB: red is 200 in the right half
     expected[:, 3:] = 1
     np.testing.assert_array_equal(ma.image_to_labels(labels_msg), expected)
     assert labels_msg.encoding == "mono16" and ma.header_seconds(labels_msg.header) == 3.0
     np.testing.assert_array_equal(ma.image_to_rgb(color_msg), SYNTHETIC_CLASSES.colorize(expected))
+
+
+def test_segmentation_node_runs_the_ade20k_model_into_the_nyu40_table(ade20k_model):
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    rgb[24:] = (150, 120, 90)  # a brown floor under a pale wall
+    rgb[:24] = (225, 225, 220)
+    model = {"semantics.segmenter": "ade20k", "semantics.ade20k_model": str(ade20k_model)}
+    with ros_session(124) as (ctx, executor):
+        with pytest.raises(ValueError, match="classes:=nyu40"):
+            SegmentationNode(context=ctx, parameter_overrides=overrides(model))
+        seg = SegmentationNode(context=ctx, parameter_overrides=overrides({**model, "classes": "nyu40"}))
+        labels_msg, _ = _segmented(ctx, executor, seg, ma.rgb_to_image(rgb, ma.make_header(2.0, "cam"), "rgb8"))
+    labels = ma.image_to_labels(labels_msg)
+    np.testing.assert_array_equal(labels, Ade20kSegmenter(ade20k_model).segment(rgb))  # the core's labels, as sent
+    assert labels.shape == (48, 64) and labels.max() < len(NYU40_CLASSES)
 
 
 def _answers(domain: int, parameters: dict, places: list) -> tuple[list, LoopDetectionNode]:

@@ -6,10 +6,11 @@ Kinds (:func:`make_segmenter`):
   topic), validated and passed through, optionally through an id remap table.
 - ``dinov2``: DINOv2 ViT-S/14 patch tokens + a linear head (``gausem train-head``), logits bilinearly upsampled to
   the image size, argmax.
+- ``ade20k``: a pretrained DeepLabV3 + MobileNetV2 on ADE20K (LiteRT), its classes mapped to NYU40
+  (:mod:`gausem_core.semantics.ade20k`).
 """
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
 from collections.abc import Sequence
 
 import numpy as np
@@ -17,24 +18,10 @@ import torch
 import torch.nn.functional as F
 
 from gausem_core.config import SemanticsConfig
+from gausem_core.semantics.ade20k import Ade20kSegmenter
 from gausem_core.semantics.backbone import image_batch, load_dinov2
+from gausem_core.semantics.base import Segmenter, check_rgb
 from gausem_core.semantics.head import load_head
-
-
-class Segmenter(ABC):
-    """Produces (H, W) int64 class ids in ``0..num_classes-1`` for an (H, W, 3) uint8 RGB image."""
-
-    num_classes: int
-
-    @abstractmethod
-    def segment(self, rgb: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
-        """Class ids for ``rgb``; ``labels`` are the ids that came with the image (used by ``labels`` only)."""
-
-
-def _check_rgb(rgb: np.ndarray) -> None:
-    if not isinstance(rgb, np.ndarray) or rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"rgb must be an (H, W, 3) uint8 array, got {getattr(rgb, 'shape', type(rgb).__name__)} "
-                         f"{getattr(rgb, 'dtype', '')}")
 
 
 class LabelsSegmenter(Segmenter):
@@ -58,7 +45,7 @@ class LabelsSegmenter(Segmenter):
             self.remap = table.astype(np.int64)
 
     def segment(self, rgb: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
-        _check_rgb(rgb)
+        check_rgb(rgb)
         if labels is None:
             raise ValueError("segmenter 'labels' needs the class ids that come with each image, and this image has "
                              "none; use a dataset or topic that provides labels, or segmenter 'dinov2'")
@@ -100,7 +87,7 @@ class Dinov2Segmenter(Segmenter):
 
     def logits(self, rgb: np.ndarray) -> torch.Tensor:
         """(C, H, W) class scores at the image resolution."""
-        _check_rgb(rgb)
+        check_rgb(rgb)
         with torch.inference_mode():
             _, patches = self.backbone.tokens(image_batch(rgb), self.short_side)
             scores = self.head(patches).permute(0, 3, 1, 2)
@@ -111,12 +98,13 @@ class Dinov2Segmenter(Segmenter):
         return self.logits(rgb).argmax(0).cpu().numpy().astype(np.int64)
 
 
-_KINDS = {"labels": LabelsSegmenter, "dinov2": Dinov2Segmenter}
+_KINDS = {"labels": LabelsSegmenter, "dinov2": Dinov2Segmenter, "ade20k": Ade20kSegmenter}
 
 
 def make_segmenter(kind: str, **params) -> Segmenter:
-    """``make_segmenter("labels", num_classes=C, remap=None)`` or
-    ``make_segmenter("dinov2", dinov2_weights=DIR, head_weights=FILE, short_side=None, device="cpu")``."""
+    """``make_segmenter("labels", num_classes=C, remap=None)``,
+    ``make_segmenter("dinov2", dinov2_weights=DIR, head_weights=FILE, short_side=None, device="cpu")`` or
+    ``make_segmenter("ade20k", model=None, threads=1)``."""
     if kind not in _KINDS:
         raise ValueError(f"unknown segmenter kind {kind!r}; expected one of {', '.join(_KINDS)}")
     return _KINDS[kind](**params)
@@ -125,9 +113,12 @@ def make_segmenter(kind: str, **params) -> Segmenter:
 def segmenter_from_config(cfg: SemanticsConfig, device: torch.device | str = "cpu",
                           num_classes: int | None = None) -> Segmenter:
     """The segmenter ``semantics.segmenter`` names: ``dinov2`` from ``semantics.dinov2_weights`` and
-    ``semantics.head_weights``, or ``labels`` for a class table of ``num_classes`` classes."""
+    ``semantics.head_weights``, ``ade20k`` from ``semantics.ade20k_model`` on ``semantics.segmenter_threads``
+    threads, or ``labels`` for a class table of ``num_classes`` classes."""
     if cfg.segmenter == "dinov2":
         return Dinov2Segmenter(cfg.dinov2_weights or None, cfg.head_weights or None, device=device)
+    if cfg.segmenter == "ade20k":
+        return Ade20kSegmenter(cfg.ade20k_model or None, cfg.segmenter_threads)
     if cfg.segmenter == "labels":
         if num_classes is None:
             raise ValueError("semantics.segmenter 'labels' needs the class table's size (num_classes)")

@@ -1,8 +1,8 @@
 """The segmentation node: ``rgb/image`` -> ``semantic/labels`` (class ids, mono16 by default, same header) and
 ``semantic/color`` (rgb8, the class table's colours).
 
-It needs a segmenter that works on the image alone (``semantics.segmenter: dinov2`` with ``semantics.dinov2_weights``
-and ``semantics.head_weights``). With ``semantics.segmenter: labels`` the class ids come with the data -- the player
+It needs a segmenter that works on the image alone: ``semantics.segmenter: ade20k`` (the shared pretrained model,
+NYU40 classes: ``-p classes:=nyu40``) or ``dinov2`` (with ``semantics.dinov2_weights`` and ``semantics.head_weights``). With ``semantics.segmenter: labels`` the class ids come with the data -- the player
 publishes ``semantic/labels`` from a labelled dataset, or another robot stack does -- so this node is not run (it
 refuses to start and says so). Frames are segmented newest first; superseded or undecodable images are dropped and
 counted on gausem/diagnostics (bad_encoding, bad_image; processing_error when segmenting raises).
@@ -15,6 +15,7 @@ from sensor_msgs.msg import Image
 
 import msg_adapters as ma
 from gausem_core.config import SlamConfig
+from gausem_core.data.classes import NYU40_CLASSES
 from gausem_core.runtime import resolve_device
 from gausem_core.semantics import Segmenter, segmenter_from_config
 
@@ -22,6 +23,7 @@ from ..qos import IMAGE_QOS, INPUT_QOS_HINT, input_qos, subscribe_camera
 from .common import (DropReport, NewestFrameQueue, class_table, declare_parameters, declare_slam_config, run_node,
                      survives_errors)
 
+NYU40_HINT = "; this segmenter predicts the NYU40 classes: set -p classes:=nyu40 (on tracking_mapping too)"
 NODE_DEFAULTS = {"classes": "synthetic", "input_qos": "reliable", "label_encoding": "mono16"}
 
 
@@ -30,7 +32,7 @@ def build_segmenter(cfg: SlamConfig) -> Segmenter:
     if kind == "labels":
         raise ValueError("segmentation node: semantics.segmenter is 'labels', which passes through class ids that "
                          "come with the data and cannot segment an image by itself; do not run this node -- the "
-                         "player (or your robot stack) publishes semantic/labels -- or set semantics.segmenter: dinov2")
+                         "player (or your robot stack) publishes semantic/labels -- or set semantics.segmenter: ade20k (or dinov2)")
     return segmenter_from_config(cfg.semantics, resolve_device(cfg.device))
 
 
@@ -45,7 +47,8 @@ class SegmentationNode(Node):
         self.segmenter = segmenter if segmenter is not None else build_segmenter(cfg)
         if self.segmenter.num_classes != len(self.table):
             raise ValueError(f"segmentation node: the segmenter predicts {self.segmenter.num_classes} classes, the "
-                             f"class table {p.classes!r} has {len(self.table)}")
+                             f"class table {p.classes!r} has {len(self.table)}" + NYU40_HINT * (
+                                 self.segmenter.class_names == NYU40_CLASSES.names))
         ma.labels_to_image(self.table.ids[None], ma.make_header(0.0, ""), p.label_encoding)  # checks the encoding early
         self.drops = DropReport(self)
         self.frames_segmented = 0

@@ -180,7 +180,7 @@ SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unm
                 "lost_in_transport": "lost_in_transport"}
 NO_LABELS_HINT = ("; use_labels is true but no semantic/labels arrived: a bag that records labels under another name "
                   "replays them with gausem-player --topic labels=TOPIC; for data without labels set "
-                  "-p use_labels:=false, or run the segmentation node (semantics.segmenter: dinov2)")
+                  "-p use_labels:=false, or run the segmentation node (semantics.segmenter: ade20k, -p classes:=nyu40)")
 
 
 def _check_size_limits(cfg: SlamConfig, min_image_size: int, max_image_pixels: int) -> None:
