@@ -8,8 +8,9 @@ frame's estimated pose), scored by
 - on data with semantic ground truth whose class names NYU40 shares (the synthetic sequences), the mIoU of both
   against it, the segmenter's NYU40 classes renamed to the data's (other classes count as wrong).
 
-Both runs: ATE, PSNR of the final map, submaps, the classes holding at least 1 % of the map's Gaussians; the
-segmenter's time a frame. Writes ``benchmarks/results/semantic_fusion_<name>.json`` (a results record).
+Both runs: ATE, PSNR of the final map, submaps, the classes holding at least 1 % of the map's Gaussians, loop
+detection (every candidate pair of the checks) and the accepted closures under the paper's protocol (with labels the
+landmarks re-rank the candidates; without, they cannot); the segmenter's time a frame. Writes ``benchmarks/results/semantic_fusion_<name>.json`` (a results record).
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/semantic_fusion.py --dataset tum:$GAUSEM_SHARED_DATA/tum_fr1_rpy \
         --frames 200 --name tum_fr1_rpy_160x120
@@ -26,10 +27,11 @@ from tqdm import tqdm
 from gausem_core.config import load_config
 from gausem_core.data import NYU40_CLASSES, open_dataset
 from gausem_core.eval.label_consistency import label_agreement
-from gausem_core.eval.semantic import confusion_matrix, mean_iou
+from gausem_core.eval.semantic import confusion_matrix, mean_iou, pixel_accuracy
 from gausem_core.pipeline import Pipeline, percentile
 from gausem_core.report import (estimated_trajectory, evaluate_rendering, evaluation_positions,
-                                ground_truth_trajectory, nearest_palette_class, rendered_views, trajectory_metrics)
+                                ground_truth_trajectory, loop_metrics, nearest_palette_class, rendered_views,
+                                trajectory_metrics)
 from gausem_core.semantics.source import IMAGE_SEGMENTERS
 from gausem_core.tools.run import default_params_file, parse_override, parse_size
 
@@ -38,7 +40,8 @@ from gausem_bench.data import expand
 
 WHAT = ("`benchmarks/semantic_fusion.py`: the ade20k segmenter's labels per frame against the map's rendered "
         "classes (cross-view consistency; mIoU where the data has ground truth), and what segmenting does to the "
-        "run (ATE, PSNR, submaps, classes in the map), `sync`, loop closure on, refinement off.")
+        "run (ATE, PSNR, submaps, classes in the map, loop detection and closures under the paper's protocol), "
+        "`sync`, loop closure on, refinement off.")
 
 
 class RecordedSemantics:
@@ -75,7 +78,7 @@ def run(dataset, cfg, eval_every: int, label: str):
     row = {"run": label, "source": pipeline.semantics.kind, "frames": len(result.frame_ids), "ate_cm": ate,
            "psnr": rendering["psnr"], "submaps": len(result.slam.submaps), "classes_in_map": classes,
            "segmenter_ms_median": 1e3 * percentile(recorded.seconds, 0.5) if label in IMAGE_SEGMENTERS else None,
-           "seconds": result.seconds}
+           "seconds": result.seconds, "loops": loop_metrics(result) if result.slam.loop_closure else None}
     return result, pipeline, row
 
 
@@ -119,7 +122,18 @@ def fusion_scores(result, pipeline, eval_every: int, gap: int) -> dict:
             for name, labels in {"per_frame": obs.labels, "map": map_labels}.items():
                 confusion[name] += confusion_matrix(lut[labels.cpu().numpy()], truth, size)
         scores.update({f"miou_{name}": mean_iou(c) for name, c in confusion.items()})
+        scores.update({f"pixel_accuracy_{name}": pixel_accuracy(c) for name, c in confusion.items()})
     return scores
+
+
+def _loops(loops: dict | None) -> str:
+    """The loop columns: detection P / R / F1 (candidate pairs) and the accepted closures' P / R (count)."""
+    if not loops:
+        return "- | -"
+    detection = loops.get("detection", {})
+    scores = lambda d, keys: " / ".join(f"{d[k]:.2f}" if k in d else "-" for k in keys)  # noqa: E731
+    return (f"{scores(detection, ('precision', 'recall', 'f1'))} ({detection.get('pairs', 0)}) | "
+            f"{scores(loops, ('precision', 'recall'))} ({loops['accepted']})")
 
 
 def main() -> None:
@@ -144,15 +158,17 @@ def main() -> None:
         result.slam.close()
     fmt = lambda v, spec: "-" if v is None else format(v, spec)  # noqa: E731
     lines = ["| run | labels | ATE (cm) | PSNR (dB) | submaps | classes (>= 1 % of the map's Gaussians) | "
-             "segmenter (ms a frame) |", "|---|---|---|---|---|---|---|"]
+             "segmenter (ms a frame) | loop detection P / R / F1 (pairs) | closures P / R (accepted) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['run']} | {r['source']} | {fmt(r['ate_cm'], '.2f')} | {r['psnr']:.2f} | {r['submaps']} | "
               f"{', '.join(f'{n} {100 * s:.0f} %' for n, s in r['classes_in_map'])} | "
-              f"{fmt(r['segmenter_ms_median'], '.0f')} |" for r in rows]
+              f"{fmt(r['segmenter_ms_median'], '.0f')} | {_loops(r['loops'])} |" for r in rows]
     gap = args.gap * args.eval_every
-    lines += ["", f"| ade20k labels | cross-view consistency (frames {gap} apart) | mIoU against the data's labels |",
-              "|---|---|---|"]
+    lines += ["", f"| ade20k labels | cross-view consistency (frames {gap} apart) | mIoU against the data's labels | "
+              "pixel accuracy |", "|---|---|---|---|"]
     lines += [f"| {name.replace('_', ' ')} | {fmt(scores[f'consistency_{name}'], '.3f')} | "
-              f"{fmt(scores.get(f'miou_{name}'), '.3f')} |" for name in ("per_frame", "map")]
+              f"{fmt(scores.get(f'miou_{name}'), '.3f')} | {fmt(scores.get(f'pixel_accuracy_{name}'), '.3f')} |"
+              for name in ("per_frame", "map")]
     doc = {"dataset": args.dataset, "size": f"{args.size[0]}x{args.size[1]}", "frames": args.frames,
            "eval_every": args.eval_every, "gap_frames": gap, "rows": rows, "fusion": scores}
     results.write_report(results.RESULTS / f"semantic_fusion_{args.name}", title="Segmented labels, per frame and "

@@ -201,7 +201,8 @@ def loop_metrics(result: RunResult) -> dict:
     """Which place recognition ran, detected and accepted loops, also split into intra-submap ones (keyframe
     alignment) and inter-submap ones (each an SGR registration), candidates turned down by geometric verification,
     the loop closure's time by phase and as a fraction of the run's and, with ground truth for every frame,
-    precision/recall/F1 under :data:`DEFAULT_PROTOCOL` (paper §IV-C-2) of the loops among the run's frames.
+    precision/recall/F1 under :data:`DEFAULT_PROTOCOL` (paper §IV-C-2) of the loops among the run's frames; the same
+    for ``detection``: every candidate pair the checks found (Algorithm 1), before verification.
 
     Loops and rejections are counted over the session: a resumed run's include those restored with the loaded session
     (``loaded_session``). These and the run's loops back into the loaded map (``into_loaded_map``) involve frames the
@@ -219,10 +220,16 @@ def loop_metrics(result: RunResult) -> dict:
     out["loaded_session"] = sum(r.query_frame < first for r in records)
     out["into_loaded_map"] = sum(r.match_frame < first <= r.query_frame for r in records)
     own = [(r.query_frame - first, r.match_frame - first) for r in records if r.match_frame >= first]
-    if own and all(p is not None for p in result.gt_poses):
+    detected = [(q - first, m - first) for q, m in closure.detector.detections if m >= first]
+    out["detection"] = {"pairs": len(detected)}  # every candidate pair of the checks, before verification
+    if all(p is not None for p in result.gt_poses) and result.gt_poses:
         positions = np.stack([p[:3, 3] for p in result.gt_poses])
-        scores = loop_scores(own, positions, timestamps=result.timestamps, **DEFAULT_PROTOCOL)
-        out.update(scores.as_dict(), protocol=DEFAULT_PROTOCOL)
+        if own:
+            scores = loop_scores(own, positions, timestamps=result.timestamps, **DEFAULT_PROTOCOL)
+            out.update(scores.as_dict(), protocol=DEFAULT_PROTOCOL)
+        if detected:
+            out["detection"].update(loop_scores(detected, positions, timestamps=result.timestamps,
+                                                **DEFAULT_PROTOCOL).as_dict())
     return out
 
 

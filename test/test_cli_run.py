@@ -116,6 +116,7 @@ def test_a_resumed_run_scores_only_the_loops_among_its_own_frames(tmp_path):
     assert loops["loaded_session"] == 1 and loops["into_loaded_map"] >= 1 and len(own) >= 1
     assert loops["detected"] == len(records) == loops["loaded_session"] + loops["into_loaded_map"] + len(own)
     assert loops["detections"] == len(own)
+    assert loops["detection"]["pairs"] >= len(own)  # every registered loop was first a detected candidate
     stamps = {kf.frame_id: kf.obs.timestamp for submap in result.slam.submaps for kf in submap.keyframes}
     for r in own:  # system id - first_frame is the frame's place in this run
         for frame_id in (r.query_frame, r.match_frame):

@@ -291,12 +291,13 @@ def test_detector_without_classes_keeps_descriptor_order_and_ranks_at_most_max_c
     place = _unit(torch.randn(8, generator=g))
     detector = LoopDetector(check_every=1, max_descriptor_distance=0.5, exclude_recent=0, descriptor_dim=8,
                             backend="torch", max_candidates=2)
-    for kf, noise in enumerate([0.3, 0.1, 0.2, 2.0]):  # keyframe 1 is the closest, 3 is no candidate
+    for kf, noise in enumerate([0.3, 0.1, 0.2, 2.0]):  # keyframe 1 is the closest, 3 the farthest
         _loop(detector, kf, 0, _unit(place + noise * _unit(torch.randn(8, generator=g))),
               torch.tensor([float(kf)]))  # one class: differing scores must not re-rank
     ranked = detector.add_keyframe(PlaceSignature(4, 1, place, torch.tensor([0.0])))
     assert [(c.query_keyframe, c.match_keyframe) for c in ranked] == [(4, 1), (4, 2)]  # keyframe 0 cut off
     assert ranked[0].descriptor_distance < ranked[1].descriptor_distance
+    assert detector.detections[-4:] == [(4, 1), (4, 2), (4, 0), (4, 3)]  # all detected (the protocol scores them)
 
 
 class _GivenSimilarities:

@@ -189,11 +189,12 @@ def test_loop_records_and_constraints_survive(saved, tmp_path):
     system = GauSemSLAM.load(folder, relocalise=False)
     loop = system.loop_closure
     loop.records.append(LoopRecord(14, 2, 2, 0, False, True, 0.91, 0.5))
+    loop.detector.detections.append((14, 2))
     loop.constraints.append(LoopConstraint(2, 14, 0, 2, torch.eye(4, dtype=torch.float64) * 1.5, (0.01, 0.02), 0.91,
                                            False))
     system.save(tmp_path / "loops")
     back = GauSemSLAM.load(tmp_path / "loops").loop_closure
-    assert back.records == loop.records
+    assert back.records == loop.records and back.detector.detections == loop.detector.detections
     (a,), (b,) = loop.constraints, back.constraints
     assert torch.equal(a.relative, b.relative) and a.relative.dtype == b.relative.dtype
     assert (a.keyframe_a, a.submap_b, a.sigmas, a.fitness, a.intra) == (b.keyframe_a, b.submap_b, b.sigmas,

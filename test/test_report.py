@@ -173,7 +173,8 @@ def test_loop_metrics_score_the_detections_against_ground_truth_loops():
         gt_poses.append(pose)
     records = [LoopRecord(55, 3, 1, 0, False, True, 0.9, 0.5), LoopRecord(40, 5, 1, 0, False, False, 0.2, 0.25)]
     phases = {"describe": 0.05, "detect": 0.1, "verify": 0.1, "register": 0.7, "correct": 0.05}
-    slam = SimpleNamespace(loop_closure=SimpleNamespace(records=records, place_recognition="bow",
+    detector = SimpleNamespace(detections=[(55, 3), (55, 4), (40, 5)])  # the checks' candidates: 2 true, 1 false
+    slam = SimpleNamespace(loop_closure=SimpleNamespace(records=records, place_recognition="bow", detector=detector,
                                                         rejected_candidates=3, seconds=phases))
     result = RunResult(slam, list(range(60)), np.stack(gt_poses), gt_poses, list(range(60)), list(range(60)),
                        seconds=4.0)
@@ -184,3 +185,6 @@ def test_loop_metrics_score_the_detections_against_ground_truth_loops():
     assert metrics["precision"] == pytest.approx(0.5)
     assert metrics["ground_truth_loops"] >= 1 and metrics["true_positives"] == 1
     assert metrics["protocol"] == DEFAULT_PROTOCOL
+    detection = metrics["detection"]
+    assert detection["pairs"] == detection["detections"] == 3 and detection["true_positives"] == 2
+    assert detection["precision"] == pytest.approx(2 / 3) and detection["ground_truth_loops_detected"] == 2

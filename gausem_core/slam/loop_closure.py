@@ -351,6 +351,7 @@ class LoopClosure:
             "landmarks": [[frame_id, submap_id, scores] for frame_id, (submap_id, scores)
                           in self.detector.keyframes.items()],
             "records": [dataclasses.asdict(r) for r in self.records],
+            "detections": [list(pair) for pair in self.detector.detections],
             "constraints": [{**dataclasses.asdict(c), "sigmas": list(c.sigmas)} for c in self.constraints],
         }
 
@@ -375,6 +376,7 @@ class LoopClosure:
         self.rejected_candidates = int(state.get("rejected_candidates", 0))  # sessions saved before verification
         self.detector.keyframes = {int(f): (int(s), scores) for f, s, scores in state["landmarks"]}
         self.records = [LoopRecord(**r) for r in state["records"]]
+        self.detector.detections = [(int(q), int(m)) for q, m in state.get("detections", [])]  # none before they were
         self.graphs.constraints = [LoopConstraint(**{**c, "sigmas": tuple(c["sigmas"])}) for c in state["constraints"]]
 
     # --- detection inputs ---------------------------------------------------------------------------------------

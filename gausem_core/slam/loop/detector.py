@@ -93,6 +93,9 @@ class LoopDetector:
         # the stored keyframes in the order stored: id -> (submap id, landmark scores)
         self.keyframes: dict[int, tuple[int, torch.Tensor]] = {}
         self.unchecked: list[int] = []  # keyframes stored for checking since the last check, whose turn never came
+        # every (query, match) keyframe pair a check found (all its candidates, before the max_candidates cut): the
+        # detections that the paper's protocol scores, apart from the loops that verification then accepts
+        self.detections: list[tuple[int, int]] = []
 
     @classmethod
     def from_config(cls, cfg: LoopConfig, descriptor_kind: str, **kwargs) -> "LoopDetector":
@@ -123,6 +126,7 @@ class LoopDetector:
         is_check = check and (len(self.database) + 1) % self.check_every == 0
         nearby = set(place.nearby) if check else set()
         ranked = self._candidates(place, is_check, nearby) if is_check or nearby else []
+        self.detections += [(c.query_keyframe, c.match_keyframe) for c in ranked]
         self.database.add(place.keyframe_id, place.appearance)
         self.keyframes[place.keyframe_id] = (place.submap_id, place.landmark_scores.detach().cpu())
         if is_check:
@@ -141,7 +145,9 @@ class LoopDetector:
         if place.keyframe_id in self.unchecked:
             self.unchecked.remove(place.keyframe_id)
         later = len(order) - order.index(place.keyframe_id)  # itself and the keyframes stored after it
-        return self._candidates(place, True, set(), later)[:self.max_candidates]
+        ranked = self._candidates(place, True, set(), later)
+        self.detections += [(c.query_keyframe, c.match_keyframe) for c in ranked]
+        return ranked[:self.max_candidates]
 
     def _candidates(self, place: PlaceSignature, by_descriptor: bool, nearby: set[int],
                     later: int = 0) -> list[LoopCandidate]:
