@@ -14,7 +14,9 @@ finished, ``--save`` still writes the map, and the input accounting (frames in, 
 latency) is logged. ``--report DIR`` evaluates the run like ``gausem run`` (ATE, PSNR, SSIM, mIoU, fps; trajectories,
 map, metrics JSON, montage in DIR; the input accounting in ``input.json``) against a reference dataset: SOURCE when
 it is a dataset, else ``--reference SPEC`` (for a bag from ``gausem-bag SPEC``: the same SPEC; opened at the
-processed image size).
+processed image size). A replay that cannot work stops at once: when ``UNWORKABLE_AFTER`` frames were dropped
+because an input never arrived (labels, depth, camera_info) and none was processed, ``gausem-ros`` exits with code 2
+and names the topic and the fix.
 """
 from __future__ import annotations
 
@@ -43,6 +45,27 @@ from .nodes.tracking_mapping import LOCKSTEP_DEFAULTS, TrackingMappingNode
 from .player import add_player_arguments, is_bag, player_from_args
 
 
+UNWORKABLE_AFTER = 5  # frames dropped for an input that never arrived, none processed: the replay cannot work
+NEVER_ARRIVED = {
+    "no_labels": "semantic/labels never arrived, and use_labels is true: a bag that records labels under another "
+                 "topic replays them with --topic labels=TOPIC; for data without labels set -p use_labels:=false "
+                 "(one class), or segment them (-p semantics.segmenter:=ade20k -p classes:=nyu40)",
+    "no_depth": "depth/image never arrived: a bag that records depth under another topic replays it with "
+                "--topic depth=TOPIC",
+    "no_camera_info": "rgb/camera_info never arrived: a bag that records it under another topic replays it with "
+                      "--topic camera_info=TOPIC",
+}
+
+
+def unworkable(tracking: TrackingMappingNode) -> str | None:
+    """Why the replay cannot work (an input that never arrived, :data:`NEVER_ARRIVED`), or None while it can."""
+    if tracking.frames_processed:
+        return None
+    counts = tracking.drops.counts
+    return next((f"{counts[reason]} frames dropped as {reason} and none processed: {fix}"
+                 for reason, fix in NEVER_ARRIVED.items() if counts[reason] >= UNWORKABLE_AFTER), None)
+
+
 def build_nodes(lockstep: bool = False, **node_kwargs) -> list:
     """The node set the parameters call for; the tracking node first (``lockstep``: mapping each keyframe before it
     answers, ``worker.mode: sync``, unless the parameters say otherwise)."""
@@ -56,18 +79,22 @@ def build_nodes(lockstep: bool = False, **node_kwargs) -> list:
 
 
 def spin_until_done(executor, player, linger: float = 1.0, on_spin: Callable[[], None] = lambda: None,
-                    drained: Callable[[], bool] = lambda: True, drain_timeout: float = 600.0) -> None:
+                    drained: Callable[[], bool] = lambda: True, drain_timeout: float = 600.0,
+                    give_up: Callable[[], str | None] = lambda: None) -> str | None:
     """Spin until the player is done, then at least ``linger`` s more for the last outputs and until ``drained()``
     (the tracker's pending frames processed; ``drain_timeout`` s at most); forever without a player. ``on_spin``
-    after every spin."""
+    after every spin. Returns at once with what ``give_up()`` says when it says something (else None)."""
     while rclpy.ok(context=executor.context) and (player is None or not player.done):
         executor.spin_once(timeout_sec=0.1)
         on_spin()
+        if (reason := give_up()) is not None:
+            return reason
     start = time.monotonic()
     while rclpy.ok(context=executor.context) and (time.monotonic() < start + linger or not drained()) \
             and time.monotonic() < start + drain_timeout:
         executor.spin_once(timeout_sec=0.1)
         on_spin()
+    return None
 
 
 def progress_bar(tracking: TrackingMappingNode, disable: bool) -> tuple[tqdm, Callable[[], None]]:
@@ -155,23 +182,27 @@ def main(args=None) -> int:
                 executor.add_node(node)
             tracking = nodes[0]
             bar, update = progress_bar(tracking, disable=player is None or ns.quiet)
-            interrupted = False
+            interrupted, cannot_work = False, None
             try:
-                spin_until_done(executor, player, on_spin=update,
-                                drained=lambda: tracking.summary()["frames_pending"] == 0)
+                cannot_work = spin_until_done(executor, player, on_spin=update,
+                                              drained=lambda: tracking.summary()["frames_pending"] == 0,
+                                              give_up=lambda: unworkable(tracking) if player is not None else None)
             except (KeyboardInterrupt, ExternalShutdownException):
                 interrupted = True
             bar.close()
-            if interrupted:
+            if interrupted or cannot_work:
                 tracking.interrupt()
             executor.shutdown()  # waits for the frame in progress
             tracking.get_logger().info(accounting(tracking, player))
-            if player is not None and not interrupted:
+            if cannot_work:
+                tracking.get_logger().error(f"the replay cannot work, stopping: {cannot_work}")
+                code = 2
+            elif player is not None and not interrupted:
                 tracking.finish()  # the sequence is over: global refinement, as the offline pipeline does
             if ns.save and tracking.frames_processed:
                 ply, trajectory = tracking.save_map(ns.save)
                 tracking.get_logger().info(f"wrote {ply} and {trajectory}")
-            if ns.report and not interrupted:
+            if ns.report and not (interrupted or cannot_work):
                 report(tracking, player, ns, argv)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass

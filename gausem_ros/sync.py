@@ -56,6 +56,7 @@ class ApproximateTimeSync:
         with self._lock:
             self._queues: list[dict[float, tuple[object, float]]] = [{} for _ in self.names]  # stamp: (msg, arrival)
             self._last_matched = [float("-inf")] * len(self.names)
+            self._first_arrival: float | None = None  # when the first message of any input arrived
             self.received = [0] * len(self.names)
             self.lost = [0] * len(self.names)  # messages never received (sequence-number gaps)
             self._sequences: list[int | None] = [None] * len(self.names)
@@ -83,12 +84,17 @@ class ApproximateTimeSync:
             self.callback(*match)
 
     def flush(self, max_age: float) -> None:
-        """Drop, as unmatched, every message that arrived more than ``max_age`` seconds ago and is still waiting."""
+        """Drop, as unmatched, every message that arrived more than ``max_age`` seconds ago and is still waiting; and
+        every waiting message while an input has delivered nothing in the ``max_age`` s since the first message of
+        any arrived (a silent input: waiting for it would only delay each message by ``max_age``)."""
         drops: list[tuple[int, str, str, float | None]] = []
         with self._lock:
-            oldest = self.clock() - max_age
+            now = self.clock()
+            silent = not all(self.received) and self._first_arrival is not None and \
+                now - self._first_arrival >= max_age
+            oldest = now if silent else now - max_age
             for index, queue in enumerate(self._queues):
-                for stamp in sorted(s for s, (_, arrived) in queue.items() if arrived < oldest):
+                for stamp in sorted(s for s, (_, arrived) in queue.items() if arrived < oldest or silent):
                     self._evict(index, stamp, drops)
             self._count(drops)
         for drop in drops:
@@ -121,6 +127,8 @@ class ApproximateTimeSync:
                           stamp))
             return None
         queue[stamp] = msg, self.clock()
+        if self._first_arrival is None:
+            self._first_arrival = queue[stamp][1]
         if len(queue) > self.queue_size:
             self._evict(index, min(queue), drops)
             if stamp not in queue:

@@ -48,10 +48,35 @@ def test_flush_drops_only_the_messages_that_waited_longer_than_max_age():
     drops = []
     s = ApproximateTimeSync(["rgb", "depth"], lambda *msgs: None, slop=0.01,
                             on_drop=lambda *drop: drops.append(drop), clock=lambda: now[0])
+    s.add(1, 9.0, "depth9")  # depth arrives (for a later frame): no input is silent
     s.add(0, 1.0, "rgb1")
     now[0] = 0.4
     s.add(0, 2.0, "rgb2")
     now[0] = 0.6
     s.flush(0.5)
-    assert [(index, reason, stamp) for index, reason, _, stamp in drops] == [(0, "unmatched", 1.0)]
-    assert s.pending(0) == 1 and s.dropped[("rgb", "unmatched")] == 1 and "no depth received" in drops[0][2]
+    assert [(index, reason, stamp) for index, reason, _, stamp in drops] == [(0, "unmatched", 1.0),
+                                                                            (1, "unmatched", 9.0)]
+    assert s.pending(0) == 1 and s.dropped[("rgb", "unmatched")] == 1 and "nearest depth" in drops[0][2]
+
+
+def test_while_an_input_has_never_delivered_flush_drops_every_waiting_message():
+    """Labels that never come: the first frames wait max_age as usual; after that, each flush drops what waits, so a
+    frame is dropped at the next flush instead of max_age after it arrived."""
+    now = [0.0]
+    drops = []
+    s = ApproximateTimeSync(["rgb", "labels"], lambda *msgs: None, slop=0.01,
+                            on_drop=lambda *drop: drops.append(drop), clock=lambda: now[0])
+    s.add(0, 1.0, "rgb1")
+    now[0] = 0.3
+    s.flush(0.5)
+    assert drops == [] and s.pending(0) == 1  # not yet silent for max_age
+    now[0] = 0.5
+    s.add(0, 2.0, "rgb2")
+    s.flush(0.5)
+    assert [stamp for *_, stamp in drops] == [1.0, 2.0]  # rgb2 waited no time at all
+    assert "no labels received at all" in drops[1][2]
+    s.add(1, 3.0, "labels3")  # labels arrive after all: messages wait max_age again
+    now[0] = 0.7
+    s.add(0, 4.0, "rgb4")
+    s.flush(0.5)
+    assert s.pending(0) == 1 and s.pending(1) == 1

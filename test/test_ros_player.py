@@ -1,5 +1,6 @@
 """The player (ROS 1 bag with TUM topic names, ROS 2 bag from gausem-bag), and nodes as separate processes."""
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,9 +19,10 @@ from std_srvs.srv import Trigger  # noqa: E402
 import msg_adapters as ma  # noqa: E402
 from gausem_core.geometry import PinholeCamera  # noqa: E402
 from gausem_ros import bags, convert  # noqa: E402
-from gausem_ros.player import Player, open_source  # noqa: E402
+from gausem_ros.player import GAUSEM_BAG_TOPICS, Player, open_source  # noqa: E402
 from gausem_ros.player import main as player_main  # noqa: E402
 from gausem_ros.qos import IMAGE_QOS  # noqa: E402
+from gausem_ros.run_all import main as run_all_main  # noqa: E402
 from ros_harness import FAST_SLAM, Recorder, ros_param_args, ros_session, spin_until  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -162,3 +164,23 @@ def test_player_finishes_the_sequence_through_gausem_finish_and_survives_without
         executor.add_node(player)
         assert spin_until(executor, lambda: player.done, 10.0)
         assert player.published == 1 and player.finished is False
+
+
+def test_a_replay_whose_labels_never_come_stops_with_code_2_and_names_the_fix(tmp_path, monkeypatch, capfd):
+    """The bag records its labels under a topic the player does not know: with use_labels true nothing can be
+    processed, and gausem-ros says so after a few frames instead of playing the whole bag; mapped with --topic, every
+    frame is processed."""
+    bag = tmp_path / "bag"
+    frames = open_source("synthetic", size=(40, 30), max_frames=12)
+    bags.write_bag(bag, convert.bag_messages(frames, {**GAUSEM_BAG_TOPICS, "labels": "/camera/labels"}))
+    monkeypatch.setenv("ROS_DOMAIN_ID", "129")
+    ros_args = ["--ros-args", *ros_param_args({**FAST_SLAM, "sync_wait": 0.5})]
+    assert run_all_main([str(bag), "--lockstep", "--rate", "0", "--timeout", "30", "--quiet", *ros_args]) == 2
+    err = capfd.readouterr().err
+    assert "the replay cannot work" in err and "--topic labels=TOPIC" in err and "use_labels:=false" in err
+    processed, published = (int(v) for v in re.search(r"processed (\d+),.* player published (\d+) frames",
+                                                      err).groups())
+    assert processed == 0 and published < 12
+    assert run_all_main([str(bag), "--topic", "labels=/camera/labels", "--lockstep", "--rate", "0", "--timeout", "30",
+                         "--quiet", *ros_args]) == 0
+    assert re.search(r"frames in 12, processed 12, dropped 0", capfd.readouterr().err)

@@ -59,7 +59,8 @@ by reason on gausem/diagnostics (``dropped.<reason>``) with a warning: ``superse
 busy), ``lost_in_transport`` (never received: a gap in the publisher's sequence numbers, e.g. the subscription queue
 overflowed), ``unmatched`` (no depth/labels within ``sync_slop``, or none yet ``sync_wait`` s after it arrived; the
 warning gives the offset seen), ``no_depth`` /
-``no_labels`` (that input never arrived: with ``use_labels`` true and no labels, the warning names the parameter),
+``no_labels`` (that input never arrived: with ``use_labels`` true and no labels, the warning names the parameter;
+once it has been silent ``sync_wait`` s, frames are dropped at once instead of each waiting ``sync_wait``),
 ``stale_stamp`` / ``duplicate_stamp`` (stamps going backwards or repeated), bad input (wrong encodings, data
 shorter than the declared size, a side below ``min_image_size``, size mismatches, too little valid depth, no
 camera_info yet, labels outside the class table), ``camera_changed`` (a camera that is neither the map's nor a
