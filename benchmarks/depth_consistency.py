@@ -24,7 +24,7 @@ from gausem_core.data import open_dataset
 from gausem_core.data.tum import nearest_within
 from gausem_core.geometry import PinholeCamera
 from gausem_core.io.trajectory import Trajectory, read_tum_trajectory
-from gausem_core.tools.run import parse_size
+from gausem_core.options import parse_size
 
 
 def surface(depth: np.ndarray, camera: PinholeCamera, max_step: float = 0.05) -> tuple[np.ndarray, np.ndarray]:

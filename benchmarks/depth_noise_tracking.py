@@ -28,7 +28,7 @@ from gausem_core.pipeline import Pipeline
 from gausem_core.slam.depth_filter import filter_observation
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.tracker import Tracker, constant_velocity
-from gausem_core.tools.run import default_params_file
+from gausem_core.options import default_params_file
 
 ROOT = Path(__file__).resolve().parents[1]
 WHAT = ("`benchmarks/depth_noise_tracking.py` builds a one-keyframe map from frame 0 at its true pose (clean depth, depth "

@@ -19,7 +19,7 @@ from gausem_bench.data import SHARED_DATA
 from gausem_core.config import BowConfig
 from gausem_core.data import open_dataset
 from gausem_core.slam.features import extract_features, feature_pose
-from gausem_core.tools.run import parse_size
+from gausem_core.options import parse_size
 
 SEQUENCES = ["synthetic:loop", "synthetic:loop_noisy", f"tum:{SHARED_DATA / 'tum_fr1_rpy'}",
              f"tum:{SHARED_DATA / '7scenes_redkitchen'}"]

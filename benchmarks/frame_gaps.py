@@ -22,7 +22,7 @@ from gausem_core.data import open_dataset
 from gausem_core.io.trajectory import Trajectory
 from gausem_core.pipeline import Pipeline
 from gausem_core.report import trajectory_metrics
-from gausem_core.tools.run import default_params_file, parse_override, parse_size
+from gausem_core.options import default_params_file, parse_override, parse_size
 
 WHAT = ("Live-like patterns offline: seeded gaps, true stamps, the skipped frames counted as the tracking node counts "
         "the frames it drops; each variant's overrides in its row.")

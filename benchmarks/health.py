@@ -27,7 +27,7 @@ from gausem_core.config import load_config
 from gausem_core.data import open_dataset
 from gausem_core.eval.health import PlantedFailure, flag_scores, relative_errors
 from gausem_core.pipeline import Pipeline
-from gausem_core.tools.run import default_params_file, parse_size
+from gausem_core.options import default_params_file, parse_size
 
 
 def evaluate(name: str, spec: str, dataset) -> dict:

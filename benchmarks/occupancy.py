@@ -21,7 +21,7 @@ from gausem_core.eval.occupancy import layout_cells, occupancy_scores
 from gausem_core.maps.slam_grid import KeyframeRays, floor_class_id, slam_grid
 from gausem_core.pipeline import Pipeline
 from gausem_core.report import estimated_trajectory, ground_truth_trajectory, trajectory_metrics
-from gausem_core.tools.run import parse_override
+from gausem_core.options import parse_override
 
 from gausem_bench import results
 

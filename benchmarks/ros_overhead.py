@@ -29,7 +29,7 @@ import torch
 from gausem_bench import results
 from gausem_core.io.metrics import git_commit
 from gausem_core.io.trajectory import read_tum_trajectory
-from gausem_core.tools.run import parse_size
+from gausem_core.options import parse_size
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

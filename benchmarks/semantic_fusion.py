@@ -33,7 +33,7 @@ from gausem_core.report import (estimated_trajectory, evaluate_rendering, evalua
                                 ground_truth_trajectory, loop_metrics, nearest_palette_class, rendered_views,
                                 trajectory_metrics)
 from gausem_core.semantics.source import IMAGE_SEGMENTERS
-from gausem_core.tools.run import default_params_file, parse_override, parse_size
+from gausem_core.options import default_params_file, parse_override, parse_size
 
 from gausem_bench import results
 from gausem_bench.data import expand

@@ -23,7 +23,7 @@ from gausem_core.eval.trajectory import absolute_trajectory_error, associate_tra
 from gausem_core.io.trajectory import read_tum_trajectory
 from gausem_core.pipeline import Pipeline
 from gausem_core.report import write_outputs
-from gausem_core.tools.run import default_params_file, parse_override, parse_size
+from gausem_core.options import default_params_file, parse_override, parse_size
 
 ROOT = Path(__file__).resolve().parents[1]
 EFFECTS = DEPTH_EFFECTS + COLOR_EFFECTS

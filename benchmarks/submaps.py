@@ -34,7 +34,7 @@ from gausem_core.pipeline import Pipeline, peak_rss_mb
 from gausem_core.slam.allocation import make_allocation, partition_keyframes
 from gausem_core.slam.system import GauSemSLAM
 from gausem_core.slam.tracker import Tracker, TrackingResult
-from gausem_core.tools.run import parse_override
+from gausem_core.options import parse_override
 
 ROOT = Path(__file__).resolve().parents[1]
 TITLES = {"allocation": "Submap allocation: what it does to objects", "slam": "Submaps: the full system",

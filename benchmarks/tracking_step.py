@@ -30,7 +30,7 @@ from gausem_core.slam import tracker as tracker_module
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.health import image_signals
 from gausem_core.slam.tracker import Tracker, TrackingResult, constant_velocity, inspect_pose
-from gausem_core.tools.run import default_params_file
+from gausem_core.options import default_params_file
 
 from gausem_bench import results
 from gausem_bench.data import expand

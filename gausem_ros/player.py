@@ -53,7 +53,7 @@ import msg_adapters as ma
 from gausem_core.data import Dataset, open_dataset
 from gausem_core.data.spec import SPEC_HELP
 from gausem_core.io.trajectory import Trajectory, write_tum_trajectory
-from gausem_core.tools.run import parse_size
+from gausem_core.options import parse_size
 
 from .bags import TUM_TOPICS, BagError, read_bag
 from .nodes.common import DIAGNOSTICS_TOPIC, LAST_FRAME_KEY

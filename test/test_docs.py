@@ -1,7 +1,9 @@
 """The documentation stays honest: docs/BENCHMARKS.md is what ``python benchmarks/bench.py report`` writes from the
 records, every relative link of README.md and docs/*.md points at a file (and heading) that exists, the prose cites
 no commit hash, every results record follows the schema, and no file names an absolute path of a machine."""
+import json
 import re
+import shlex
 import subprocess
 from pathlib import Path
 
@@ -47,6 +49,18 @@ def test_every_results_record_follows_the_schema():
     assert {p.name: results.validate(__import__("json").loads(p.read_text())) for p in paths} == \
            {p.name: [] for p in paths}
     assert not list(results.RESULTS.glob("*.md")), "the results page is generated: no .md beside the records"
+
+
+def test_every_record_names_only_scripts_and_files_the_repository_holds():
+    """A record must be re-runnable from a checkout: the scripts, suites and parameter files its command names exist
+    (a throw-away suite in a temporary folder does not)."""
+    absent = {}
+    for path in sorted(results.RESULTS.glob("*.json")):
+        values = [token.split("=", 1)[-1] for token in shlex.split(json.loads(path.read_text())["command"])]
+        missing = [v for v in values if v.endswith((".py", ".yaml", ".sh")) and not (ROOT / v).exists()]
+        if missing:
+            absent[path.name] = missing
+    assert absent == {}
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)

@@ -17,7 +17,7 @@ from gausem_core.pipeline import Pipeline
 from gausem_core.report import write_outputs
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.system import GauSemSLAM
-from gausem_core.tools.run import default_params_file
+from gausem_core.options import default_params_file
 from device_check import CUDA, assert_events_on_cpu, assert_on_cuda, frame_results, system_results
 
 pytestmark = [pytest.mark.cuda, pytest.mark.slow,

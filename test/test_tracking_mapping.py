@@ -15,7 +15,7 @@ from gausem_core.slam.densification import semantic_sample
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.health import image_signals
 from gausem_core.slam.tracker import Tracker, constant_velocity, inspect_pose, repeat_motion
-from gausem_core.tools.run import default_params_file
+from gausem_core.options import default_params_file
 
 
 def map_and_frames(cfg: SlamConfig, size: tuple[int, int], backend: str):

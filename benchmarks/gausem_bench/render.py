@@ -23,7 +23,7 @@ import torch
 from gausem_bench import results
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import PinholeCamera, se3_exp
-from gausem_core.tools.run import parse_size
+from gausem_core.options import parse_size
 
 WHAT = ("`python benchmarks/bench.py render`: forward and forward+backward of `render()` on a synthetic room, median of "
         "the repeats, per back-end, Gaussian count and image size; peak extra memory: CUDA allocator peak on a GPU, "

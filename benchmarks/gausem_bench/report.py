@@ -78,7 +78,7 @@ CHAPTERS = [
                      "slam_map_density_640x480_walk_earlier_detail", "slam_map_density_640x480_fine_detail",
                      "slam_map_density_640x480", "slam_map_density_320x240"]),
     ("How good are the references?", [
-        "slam_7scenes_depth_x0972", "slam_7scenes_depth_x1029", "depth_consistency_synthetic_loop_noisy",
+        "depth_consistency_synthetic_loop_noisy",
         "depth_consistency_synthetic_default_noisy", "depth_consistency_7scenes_redkitchen",
         "depth_consistency_tum_fr1_rpy", "slam_7scenes_colour"]),
     ("Loop closure", ["place_recognition", "loop_edges", "loop_closure"]),

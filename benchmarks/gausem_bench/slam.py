@@ -25,7 +25,7 @@ from gausem_bench import results
 from gausem_bench.baselines import BASELINES
 from gausem_bench.suite import (Case, Configuration, Suite, SuiteError, load_suite, plan, sequence_from_dict)
 from gausem_bench.tables import markdown_report
-from gausem_core.tools.run import DATASET_HELP, parse_override, parse_size
+from gausem_core.options import DATASET_HELP, parse_override, parse_size
 
 DEFAULT_SUITE = Path("benchmarks/suites/paper.yaml")
 

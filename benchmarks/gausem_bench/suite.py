@@ -42,7 +42,7 @@ from gausem_bench.baselines import BASELINES
 from gausem_bench.data import expand
 from gausem_bench.color_registration import ColorCalibration
 from gausem_core.config import SlamConfig, flatten, load_config, reject_renamed
-from gausem_core.tools.run import default_params_file, parse_size
+from gausem_core.options import default_params_file, parse_size
 
 METHODS = ("gausem", *BASELINES)
 SEQUENCE_KEYS = {"name", "dataset", "params", "size", "stride", "frames", "eval_every", "open3d", "color_calibration"}
@@ -153,7 +153,7 @@ def check_parameter_names(values: dict, known, where: str) -> None:
 
 
 def suite_size(text) -> tuple[int, int] | None:
-    """A sequence's ``size`` (WxH, or None): :func:`~gausem_core.tools.run.parse_size` raising SuiteError."""
+    """A sequence's ``size`` (WxH, or None): :func:`~gausem_core.options.parse_size` raising SuiteError."""
     if text is None:
         return None
     try:

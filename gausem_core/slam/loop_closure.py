@@ -371,8 +371,7 @@ class LoopClosure:
         else:
             database = self.detector.database = DescriptorDatabase(self.detector.database.dim,
                                                                    self.detector.database.backend)
-            for frame_id, vector in zip(state["database"]["ids"].tolist(), state["database"]["vectors"].numpy()):
-                database._append(frame_id, vector)  # stored unit vectors, not normalised again (bit-identical)
+            database.restore(state["database"]["ids"].tolist(), state["database"]["vectors"].numpy())
         self.rejected_candidates = int(state.get("rejected_candidates", 0))  # sessions saved before verification
         self.detector.keyframes = {int(f): (int(s), scores) for f, s, scores in state["landmarks"]}
         self.records = [LoopRecord(**r) for r in state["records"]]

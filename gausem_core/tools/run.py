@@ -2,33 +2,12 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
-import yaml
-
 from gausem_core.config import SlamConfig, from_flat, load_config
+from gausem_core.options import DATASET_HELP, default_params_file, parse_override, parse_size
 from gausem_core.viewer import COLORINGS, MODES, RECORDING
-
-DATASET_HELP = "synthetic[:default|loop][_noisy], tum:PATH, scannet:PATH or replica:PATH"
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must look like 160x120, got '{text}'") from None
-    if w <= 0 or h <= 0:
-        raise argparse.ArgumentTypeError(f"size must be positive, got '{text}'")
-    return w, h
-
-
-def parse_override(text: str) -> tuple[str, object]:
-    name, sep, value = text.partition("=")
-    if not sep:
-        raise argparse.ArgumentTypeError(f"--set takes NAME=VALUE (e.g. mapping.iterations=20), got '{text}'")
-    return name.strip(), yaml.safe_load(value)
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -68,15 +47,6 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_run_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("out/run"), help="output folder (default: %(default)s)")
-
-
-def default_params_file(dataset: str) -> Path | None:
-    """params/<kind>.yaml from the source tree or the installed share folder (pip and colcon), if present."""
-    kind = dataset.split(":", 1)[0]
-    for root in (Path(__file__).resolve().parents[2] / "params", Path(sys.prefix) / "share" / "gausem" / "params"):
-        if (root / f"{kind}.yaml").is_file():
-            return root / f"{kind}.yaml"
-    return None
 
 
 def session_config(folder: Path, overrides: dict) -> SlamConfig:

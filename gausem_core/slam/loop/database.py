@@ -61,6 +61,11 @@ class DescriptorDatabase:
                              f"({self._ids[-1]}); ids must increase")
         self._append(int(keyframe_id), self._normalised(descriptor, "add"))
 
+    def restore(self, keyframe_ids, unit_vectors) -> None:
+        """Store keyframes' unit vectors as saved (a loaded session's: not normalised again, so bit-identical)."""
+        for keyframe_id, vector in zip(list(keyframe_ids), np.asarray(unit_vectors, np.float32)):
+            self._append(int(keyframe_id), vector)
+
     def _append(self, keyframe_id: int, unit_vector: np.ndarray) -> None:
         n = len(self)
         if n == self._buffer.shape[0]:
@@ -138,6 +143,5 @@ class DescriptorDatabase:
         if vectors.ndim != 2 or ids.shape != (vectors.shape[0],) or np.any(np.diff(ids) <= 0):
             raise ValueError(f"{path}: inconsistent DescriptorDatabase file (ids {ids.shape}, vectors {vectors.shape})")
         db = cls(vectors.shape[1], backend)
-        for keyframe_id, vec in zip(ids.tolist(), vectors.astype(np.float32)):
-            db._append(keyframe_id, vec)
+        db.restore(ids.tolist(), vectors)
         return db
