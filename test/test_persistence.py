@@ -2,6 +2,7 @@
 relocalisation of the first frame after loading."""
 import json
 import math
+import os
 from pathlib import Path
 
 import pytest
@@ -232,12 +233,13 @@ def test_a_save_killed_midway_leaves_the_previous_session_whole(saved, tmp_path,
     trajectory = original.trajectory()
     real_save, written = torch.save, []
 
-    def dies_after_two_files(tensors, path):  # (the submap store spills with torch.save too: those go on)
-        if Path(path).parent == folder:
+    def dies_after_two_files(tensors, file):  # (the submap store spills with torch.save too: those go on)
+        path = Path(getattr(file, "name", file))  # a path, or the file object it is written through
+        if path.parent == folder:
             if len(written) == 2:
                 raise KeyboardInterrupt("killed")
             written.append(path)
-        real_save(tensors, path)
+        real_save(tensors, file)
     monkeypatch.setattr(torch, "save", dies_after_two_files)
     with pytest.raises(KeyboardInterrupt):
         original.save(folder)
@@ -249,3 +251,28 @@ def test_a_save_killed_midway_leaves_the_previous_session_whole(saved, tmp_path,
     original.save(folder)
     files = sorted(path.name for path in folder.iterdir())
     assert len(files) == len(first) and not set(files) & (set(first) - {SESSION_FILE})
+
+
+def test_a_save_reaches_the_disk_before_session_json_replaces_the_previous_one(saved, tmp_path, monkeypatch):
+    """A power cut, not only a kill: every tensor file and the new session.json are fsynced before the rename, and the
+    folder after it (before the previous save's files are deleted)."""
+    original, _ = saved
+    folder = tmp_path / "session"
+    original.save(folder)
+    events, real_fsync, real_replace, real_unlink = [], os.fsync, os.replace, Path.unlink
+
+    def fsync(fd):
+        events.append(("fsync", Path(os.readlink(f"/proc/self/fd/{fd}")).name))
+        real_fsync(fd)
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", lambda a, b: (events.append(("replace", Path(b).name)), real_replace(a, b)))
+    monkeypatch.setattr(Path, "unlink", lambda p, **kw: (events.append(("unlink", p.name)) if p.parent == folder
+                                                         else None, real_unlink(p, **kw)))
+    original.save(folder)
+    names = [name for kind, name in events]
+    replaced = names.index(SESSION_FILE)
+    written = {path.name for path in folder.iterdir()} - {SESSION_FILE}
+    assert written and written <= set(names[:replaced])  # every new tensor file fsynced before the rename
+    assert ("fsync", SESSION_FILE + ".partial") in events[:replaced]
+    assert events[replaced + 1] == ("fsync", folder.name)  # the folder, right after the rename
+    assert all(kind != "unlink" for kind, _ in events[:replaced + 1])  # the previous files go only then

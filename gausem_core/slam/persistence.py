@@ -14,8 +14,9 @@ The folder (format ``gausem-session``, version :data:`VERSION`) is self-containe
 - ``submap_NNNN.TOKEN.pt``: one submap's Gaussians and keyframe images (an offloaded submap's read back from its store).
 
 Saving again into the same folder is crash-safe: each save's tensor files carry a new random ``TOKEN``, ``session.json``
-is replaced atomically once they are written, and only then are the previous save's files deleted. A process killed at
-any point leaves the previous session or the new one, whole (sessions written before tokens, ``state.pt`` and
+is replaced atomically once they are written and flushed to the disk (``fsync``), the folder is flushed after the
+rename, and only then are the previous save's files deleted. A process killed, or a machine losing power, at any point
+leaves the previous session or the new one, whole (sessions written before tokens, ``state.pt`` and
 ``submap_NNNN.pt``, load too).
 
 Tensor files are ``torch.save`` dicts of CPU tensors, read with ``torch.load(weights_only=True)``. Ids go on after the
@@ -167,15 +168,37 @@ def save_session(slam: GauSemSLAM, folder: str | Path) -> Path:
     document = {"format": FORMAT, "version": VERSION, "config": flatten(slam.cfg), "num_classes": slam.num_classes,
                 "detect_loops": slam.detect_loops, "state": _state_tree(slam, writer)}
     for name, tensors in writer.files.items():
-        torch.save(tensors, folder / name)
+        with open(folder / name, "wb") as f:
+            torch.save(tensors, f)
+            _flush_to_disk(f)
     path = folder / SESSION_FILE
     partial = path.with_suffix(".json.partial")
-    partial.write_text(json.dumps(document))
+    with open(partial, "w") as f:
+        f.write(json.dumps(document))
+        _flush_to_disk(f)
     os.replace(partial, path)
+    _flush_folder(folder)  # the rename itself reaches the disk before the previous files go
     for stale in [*folder.glob("state*.pt"), *folder.glob("submap_*.pt")]:  # an earlier save's files
         if stale.name not in writer.files:
             stale.unlink()
     return path
+
+
+def _flush_to_disk(f) -> None:
+    f.flush()
+    os.fsync(f.fileno())
+
+
+def _flush_folder(folder: Path) -> None:
+    """fsync a folder's entries (POSIX; where folders cannot be opened, e.g. Windows, the rename is all there is)."""
+    try:
+        handle = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(handle)
+    finally:
+        os.close(handle)
 
 
 # --- loading --------------------------------------------------------------------------------------------------------
