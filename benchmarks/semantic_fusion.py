@@ -145,11 +145,12 @@ def main() -> None:
     parser.add_argument("--eval-every", type=int, default=5)
     parser.add_argument("--gap", type=int, default=2, help="consistency pairs: this many evaluated frames apart")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="passed to both runs")
+    parser.add_argument("--runs", default="labels,ade20k", help="which runs: labels (the data's, or none), ade20k")
     args = parser.parse_args()
     dataset = open_dataset(expand(args.dataset), size=args.size, max_frames=args.frames)
     base = {"worker.mode": "sync", "refinement.enabled": False, **dict(parse_override(s) for s in args.set)}
     rows, scores = [], None
-    for segmenter in ("labels", "ade20k"):
+    for segmenter in args.runs.split(","):
         cfg = load_config(default_params_file(args.dataset), {**base, "semantics.segmenter": segmenter})
         result, pipeline, row = run(dataset, cfg, args.eval_every, segmenter)
         rows.append(row)
@@ -164,11 +165,12 @@ def main() -> None:
               f"{', '.join(f'{n} {100 * s:.0f} %' for n, s in r['classes_in_map'])} | "
               f"{fmt(r['segmenter_ms_median'], '.0f')} | {_loops(r['loops'])} |" for r in rows]
     gap = args.gap * args.eval_every
-    lines += ["", f"| ade20k labels | cross-view consistency (frames {gap} apart) | mIoU against the data's labels | "
-              "pixel accuracy |", "|---|---|---|---|"]
-    lines += [f"| {name.replace('_', ' ')} | {fmt(scores[f'consistency_{name}'], '.3f')} | "
-              f"{fmt(scores.get(f'miou_{name}'), '.3f')} | {fmt(scores.get(f'pixel_accuracy_{name}'), '.3f')} |"
-              for name in ("per_frame", "map")]
+    if scores is not None:
+        lines += ["", f"| ade20k labels | cross-view consistency (frames {gap} apart) | mIoU against the data's "
+                  "labels | pixel accuracy |", "|---|---|---|---|"]
+        lines += [f"| {name.replace('_', ' ')} | {fmt(scores[f'consistency_{name}'], '.3f')} | "
+                  f"{fmt(scores.get(f'miou_{name}'), '.3f')} | {fmt(scores.get(f'pixel_accuracy_{name}'), '.3f')} |"
+                  for name in ("per_frame", "map")]
     doc = {"dataset": args.dataset, "size": f"{args.size[0]}x{args.size[1]}", "frames": args.frames,
            "eval_every": args.eval_every, "gap_frames": gap, "rows": rows, "fusion": scores}
     results.write_report(results.RESULTS / f"semantic_fusion_{args.name}", title="Segmented labels, per frame and "

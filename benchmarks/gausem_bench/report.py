@@ -81,7 +81,9 @@ CHAPTERS = [
         "depth_consistency_synthetic_loop_noisy",
         "depth_consistency_synthetic_default_noisy", "depth_consistency_7scenes_redkitchen",
         "depth_consistency_tum_fr1_rpy", "slam_7scenes_colour"]),
-    ("Loop closure", ["place_recognition", "loop_edges", "loop_closure"]),
+    ("Loop closure", ["place_recognition", "loop_detection", "loop_edges", "loop_closure"]),
+    ("Semantics on real data", ["semantic_fusion_tum_fr1_rpy_160x120", "semantic_fusion_7scenes_redkitchen_160x120",
+                                "semantic_fusion_synthetic_160x120"]),
     ("Sensor noise", [
         "sensor_noise_default_90", "sensor_noise_default_90_unfiltered", "sensor_noise_colour_effects_90",
         "depth_noise_tracking"]),
