@@ -142,12 +142,14 @@ def current_machine() -> str:
 
 
 def current_commit() -> str:
-    """HEAD's commit, ``-dirty`` when tracked files differ from it; ``unknown`` outside a checkout."""
+    """HEAD's commit, ``-dirty`` when tracked files other than the records (what benchmarks write, one after
+    another) differ from it; ``unknown`` outside a checkout."""
     try:
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                               check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
-                               capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                                f":(exclude){RESULTS.relative_to(ROOT)}"], cwd=ROOT, capture_output=True, text=True,
+                               check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return UNKNOWN
     return head + ("-dirty" if dirty else "")
