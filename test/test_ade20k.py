@@ -7,8 +7,8 @@ from gausem_core.config import SemanticsConfig, SlamConfig
 from gausem_core.data import NYU40_CLASSES, SyntheticDataset, TumDataset
 from gausem_core.pipeline import Pipeline
 from gausem_core.semantics import Ade20kSegmenter, segmenter_from_config
-from gausem_core.semantics.ade20k import (ADE20K_CLASSES, INPUT_SIDE, MAPPING_FILE, ade20k_to_nyu40, crop_back,
-                                          letterbox)
+from gausem_core.semantics.ade20k import (ADE20K_CLASSES, INPUT_SIDE, MAPPING_FILE, MODEL_FILE, ade20k_to_nyu40,
+                                          crop_back, letterbox)
 
 
 def test_every_ade20k_class_maps_to_an_nyu40_class():
@@ -79,3 +79,12 @@ def test_pipeline_segments_every_frame_into_the_nyu40_table(ade20k_model):
     obs = pipeline.observation(data[0])
     assert obs.labels.shape == (60, 80) and int(obs.labels.max()) < len(NYU40_CLASSES)
     assert pipeline.semantics.summary()["source"] == "ade20k"
+
+
+def test_gausem_info_says_where_the_model_is_or_which_parameter_to_set(tmp_path, monkeypatch):
+    from gausem_core.tools.info import ade20k_model_status
+    monkeypatch.setenv("GAUSEM_SHARED_MODELS", str(tmp_path))
+    assert ade20k_model_status().startswith("absent") and "semantics.ade20k_model" in ade20k_model_status()
+    (tmp_path / MODEL_FILE).parent.mkdir()
+    (tmp_path / MODEL_FILE).write_bytes(b"")
+    assert ade20k_model_status() == str(tmp_path / MODEL_FILE)

@@ -41,13 +41,25 @@ def component_status() -> dict[str, str]:
     error = kernel_error()
     status["cpu renderer"] = "compiled C++ kernel" if error is None else f"torch only ({error})".splitlines()[0]
     for dist, module in [("numpy", "numpy"), ("opencv-python-headless", "cv2"), ("gtsam", "gtsam"), ("faiss-cpu", "faiss"), ("gsplat", "gsplat"),
-                         ("transformers", "transformers"), ("rosbags", "rosbags"), ("rclpy", "rclpy")]:
+                         ("transformers", "transformers"), ("ai-edge-litert", "ai_edge_litert"),
+                         ("rosbags", "rosbags"), ("rclpy", "rclpy")]:
         try:
             importlib.import_module(module)
             status[dist] = importlib.metadata.version(dist)
         except Exception as exc:  # any import failure is a status to report, not a crash
             status[dist] = f"unavailable ({type(exc).__name__}: {exc})".splitlines()[0]
+    status["ade20k model"] = ade20k_model_status()
     return status
+
+
+def ade20k_model_status() -> str:
+    """Where the ade20k segmenter's model would be read from, or why it cannot be."""
+    from gausem_core.semantics.ade20k import resolve_model
+
+    try:
+        return str(resolve_model(None))
+    except FileNotFoundError as err:
+        return f"absent: {err}"
 
 
 def main(args) -> int:
