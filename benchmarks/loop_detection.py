@@ -46,7 +46,7 @@ def keyframe_distances(frames, descriptor: str) -> tuple[np.ndarray, float]:
     distances = np.full((count, count), np.nan)
     start = time.perf_counter()
     if descriptor == "bow":
-        cfg, words = BowConfig(), None
+        cfg = BowConfig()
         words = BagOfWords(cfg)
         for q, frame in enumerate(frames):
             rgb = torch.as_tensor(frame.rgb).float() / 255

@@ -10,7 +10,8 @@ frame's estimated pose), scored by
 
 Both runs: ATE, PSNR of the final map, submaps, the classes holding at least 1 % of the map's Gaussians, loop
 detection (every candidate pair of the checks) and the accepted closures under the paper's protocol (with labels the
-landmarks re-rank the candidates; without, they cannot); the segmenter's time a frame. Writes ``benchmarks/results/semantic_fusion_<name>.json`` (a results record).
+landmarks re-rank the candidates; without, they cannot); the segmenter's time a frame. Writes
+``benchmarks/results/semantic_fusion_<name>.json`` (a results record).
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/semantic_fusion.py --dataset tum:$GAUSEM_SHARED_DATA/tum_fr1_rpy \
         --frames 200 --name tum_fr1_rpy_160x120

