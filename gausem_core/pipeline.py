@@ -97,6 +97,8 @@ class Pipeline:
         gt, ids, dataset_positions, stats, health, tracked, corrected = [], [], [], [], [], [], []
         frame_seconds, map_ages, latencies = [], [], []
         camera = LiveCamera(self.dataset, realtime) if realtime is not None else None
+        if camera is not None:
+            camera.start()  # reads the frames it can hold first: the run's time starts with the camera's clock
         start = time.perf_counter()
         bar = tqdm(total=len(self.dataset), desc="gausem", unit="frame", disable=not self.progress)
         stride, last_index = getattr(self.dataset, "stride", 1), None
@@ -150,7 +152,6 @@ class Pipeline:
             for i in range(len(self.dataset)):
                 yield i, self.dataset[i], None
             return
-        camera.start()
         try:
             while (item := camera.take()) is not None:
                 yield item.position, item.frame, item.released_at
@@ -166,10 +167,11 @@ def percentile(values: Iterable[float], q: float) -> float | None:
 
 def live_summary(camera: LiveCamera, latencies: list[float], processed: list[int]) -> dict:
     """A live replay's figures: frames released, processed, superseded; latency (release to pose) median and p95 in
-    ms; the replay's duration; the camera's worst lateness (reading slower than its rate)."""
+    ms; the replay's duration; the camera's worst lateness (reading slower than its rate); the frames it read before
+    its clock started."""
     duration = (camera.ended_at or time.perf_counter()) - camera.started_at
     return {"rate": camera.rate, "frames_released": camera.released, "frames_processed": len(processed),
             "frames_superseded": camera.superseded, "duration_s": duration,
             "latency_ms_median": 1e3 * percentile(latencies, 0.5) if latencies else None,
             "latency_ms_p95": 1e3 * percentile(latencies, 0.95) if latencies else None,
-            "camera_late_ms_max": 1e3 * camera.late_seconds}
+            "camera_late_ms_max": 1e3 * camera.late_seconds, "frames_preloaded": camera.preloaded}

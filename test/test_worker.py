@@ -11,7 +11,7 @@ from gausem_core.config import from_flat, load_config
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose
-from gausem_core.live import LiveCamera
+from gausem_core.live import LiveCamera, frame_bytes
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.submap import Submap
 from gausem_core.slam.submap_store import SubmapStore
@@ -190,6 +190,32 @@ def test_the_live_camera_hands_out_the_newest_frame_and_counts_the_superseded():
     assert camera.superseded == 12 - len(taken) == sum(t.superseded for t in taken)
     with pytest.raises(ValueError, match="positive rate"):
         LiveCamera([], 0)
+
+
+class CountingReads(Frames):
+    """Frames that count how often each is read."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.reads = [0] * len(self.frames)
+
+    def __getitem__(self, i):
+        self.reads[i] += 1
+        return self.frames[i]
+
+
+@pytest.mark.parametrize("fit", [0, 3, 12])
+def test_the_live_camera_reads_the_frames_that_fit_its_budget_before_the_clock_starts(fit):
+    frames = CountingReads(SyntheticDataset("default", resolution=(20, 15)), 12, 0.001)
+    camera = LiveCamera(frames, rate=1.0, preload_bytes=fit * frame_bytes(frames.frames[0]))
+    camera.start()
+    assert camera.preloaded == fit and camera.started_at is not None
+    while camera.take() is not None:
+        pass
+    camera.stop()
+    assert camera.released == 12
+    assert frames.reads[:fit] == [1] * fit  # each read once, before the clock
+    assert frames.reads[fit + 1:] == [1] * (11 - fit)  # the rest as they come due
 
 
 CHEAP = {"backend": "torch", "device": "cpu", "mapping.every": 2, "mapping.iterations": 5,
