@@ -45,6 +45,23 @@ Screen screen_of(const torch::Tensor& u, const torch::Tensor& v, const torch::Te
   return s;
 }
 
+// A Gaussian's alpha is separable: opacity * exp(-dx^2 ax / 2) * exp(-dy^2 ay / 2). Its column factors over its box
+// [xa, xb] go to ``out`` (one exp per column, not per pixel); each row then costs one exp.
+template <typename scalar_t>
+void column_factors(scalar_t gu, scalar_t ax, int64_t xa, int64_t xb, std::vector<scalar_t>& out) {
+  out.resize(std::max<int64_t>(xb - xa + 1, 0));
+  for (int64_t x = xa; x <= xb; ++x) {
+    const scalar_t dx = static_cast<scalar_t>(x) + scalar_t(0.5) - gu;
+    out[x - xa] = std::exp(scalar_t(-0.5) * dx * dx * ax);
+  }
+}
+
+template <typename scalar_t>
+scalar_t row_factor(int64_t y, scalar_t gv, scalar_t ay, scalar_t opacity) {
+  const scalar_t dy = static_cast<scalar_t>(y) + scalar_t(0.5) - gv;
+  return opacity * std::exp(scalar_t(-0.5) * dy * dy * ay);
+}
+
 // The pairs and the composited pixels of rows [row0, row1): Gaussians visited front to back emit (pixel, alpha)
 // pairs; a counting sort by pixel keeps each pixel's pairs in that order (no comparison sort).
 template <typename scalar_t>
@@ -72,17 +89,16 @@ void fill_chunk(RowChunk<scalar_t>& chunk, const Screen& s, const std::vector<in
   gen_alpha.clear();
   chunk.offsets.assign(n_pixels + 1, 0);
   auto* count = chunk.offsets.data() + 1;
+  std::vector<scalar_t> columns;
   for (const int32_t k : members) {
     const int64_t g = ord[k];
-    const int64_t ya = std::max(y0[g], chunk.row0), yb = std::min(y1[g], chunk.row1 - 1);
-    const scalar_t gu = u[g], gv = v[g], ax = ivx[g], ay = ivy[g], o = op[g];
+    const int64_t ya = std::max(y0[g], chunk.row0), yb = std::min(y1[g], chunk.row1 - 1), xa = x0[g], xb = x1[g];
+    column_factors(u[g], ivx[g], xa, xb, columns);
     for (int64_t y = ya; y <= yb; ++y) {
-      const scalar_t dy = static_cast<scalar_t>(y) + scalar_t(0.5) - gv;
-      const scalar_t qy = dy * dy * ay;
+      const scalar_t row = row_factor(y, v[g], ivy[g], op[g]);
       const int64_t row_start = (y - chunk.row0) * width;
-      for (int64_t x = x0[g]; x <= x1[g]; ++x) {
-        const scalar_t dx = static_cast<scalar_t>(x) + scalar_t(0.5) - gu;
-        const scalar_t alpha = o * std::exp(scalar_t(-0.5) * (dx * dx * ax + qy));
+      for (int64_t x = xa; x <= xb; ++x) {
+        const scalar_t alpha = row * columns[x - xa];
         if (alpha >= alpha_min) {
           gen_pixel.push_back(static_cast<int32_t>(row_start + x));
           gen_slot.push_back(k);
@@ -143,25 +159,29 @@ void composite_rows(int64_t row0, int64_t row1, const Screen& s, const std::vect
   const scalar_t alpha_min = static_cast<scalar_t>(kAlphaMin);
   acc.assign(n_pixels * (channels + 1), 0.0);
   transmittance.assign(n_pixels, 1.0);
+  std::vector<scalar_t> columns;
+  std::vector<double> gaussian_features(channels);
+  double* __restrict sums = acc.data();
+  double* __restrict through = transmittance.data();
   for (const int32_t k : members) {
     const int64_t g = ord[k];
-    const int64_t ya = std::max(y0[g], row0), yb = std::min(y1[g], row1 - 1);
-    const scalar_t gu = u[g], gv = v[g], ax = ivx[g], ay = ivy[g], o = op[g];
-    const scalar_t* f = feat + g * channels;
+    const int64_t ya = std::max(y0[g], row0), yb = std::min(y1[g], row1 - 1), xa = x0[g], xb = x1[g];
+    for (int64_t c = 0; c < channels; ++c) gaussian_features[c] = static_cast<double>(feat[g * channels + c]);
+    const double* __restrict f = gaussian_features.data();
+    column_factors(u[g], ivx[g], xa, xb, columns);
+    const scalar_t* __restrict column = columns.data();
     for (int64_t y = ya; y <= yb; ++y) {
-      const scalar_t dy = static_cast<scalar_t>(y) + scalar_t(0.5) - gv;
-      const scalar_t qy = dy * dy * ay;
+      const scalar_t row = row_factor(y, v[g], ivy[g], op[g]);
       const int64_t row_start = (y - row0) * width;
-      for (int64_t x = x0[g]; x <= x1[g]; ++x) {
-        const scalar_t dx = static_cast<scalar_t>(x) + scalar_t(0.5) - gu;
-        const scalar_t alpha = o * std::exp(scalar_t(-0.5) * (dx * dx * ax + qy));
+      for (int64_t x = xa; x <= xb; ++x) {
+        const scalar_t alpha = row * column[x - xa];
         if (alpha < alpha_min) continue;
         const int64_t p = row_start + x;
-        const double a = std::min(static_cast<double>(alpha), kAlphaMax), w = a * transmittance[p];
-        double* sum = acc.data() + p * (channels + 1);
+        const double a = std::min(static_cast<double>(alpha), kAlphaMax), w = a * through[p];
+        double* __restrict sum = sums + p * (channels + 1);
         for (int64_t c = 0; c < channels; ++c) sum[c] += w * f[c];
         sum[channels] += w;
-        transmittance[p] *= 1.0 - a;
+        through[p] *= 1.0 - a;
       }
     }
   }
