@@ -51,8 +51,9 @@ class GaussNewtonTrackingConfig:
     # than this fraction (the two costs differ by a few per cent on noisy frames where the estimate is the better pose)
     keep_start_margin: float = 0.2
     # more starts on the coarsest level: the prediction moved this far (metres) along each camera axis, both ways,
-    # and turned this far (degrees) about each. search: "gaps" after skipped or lost frames (a live node slower than
-    # its camera), "always", or "never"
+    # and turned this far (degrees) about each, where the feature start gives no pose (tracking.feature_start off, or
+    # too few matches). search: "gaps" after skipped or lost frames (a live node slower than its camera), "always", or
+    # "never"
     search: str = "gaps"
     search_translation: float = 0.03
     search_rotation_deg: float = 3.0

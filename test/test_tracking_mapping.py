@@ -348,6 +348,34 @@ def test_a_segments_second_frame_gets_the_gap_measures(mode):
     assert (translation < 0.005) == (mode == "gaps"), translation
 
 
+def test_the_search_starts_only_where_the_feature_start_finds_no_pose(monkeypatch):
+    """After a gap the feature start goes first; the blind search around the prediction (a dozen more coarse
+    alignments) is tried only where it finds no pose. Lock-step frames with a motion model get neither."""
+    from gausem_core.slam.system import GauSemSLAM
+    from gausem_core.slam.tracker import TrackingResult
+
+    cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "mapping.init_iterations": 5,
+                                                "mapping.iterations": 2})
+    dataset = open_dataset("synthetic", size=(40, 30), max_frames=12)
+    pipeline = Pipeline(dataset, cfg, progress=False)
+    slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
+    calls = []
+
+    class Recording:
+        def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False, keyframe=None):
+            calls.append((len(alternatives), search))
+            return TrackingResult(init_cam_to_world, 0.0, 0)
+    slam.front_end.tracker = Recording()
+    features = {"pose": None}
+    monkeypatch.setattr(slam.front_end.feature_start, "predict", lambda obs, previous: features["pose"])
+    slam.process(pipeline.observation(dataset[0]))
+    for i, skipped, found in ((1, 0, False), (2, 0, False), (3, 0, False), (6, 2, True), (9, 2, False)):
+        features["pose"] = torch.eye(4) if found else None
+        slam.process(pipeline.observation(dataset[i]), skipped)
+    # frame 1: no motion model (no features here: searched); 2, 3: lock-step; 6: features found; 9: none found
+    assert calls == [(0, True), (1, False), (1, False), (2, False), (1, True)]
+
+
 def test_one_model_view_per_frame_recovers_the_motion_with_a_render_or_two(scene, monkeypatch):
     """tracking.gauss_newton.model_views per_frame: the map rendered once at the start, its pyramid downsampled from
     it, rendered again only when the estimate moved rerender_motion: frames 1 and 2 come out as well as with a

@@ -158,11 +158,11 @@ class FrontEnd:
     def _track(self, obs: Observation, motion: MotionPrediction, cloud: GaussianCloud,
                keyframe: KeyframeView | None) -> TrackingResult:
         """Track from the motion model's prediction; where the motion since the last good frame is unknown (frames were
-        missed, or there is no motion model yet: a segment's second frame) the gap measures apply
-        (``gauss_newton.search``, ``feature_start``)."""
+        missed, or there is no motion model yet: a segment's second frame) the gap measures apply: the feature start
+        (``feature_start``), else, where it gives no pose, the search starts (``gauss_newton.search``)."""
         unknown = motion.gap or motion.predicted is None
-        search = gap_mode_applies(self.cfg.tracking.gauss_newton.search, unknown)
         featured = self.feature_start.predict(obs, motion.previous) if self.feature_start.wanted(unknown) else None
+        search = featured is None and gap_mode_applies(self.cfg.tracking.gauss_newton.search, unknown)
         alternatives = [] if featured is None else [featured]
         if motion.predicted is None:
             return self.tracker.track(cloud, obs, motion.previous, alternatives, search=search, keyframe=keyframe)
