@@ -353,3 +353,39 @@ def test_detector_from_config_with_the_bag_of_words_and_a_mismatched_signature()
     with pytest.raises(ValueError, match="described by OrbFeatures, but the database is a DescriptorDatabase"):
         descriptors.add_keyframe(PlaceSignature(0, 0, features, torch.ones(2)))
     assert len(bow.database) == len(descriptors.database) == 0
+
+
+def test_a_loop_keyframe_is_described_from_one_read_of_a_submap_the_tracker_is_growing():
+    """``worker.mode: async``: the worker describes a keyframe while the tracker adds Gaussians to the submap; the
+    landmark scores come from one read of its Gaussians (two reads of different sizes broke the worker)."""
+    from gausem_core.config import load_config
+    from gausem_core.data import open_dataset
+    from gausem_core.gaussians import GaussianCloud
+    from gausem_core.pipeline import Pipeline
+    from gausem_core.slam.system import GauSemSLAM
+
+    cfg = load_config("params/synthetic.yaml", {"device": "cpu", "mapping.init_iterations": 5})
+    dataset = open_dataset("synthetic", size=(40, 30), max_frames=1)
+    pipeline = Pipeline(dataset, cfg, progress=False)
+    slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
+    slam.process(pipeline.observation(dataset[0]))
+    submap, keyframe = slam.active, slam.active.keyframes[0]
+
+    class Growing:
+        """The submap, its Gaussians one copy more at every read (as if the tracker grew it in between)."""
+
+        def __init__(self):
+            self.reads = 0
+
+        def __getattr__(self, name):
+            return getattr(submap, name)
+
+        @property
+        def cloud(self):
+            self.reads += 1
+            return GaussianCloud.cat([submap.cloud] * self.reads)
+    loop_closure = slam.back_end.loop_closure
+    still = loop_closure.describe([], submap, keyframe)
+    growing = loop_closure.describe([], Growing(), keyframe)
+    assert still is not None and growing is not None
+    assert torch.equal(growing.landmark_scores, still.landmark_scores) and still.landmark_scores.abs().sum() > 0

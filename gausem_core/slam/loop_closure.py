@@ -396,12 +396,13 @@ class LoopClosure:
         return extract_features(obs.rgb, obs.depth, obs.camera, self.cfg.bow)
 
     def _landmark_scores(self, submap, keyframe: Keyframe) -> torch.Tensor:
-        """Eq. 7 over the submap's Gaussians that the keyframe observes, computed where they are; (C,) on the CPU."""
-        if len(submap.cloud) == 0:
+        """Eq. 7 over the submap's Gaussians that the keyframe observes, computed where they are; (C,) on the CPU.
+        The Gaussians are read once: in ``worker.mode: async`` the tracker grows the submap meanwhile."""
+        cloud = submap.cloud
+        if len(cloud) == 0:
             return torch.zeros(len(self.palette), dtype=torch.float64)
-        ids = self.palette.class_ids(submap.cloud)
-        seen = observed_gaussians(submap.cloud.means.detach(), keyframe.cam_to_world, keyframe.obs.camera,
-                                  keyframe.obs.depth)
+        ids = self.palette.class_ids(cloud)
+        seen = observed_gaussians(cloud.means.detach(), keyframe.cam_to_world, keyframe.obs.camera, keyframe.obs.depth)
         return landmark_scores(ids, seen, gaussian_idf(ids, len(self.palette))).cpu()
 
     def _nearby(self, submaps: Sequence, cam_to_world: torch.Tensor) -> list[int]:
