@@ -12,8 +12,9 @@ Signals of a tracked frame (:class:`TrackingHealth`):
 - ``jump``: how far the pose departs from the constant-velocity prediction, in typical per-frame motions (the median
   of the recent ones, floored by ``min_translation`` / ``min_rotation``), the larger of translation and rotation;
 - ``valid_depth``: the fraction of pixels with a valid depth;
-- ``coverage``: the fraction of the image where the map renders a silhouette at the pose (little map in view leaves
-  the pose weakly constrained, as few tracked map points do in feature-based SLAM).
+- ``coverage``: the fraction of the image where the map has Gaussians at the pose, rendered at least
+  ``tracking.coverage_alpha`` opaque whether optimised or not (little map in view leaves the pose weakly constrained,
+  as few tracked map points do in feature-based SLAM, and calls for a keyframe that adds Gaussians there).
 
 Rules (:class:`HealthMonitor`, thresholds in ``HealthConfig``): lost when the inlier fraction, the valid depth or the
 jump passes its ``lost_`` threshold; else degraded when any signal passes its ``degraded_`` threshold; else ok.
@@ -68,29 +69,39 @@ class TrackingHealth:
 
 def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig,
                   motion: torch.Tensor | None = None) -> dict[str, float]:
-    """``inlier_fraction``, ``condition``, ``valid_depth`` and ``coverage`` (of the map's own pixels, a keyframe's
-    filled ones left out) of a frame from the model ``view`` (a
+    """``inlier_fraction``, ``condition``, ``valid_depth`` and ``coverage`` (of the pixels where the map itself has
+    Gaussians, ``view.present``) of a frame from the model ``view`` (a
     :class:`~gausem_core.slam.direct_alignment.ModelView`, colour as rendered) and the alignment ``hessian`` at its
     pose (see :func:`gausem_core.slam.tracker.inspect_pose`). ``motion`` (observed-from-model camera; None: the view
-    was rendered at the pose) moves the view's silhouette pixels into the frame, each compared with the observed
-    pixel it lands on; at the identity that is the pixel it was rendered at."""
+    was rendered at the pose) moves the view's pixels into the frame, each compared with the observed pixel it lands
+    on; at the identity that is the pixel it was rendered at."""
     points, values = view.samples
-    rendered = None if view.filled is None else ~view.filled[view.mask]  # the map's own pixels, not a keyframe's
-    if motion is not None:
-        points = points @ motion[:3, :3].T.to(points) + motion[:3, 3].to(points)
-    cam, z = obs.camera, points[:, 2]
-    u = cam.fx * points[:, 0] / z.clamp_min(1e-6) + cam.cx
-    v = cam.fy * points[:, 1] / z.clamp_min(1e-6) + cam.cy
-    landed = (z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    row, col = v[landed].long(), u[landed].long()
+    cam = obs.camera
+    landed, z, row, col = _land(points, motion, cam)
     depth_ok = (z[landed] - obs.depth[row, col]).abs() < cfg.inlier_depth
     color_ok = (values[:3, landed].T - obs.rgb[row, col]).abs().mean(-1) < cfg.inlier_color
     inliers = torch.where(obs.valid_depth[row, col], depth_ok, color_ok)
-    covered = len(row)
-    inlier_fraction = float(inliers.sum()) / covered if covered else math.nan
-    mapped = covered if rendered is None else int(rendered[landed].sum())
+    inlier_fraction = float(inliers.sum()) / len(row) if len(row) else math.nan
+    if view.present is None or torch.equal(view.present, view.mask):
+        mapped = len(row)
+    else:
+        rays = view.camera.pixel_rays(view.depth.dtype, view.depth.device)
+        mapped = len(_land((rays * view.depth[..., None])[view.present], motion, cam)[2])
     return {"inlier_fraction": inlier_fraction, "condition": condition(hessian, z[landed]),
             "valid_depth": float(obs.valid_depth.float().mean()), "coverage": mapped / (cam.width * cam.height)}
+
+
+def _land(points: torch.Tensor, motion: torch.Tensor | None, cam
+          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Which of a view's ``points`` (N, 3), moved by ``motion``, land in ``cam``'s image, their depths (N) and the
+    rows and columns they land on."""
+    if motion is not None:
+        points = points @ motion[:3, :3].T.to(points) + motion[:3, 3].to(points)
+    z = points[:, 2]
+    u = cam.fx * points[:, 0] / z.clamp_min(1e-6) + cam.cx
+    v = cam.fy * points[:, 1] / z.clamp_min(1e-6) + cam.cy
+    landed = (z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    return landed, z, v[landed].long(), u[landed].long()
 
 
 def condition(hessian: torch.Tensor | None, depths: torch.Tensor) -> float:

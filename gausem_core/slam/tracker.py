@@ -62,10 +62,12 @@ def alignment_weights(cfg: TrackingConfig) -> AlignmentWeights:
 
 def model_view(cloud: GaussianCloud, cam_to_world: torch.Tensor, camera, cfg: TrackingConfig,
                backend: str, keyframe: KeyframeView | None = None) -> ModelView:
-    """The map rendered at ``cam_to_world``, masked to its silhouette (alpha above ``silhouette_threshold``); with a
-    ``keyframe``, its own images fill the pixels outside the silhouette (frame-to-keyframe, ``slam.keyframe_view``)."""
+    """The map rendered at ``cam_to_world``, masked to its silhouette (alpha above ``silhouette_threshold``), present
+    where its alpha passes ``coverage_alpha``; with a ``keyframe``, its own images fill the pixels outside the
+    silhouette (frame-to-keyframe, ``slam.keyframe_view``)."""
     out = render(cloud, invert_pose(cam_to_world), camera, backend=backend)
-    view = ModelView(out.color, out.semantic, out.expected_depth, out.alpha > cfg.silhouette_threshold, camera)
+    view = ModelView(out.color, out.semantic, out.expected_depth, out.alpha > cfg.silhouette_threshold, camera,
+                     present=out.alpha > cfg.coverage_alpha)
     return view if keyframe is None else fill_from_keyframe(view, cam_to_world, keyframe)
 
 
