@@ -8,13 +8,15 @@ from pathlib import Path
 import pytest
 import torch
 
-from gausem_core.config import RENAMED, from_flat
+from gausem_core.config import RENAMED, MappingConfig, from_flat
 from gausem_core.data import SYNTHETIC_CLASSES
 from gausem_core.geometry import invert_pose, so3_log
 from gausem_core.slam.loop import LoopDetector
 from gausem_core.slam.loop_closure import LoopConstraint, LoopRecord
+from gausem_core.slam.mapper import Mapper
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.persistence import SESSION_FILE, SessionError, _state_tree, _TensorWriter
+from gausem_core.slam.submap import Submap
 from gausem_core.slam.system import GauSemSLAM
 from scripted_policy import script_submaps
 
@@ -44,7 +46,7 @@ def saved(sequence, tmp_path_factory):
 def state(slam):
     """Everything a session holds, as (JSON tree, tensors by file)."""
     writer = _TensorWriter()
-    return _state_tree(slam, writer), writer.files
+    return _state_tree(slam.front_end, slam.back_end, writer), writer.files
 
 
 def assert_same_state(a, b):
@@ -55,6 +57,22 @@ def assert_same_state(a, b):
         for key, tensor in files_a[name].items():
             other = files_b[name][key]
             assert tensor.dtype == other.dtype and torch.equal(tensor, other), f"{name}:{key}"
+
+
+def assert_same_tree(a, b, where="state"):
+    """Two state dicts alike: the same keys and plain values, tensors bit-identical (dtype too)."""
+    if isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), where
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), where
+        for key in a:
+            assert_same_tree(a[key], b[key], f"{where}.{key}")
+    elif isinstance(a, (list, tuple)):
+        assert type(a) is type(b) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same_tree(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, where
 
 
 @pytest.mark.slow
@@ -91,6 +109,55 @@ def test_the_session_folder_is_self_contained(saved, tmp_path):
     assert all(torch.equal(x, y) for x, y in zip(cloud.tensors().values(), loaded.global_cloud().tensors().values()))
     assert all(t == u and torch.equal(p, q) for (t, p), (u, q) in zip(trajectory, loaded.trajectory()))
     assert torch.equal(loaded.submaps[0].observation(loaded.submaps[0].keyframes[-1]).rgb, images)
+
+
+def test_each_part_exports_and_restores_its_own_state(saved):
+    """Submaps, the back end (frame records, vignetting, mapper, loop closure) and the front end each round-trip their
+    state dicts on their own, without a session folder; restoring the back end leaves the front end as it was."""
+    original, _ = saved
+    back, front = original.back_end, original.front_end
+    assert not back.state_dict().keys() & front.state_dict().keys()  # side by side in a session's tree
+    with GauSemSLAM(original.cfg, "cpu", original.num_classes) as fresh:
+        untouched = fresh.front_end.state_dict()
+        submaps = [Submap.from_state(submap.state_dict(), "cpu", fresh.back_end.store) for submap in back.submaps]
+        assert [s.is_active for s in submaps] == [s.is_active for s in back.submaps] == [False, False, True]
+        for copy, submap in zip(submaps, back.submaps):
+            assert_same_tree(copy.state_dict(), submap.state_dict(), f"submap {submap.submap_id}")
+        fresh.back_end.load_state_dict(back.state_dict(), submaps)
+        assert_same_tree(fresh.back_end.state_dict(), back.state_dict(), "back end")
+        assert fresh.loop_closure.records == original.loop_closure.records
+        assert all(torch.equal(p, q) for (_, p), (_, q) in zip(fresh.trajectory(), original.trajectory(), strict=True))
+        assert_same_tree(fresh.front_end.state_dict(), untouched, "front end")
+        fresh.front_end.load_state_dict(front.state_dict())
+        assert_same_tree(fresh.front_end.state_dict(), front.state_dict(), "front end")
+        active = original.submaps[-1]  # the keyframe decision goes on from the map's newest keyframe
+        frame_id, pose = fresh.front_end.keyframes.last
+        assert frame_id == active.keyframes[-1].frame_id and torch.equal(pose, active.world_pose(active.keyframes[-1]))
+        with pytest.raises(ValueError, match="not empty"):
+            fresh.back_end.load_state_dict(back.state_dict(), submaps)
+
+
+def test_the_mapper_restores_its_random_draws():
+    saved, other = Mapper(MappingConfig(), seed=1), Mapper(MappingConfig(), seed=2)
+    torch.randint(100, (3,), generator=saved.generator)
+    other.load_state_dict(saved.state_dict())
+    draws = [torch.randint(100, (8,), generator=mapper.generator) for mapper in (saved, other)]
+    assert torch.equal(*draws)
+
+
+def test_the_session_tree_keeps_its_layout(saved):
+    """The parts' state dicts compose the tree that sessions have always had (older sessions load as they are)."""
+    _, folder = saved
+    state = json.loads((folder / SESSION_FILE).read_text())["state"]
+    assert set(state) == {"submaps", "frames", "vignetting", "mapper_generator", "loop_closure", "segment_start",
+                          "lost", "dropped", "skipped", "health", "feature_start"}
+    submap, frame = state["submaps"][0], state["frames"][0]
+    assert set(submap) == {"id", "active", "anchor", "extent", "cloud", "keyframes"}
+    assert set(submap["keyframes"][0]) == {"frame_id", "fixed", "timestamp", "camera", "cam_to_world", "images"}
+    assert set(frame) == {"frame_id", "timestamp", "submap", "reference", "relative", "lost", "skipped"}
+    assert submap["cloud"]["means"]["$tensor"].startswith("submap_0000.")  # its own file; poses in the state file
+    assert submap["keyframes"][0]["images"]["rgb"]["$tensor"].startswith("submap_0000.")
+    assert submap["anchor"]["$tensor"].startswith("state.")
 
 
 def _copy(folder, dest):

@@ -34,7 +34,7 @@ All poses handed to one :class:`SubmapExtent` must be in the same frame (the sub
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -257,6 +257,19 @@ class SubmapExtent:
         """Grow the bounding volume by a keyframe's frustum (none for a keyframe without valid depth)."""
         if bool(obs.valid_depth.any()):
             self.volume.add(Frustum(obs.camera, cam_to_world.detach().clone(), *depth_range(obs.depth)))
+
+    def state_dict(self) -> dict:
+        """The extent as plain values and tensors; :meth:`from_state` rebuilds it."""
+        return {"first_pose": self.first_pose, "anchor_counts": self.anchor_counts, "num_classes": self.num_classes,
+                "frusta": [{"camera": asdict(f.camera), "cam_to_world": f.cam_to_world, "near": f.near,
+                            "far": f.far} for f in self.volume.frusta]}
+
+    @classmethod
+    def from_state(cls, state: dict, device: torch.device | str) -> "SubmapExtent":
+        """The extent of a :meth:`state_dict`, its poses on ``device``."""
+        frusta = [Frustum(PinholeCamera(**f["camera"]), f["cam_to_world"].to(device), f["near"], f["far"])
+                  for f in state["frusta"]]
+        return cls(state["first_pose"].to(device), state["anchor_counts"], FrustumUnion(frusta), state["num_classes"])
 
     def classes_known(self, labels: torch.Tensor) -> bool:
         """Whether the anchor keyframe or a keyframe's class ids (H, W) hold more than one class (without labels every

@@ -365,6 +365,29 @@ class BackEnd:
             return GaussianCloud.empty(device=self.device)
         return GaussianCloud.cat([s.load_cloud(self.device).transformed(s.anchor) for s in self.submaps])
 
+    def state_dict(self) -> dict:
+        """What the map holds besides its submaps (each exports itself, :meth:`Submap.state_dict`): the frame records,
+        the vignetting estimate, the mapper's random state and the loop closure's state (None without one), as plain
+        values and tensors; :meth:`load_state_dict` restores it."""
+        return {"frames": [f.state_dict() for f in self.frames], "vignetting": self.vignetting.state_dict(),
+                "mapper_generator": self.mapper.state_dict()["generator"],
+                "loop_closure": None if self.loop_closure is None else self.loop_closure.state_dict()}
+
+    def load_state_dict(self, state: dict, submaps: Sequence[Submap]) -> None:
+        """Restore :meth:`state_dict` onto this back end, whose map is empty, with the ``submaps`` it was saved with
+        (:meth:`Submap.from_state`, in order); other keys of ``state`` are ignored, and older sessions may lack
+        ``vignetting``."""
+        if self.submaps or self.frames:
+            raise ValueError("BackEnd.load_state_dict: the map is not empty")
+        self.submaps.extend(submaps)
+        by_id = {s.submap_id: s for s in self.submaps}
+        self.frames.extend(FrameRecord.from_state(f, by_id, self.device) for f in state["frames"])
+        if "vignetting" in state:
+            self.vignetting.load_state_dict(state["vignetting"])
+        self.mapper.load_state_dict({"generator": state["mapper_generator"]})
+        if self.loop_closure is not None and state["loop_closure"] is not None:
+            self.loop_closure.load_state_dict(state["loop_closure"])
+
     def close(self) -> None:
         """Stop the worker, drop the stored submaps and delete their spill folder (idempotent)."""
         self._close()

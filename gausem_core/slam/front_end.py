@@ -78,9 +78,10 @@ class FrontEnd:
                                                              and cfg.worker.mode == "async")
         self._keyframe: tuple[KeyframeView, FrameRecord | None] | None = None  # the newest keyframe handed over and
         # its record (None: the map's first frame)
-        self.lost = False  # the next frame is relocalised (set by load; a caller may set it after a tracking failure)
+        self.lost = False  # the next frame is relocalised (:meth:`relocalise_next`; a caller may set it after a
+        # tracking failure)
         self.segment_start = 0  # first frame id of the current tracking segment (the motion model stays inside it;
-        # load starts a new one when it relocalises)
+        # :meth:`relocalise_next` starts a new one)
         self.dropped = 0  # frames dropped (not relocalised while lost) since the last recorded frame
         self.skipped = 0  # frames the caller skipped since the last recorded frame
         self.tracking_seconds: deque[float] = deque(maxlen=TIMES_KEPT)  # wall time of the latest frames' :meth:`place`
@@ -96,6 +97,35 @@ class FrontEnd:
         self.feature_start.remember(obs)
         self.keyframes.remember(0, torch.eye(4, device=self.device))
         self._keyframe = (KeyframeView.of(obs, torch.eye(4, device=self.device)), None) if self.fill else None
+
+    def state_dict(self) -> dict:
+        """What the front end carries from frame to frame besides the map: the tracking segment's start, whether it is
+        lost, the frames dropped and skipped since the last recorded one, the health monitor's histories and the
+        feature start's last good frame, as plain values and tensors; :meth:`load_state_dict` restores it."""
+        return {"segment_start": self.segment_start, "lost": self.lost, "dropped": self.dropped,
+                "skipped": self.skipped, "health": self.health.state_dict(),
+                "feature_start": self.feature_start.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`, once the back end holds the map (the keyframe decision goes on from its newest
+        keyframe); other keys of ``state`` are ignored. A state saved before tracking loss was judged (no ``lost``,
+        ``dropped``, ``health``) is never lost, with empty health histories."""
+        self.segment_start = state["segment_start"]
+        self.lost = state.get("lost", False)
+        self.dropped = state.get("dropped", 0)
+        self.skipped = state.get("skipped", 0)
+        if "health" in state:
+            self.health.load_state_dict(state["health"])
+        self.feature_start.load_state_dict(state.get("feature_start"))
+        keyframes = [(submap, kf) for submap in self.back_end.submaps for kf in submap.keyframes]
+        if keyframes:
+            submap, newest = max(keyframes, key=lambda pair: pair[1].frame_id)
+            self.keyframes.remember(newest.frame_id, submap.world_pose(newest))
+
+    def relocalise_next(self) -> None:
+        """Relocalise the next frame against the map instead of tracking it, in a new tracking segment (a loaded
+        session's first frame: the motion before the save says nothing of where the camera is now)."""
+        self.lost, self.segment_start = True, len(self.frames)
 
     def place(self, obs: Observation, frame_id: int, skipped: int) -> Placement:
         """Track the frame against the newest trackable submap (while :attr:`lost`: relocalise it, or drop it), judge

@@ -95,6 +95,13 @@ class Mapper:
                     kf.cam_to_world = pose
         return self._finished(params.detach()), torch.stack(losses).tolist() if losses else []
 
+    def state_dict(self) -> dict:
+        """The random generator's state (keyframe draws, densification); :meth:`load_state_dict` restores it."""
+        return {"generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.generator.set_state(state["generator"])
+
     def _keyframe_index(self, count: int) -> int:
         """A uniform draw below ``count`` from the mapper's generator: a CPU one, so no device read."""
         return int(torch.randint(count, (1,), generator=self.generator))

@@ -1,15 +1,19 @@
 """Save a SLAM session to a folder and load it to go on (a restarted tracker keeps its map).
 
-The folder (format ``gausem-session``, version :data:`VERSION`) is self-contained:
+The entry points are ``GauSemSLAM.save`` and ``GauSemSLAM.load``. Each part exports and restores its own state
+(``state_dict`` / ``load_state_dict``); this module composes them and places their tensors in files, writing none
+of their fields. The folder (format ``gausem-session``, version :data:`VERSION`) is self-contained:
 
 - ``session.json``: format and version, the configuration (dotted ROS parameter names), ``num_classes``,
-  ``detect_loops`` and the state tree: submaps (id, anchor, keyframes with poses, cameras and timestamps, allocation
-  extent), frames (id, timestamp, submap, reference keyframe, relative pose, whether tracking was lost), the tracker's
-  motion segment, whether the system is lost and how many frames it dropped since the last recorded one, the health
-  monitor's histories, the vignetting estimate, the mapper's random generator and the loop closure's
-  :meth:`~gausem_core.slam.loop_closure.LoopClosure.state_dict`. Every tensor in the tree is a reference
-  ``{"$tensor": "FILE:KEY"}`` into one of the tensor files. Written last: a folder without it holds no (complete)
-  session. Sessions written before the tracking-loss fields existed load as never lost, with empty health histories.
+  ``detect_loops`` and the state tree: ``submaps``, each one's :meth:`~gausem_core.slam.submap.Submap.state_dict`
+  (id, anchor, keyframes with poses, cameras and timestamps, allocation extent), and beside it the keys of the back
+  end's :meth:`~gausem_core.slam.back_end.BackEnd.state_dict` (frame records, the vignetting estimate, the mapper's
+  random generator, the loop closure's state) and of the front end's
+  :meth:`~gausem_core.slam.front_end.FrontEnd.state_dict` (the tracker's motion segment, whether the system is lost,
+  the frames dropped and skipped since the last recorded one, the health monitor's histories, the feature start's
+  last good frame). Every tensor in the tree is a reference ``{"$tensor": "FILE:KEY"}`` into one of the tensor
+  files. Written last: a folder without it holds no (complete) session. Sessions written before the tracking-loss
+  fields existed load as never lost, with empty health histories.
 - ``state.TOKEN.pt``: the small tensors of the tree (poses, descriptors, ...).
 - ``submap_NNNN.TOKEN.pt``: one submap's Gaussians and keyframe images (an offloaded submap's read back from its store).
 
@@ -24,7 +28,6 @@ saved ones (frame ids count the recorded frames, submap ids the submaps), and ev
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import secrets
@@ -33,14 +36,10 @@ from pathlib import Path
 import torch
 
 from gausem_core.config import RENAMED, SlamConfig, flatten, from_flat
-from gausem_core.gaussians import GaussianCloud
-from gausem_core.geometry import PinholeCamera
-from gausem_core.slam.allocation import Frustum, FrustumUnion, SubmapExtent
-from gausem_core.slam.mapper import Keyframe
-from gausem_core.slam.observation import Observation
-from gausem_core.slam.submap import KEYFRAME_IMAGES, FrameRecord, Submap
+from gausem_core.slam.back_end import BackEnd
+from gausem_core.slam.front_end import FrontEnd
+from gausem_core.slam.submap import Submap
 from gausem_core.slam.submap_store import SubmapStore
-from gausem_core.slam.system import GauSemSLAM
 
 FORMAT = "gausem-session"
 VERSION = 1
@@ -113,14 +112,6 @@ class _TensorReader:
 
 
 # --- the system's state as a tree -----------------------------------------------------------------------------------
-def _extent_tree(extent: SubmapExtent | None) -> dict | None:
-    if extent is None:
-        return None
-    return {"first_pose": extent.first_pose, "anchor_counts": extent.anchor_counts, "num_classes": extent.num_classes,
-            "frusta": [{"camera": dataclasses.asdict(f.camera), "cam_to_world": f.cam_to_world, "near": f.near,
-                        "far": f.far} for f in extent.volume.frusta]}
-
-
 def _files(tree) -> set[str]:
     """The tensor files a tree's references name."""
     if isinstance(tree, dict):
@@ -132,41 +123,29 @@ def _files(tree) -> set[str]:
     return set()
 
 
-def _submap_tree(submap: Submap, writer: _TensorWriter) -> dict:
-    file = f"submap_{submap.submap_id:04d}"
-    keyframes = []
-    for kf in submap.keyframes:
-        obs = submap.observation(kf)
-        keyframes.append({"frame_id": kf.frame_id, "fixed": kf.fixed, "timestamp": obs.timestamp,
-                          "camera": dataclasses.asdict(obs.camera),
-                          "cam_to_world": writer.pack(kf.cam_to_world, STATE),
-                          "images": writer.pack({name: getattr(obs, name) for name in KEYFRAME_IMAGES}, file)})
-    return {"id": submap.submap_id, "active": submap.is_active, "anchor": writer.pack(submap.anchor, STATE),
-            "extent": writer.pack(_extent_tree(submap.extent), STATE),
-            "cloud": writer.pack(submap.load_cloud().tensors(), file), "keyframes": keyframes}
+def _submap_tree(state: dict, writer: _TensorWriter) -> dict:
+    """A submap's :meth:`~gausem_core.slam.submap.Submap.state_dict` packed: its Gaussians and keyframe images into a
+    file of its own, the rest into the small tensors' file."""
+    file = f"submap_{state['id']:04d}"
+    keyframes = [{**kf, "images": writer.pack(kf["images"], file)} for kf in state["keyframes"]]
+    return writer.pack({**state, "cloud": writer.pack(state["cloud"], file), "keyframes": keyframes}, STATE)
 
 
-def _state_tree(slam: GauSemSLAM, writer: _TensorWriter) -> dict:
-    frames = [{"frame_id": f.frame_id, "timestamp": f.timestamp, "submap": f.submap.submap_id,
-               "reference": f.reference.frame_id, "relative": f.relative, "lost": f.lost,
-               "skipped": f.skipped} for f in slam.frames]
-    loop = slam.loop_closure.state_dict() if slam.loop_closure is not None else None
-    front, back = slam.front_end, slam.back_end
-    return {"submaps": [_submap_tree(s, writer) for s in slam.submaps],
-            **writer.pack({"frames": frames, "segment_start": front.segment_start, "lost": front.lost,
-                           "dropped": front.dropped, "skipped": front.skipped, "health": front.health.state_dict(),
-                           "feature_start": front.feature_start.state_dict(), "vignetting": back.vignetting.state_dict(),
-                           "mapper_generator": back.mapper.generator.get_state(), "loop_closure": loop}, STATE)}
+def _state_tree(front: FrontEnd, back: BackEnd, writer: _TensorWriter) -> dict:
+    """The session's state: the submaps', the back end's and the front end's state dicts (the latter two's keys
+    side by side)."""
+    return {"submaps": [_submap_tree(submap.state_dict(), writer) for submap in back.submaps],
+            **writer.pack({**back.state_dict(), **front.state_dict()}, STATE)}
 
 
-def save_session(slam: GauSemSLAM, folder: str | Path) -> Path:
-    """Write ``slam``'s whole state into ``folder`` (created; an earlier save there is replaced, crash-safe: see the
-    module doc). Returns the path of ``session.json``, written last."""
+def save_session(folder: str | Path, front: FrontEnd, back: BackEnd) -> Path:
+    """Write a system's whole state, its ``front`` and ``back`` end's, into ``folder`` (created; an earlier save there
+    is replaced, crash-safe: see the module doc). Returns the path of ``session.json``, written last."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     writer = _TensorWriter(secrets.token_hex(4))
-    document = {"format": FORMAT, "version": VERSION, "config": flatten(slam.cfg), "num_classes": slam.num_classes,
-                "detect_loops": slam.detect_loops, "state": _state_tree(slam, writer)}
+    document = {"format": FORMAT, "version": VERSION, "config": flatten(back.cfg), "num_classes": back.num_classes,
+                "detect_loops": back.detect_loops, "state": _state_tree(front, back, writer)}
     for name, tensors in writer.files.items():
         with open(folder / name, "wb") as f:
             torch.save(tensors, f)
@@ -219,66 +198,26 @@ def read_document(folder: str | Path) -> dict:
     return document
 
 
-def _extent(tree: dict | None, device: torch.device) -> SubmapExtent | None:
-    if tree is None:
-        return None
-    frusta = [Frustum(PinholeCamera(**f["camera"]), f["cam_to_world"].to(device), f["near"], f["far"])
-              for f in tree["frusta"]]
-    return SubmapExtent(tree["first_pose"].to(device), tree["anchor_counts"], FrustumUnion(frusta), tree["num_classes"])
+def saved_config(document: dict) -> SlamConfig:
+    """The configuration a session was saved with (older sessions' parameter names read under their new ones)."""
+    return from_flat({RENAMED.get(name, name): value for name, value in document["config"].items()})
 
 
 def _submap(tree: dict, reader: _TensorReader, device: torch.device, store: SubmapStore) -> Submap:
-    """One submap, its tensors on ``device`` when active, else offloaded to ``store``."""
-    raw, tree = tree, reader.unpack(tree)
-    place = device if tree["active"] else "cpu"
-    keyframes = [Keyframe(kf["frame_id"], Observation(**{n: t.to(place) for n, t in kf["images"].items()},
-                                                      camera=PinholeCamera(**kf["camera"]),
-                                                      timestamp=kf["timestamp"]),
-                          kf["cam_to_world"].to(device), kf["fixed"]) for kf in tree["keyframes"]]
-    cloud = GaussianCloud(**tree["cloud"]).to(place)
-    submap = Submap(tree["id"], tree["anchor"].to(device), cloud, keyframes, _extent(tree["extent"], device))
-    if not tree["active"]:
-        submap.offload(store)
-    reader.forget(raw)
+    """One submap, its tensors on ``device`` when active, else offloaded to ``store``; its file is read and forgotten
+    (one submap's file in memory at a time)."""
+    submap = Submap.from_state(reader.unpack(tree), device, store)
+    reader.forget(tree)
     return submap
 
 
-def load_session(folder: str | Path, cfg: SlamConfig | None = None, device: torch.device | str = "cpu",
-                 relocalise: bool = True) -> GauSemSLAM:
-    """The system saved in ``folder``, on ``device``, with its saved configuration unless ``cfg`` is given. With
-    ``relocalise`` (default) it starts :attr:`~GauSemSLAM.lost` with a new tracking segment: its next frame is placed
-    against the map by relocalisation, without the motion model, before tracking goes on; without, it goes on exactly
-    as the saved system would have (lost too if that was)."""
-    folder = Path(folder)
-    document = read_document(folder)
-    saved = {RENAMED.get(name, name): value for name, value in document["config"].items()}  # older sessions' names
-    slam = GauSemSLAM(cfg or from_flat(saved), device, document["num_classes"], document["detect_loops"])
-    reader = _TensorReader(folder)
+def restore_session(folder: str | Path, document: dict, front: FrontEnd, back: BackEnd) -> None:
+    """Restore the session of ``folder``, whose :func:`read_document` is ``document``, onto a new system's ``front``
+    and ``back`` end (built with the document's configuration, unless the caller chose another, ``num_classes`` and
+    ``detect_loops``)."""
+    reader = _TensorReader(Path(folder))
     tree = document["state"]
-    front, back = slam.front_end, slam.back_end
-    back.submaps.extend(_submap(submap, reader, slam.device, back.store) for submap in tree["submaps"])
+    submaps = [_submap(submap, reader, back.device, back.store) for submap in tree["submaps"]]
     state = reader.unpack({key: value for key, value in tree.items() if key != "submaps"})
-    by_id = {s.submap_id: s for s in slam.submaps}
-    for f in state["frames"]:
-        submap = by_id[f["submap"]]
-        reference = next(kf for kf in submap.keyframes if kf.frame_id == f["reference"])
-        slam.frames.append(FrameRecord(f["frame_id"], f["timestamp"], submap, reference,
-                                       f["relative"].to(slam.device), f.get("lost", False), f.get("skipped", 0)))
-    front.segment_start = state["segment_start"]
-    front.dropped = state.get("dropped", 0)
-    front.skipped = state.get("skipped", 0)
-    if "health" in state:
-        front.health.load_state_dict(state["health"])
-    front.feature_start.load_state_dict(state.get("feature_start"))
-    if "vignetting" in state:
-        back.vignetting.load_state_dict(state["vignetting"])
-    back.mapper.generator.set_state(state["mapper_generator"])
-    if slam.loop_closure is not None and state["loop_closure"] is not None:
-        slam.loop_closure.load_state_dict(state["loop_closure"])
-    front.lost = state.get("lost", False)
-    if slam.submaps:
-        submap, keyframe = max(((s, kf) for s in slam.submaps for kf in s.keyframes), key=lambda k: k[1].frame_id)
-        front.keyframes.remember(keyframe.frame_id, submap.world_pose(keyframe))
-    if relocalise and slam.submaps:
-        front.lost, front.segment_start = True, len(slam.frames)
-    return slam
+    back.load_state_dict(state, submaps)
+    front.load_state_dict(state)

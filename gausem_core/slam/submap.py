@@ -9,8 +9,8 @@ the active submap (Gaussians and keyframe images) lives on the compute device; a
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass
 
 import torch
 
@@ -148,6 +148,36 @@ class Submap:
     def _cloud_key(self) -> tuple:
         return ("cloud", self.submap_id)
 
+    def state_dict(self) -> dict:
+        """The submap as plain values and tensors (an inactive one's read back from its store): id, whether active,
+        anchor, allocation extent, Gaussians and keyframes (pose, camera, timestamp, images); :meth:`from_state`
+        rebuilds it."""
+        keyframes = []
+        for kf in self.keyframes:
+            obs = self.observation(kf)
+            keyframes.append({"frame_id": kf.frame_id, "fixed": kf.fixed, "timestamp": obs.timestamp,
+                              "camera": asdict(obs.camera), "cam_to_world": kf.cam_to_world,
+                              "images": {name: getattr(obs, name) for name in KEYFRAME_IMAGES}})
+        return {"id": self.submap_id, "active": self.is_active, "anchor": self.anchor,
+                "extent": None if self.extent is None else self.extent.state_dict(),
+                "cloud": self.load_cloud().tensors(), "keyframes": keyframes}
+
+    @classmethod
+    def from_state(cls, state: dict, device: torch.device | str, store: SubmapStore) -> "Submap":
+        """The submap of a :meth:`state_dict`, its poses on ``device``; its Gaussians and images too when it was
+        active, else offloaded to ``store``."""
+        place = device if state["active"] else "cpu"
+        keyframes = [Keyframe(kf["frame_id"], Observation(**{name: t.to(place) for name, t in kf["images"].items()},
+                                                          camera=PinholeCamera(**kf["camera"]),
+                                                          timestamp=kf["timestamp"]),
+                              kf["cam_to_world"].to(device), kf["fixed"]) for kf in state["keyframes"]]
+        extent = None if state["extent"] is None else SubmapExtent.from_state(state["extent"], device)
+        submap = cls(state["id"], state["anchor"].to(device), GaussianCloud(**state["cloud"]).to(place), keyframes,
+                     extent)
+        if not state["active"]:
+            submap.offload(store)
+        return submap
+
 
 @dataclass
 class FrameRecord:
@@ -164,3 +194,18 @@ class FrameRecord:
     @property
     def cam_to_world(self) -> torch.Tensor:
         return self.submap.anchor @ self.reference.cam_to_world @ self.relative
+
+    def state_dict(self) -> dict:
+        """The record as plain values and a tensor, its submap and reference keyframe by id."""
+        return {"frame_id": self.frame_id, "timestamp": self.timestamp, "submap": self.submap.submap_id,
+                "reference": self.reference.frame_id, "relative": self.relative, "lost": self.lost,
+                "skipped": self.skipped}
+
+    @classmethod
+    def from_state(cls, state: dict, submaps: Mapping[int, Submap], device: torch.device | str) -> "FrameRecord":
+        """The record of a :meth:`state_dict` in the submap it names among ``submaps`` (by id); a record saved before
+        tracking loss was judged is not lost."""
+        submap = submaps[state["submap"]]
+        reference = next(kf for kf in submap.keyframes if kf.frame_id == state["reference"])
+        return cls(state["frame_id"], state["timestamp"], submap, reference, state["relative"].to(device),
+                   state.get("lost", False), state.get("skipped", 0))

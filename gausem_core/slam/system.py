@@ -26,6 +26,7 @@ from gausem_core.slam.loop import LoopCandidate
 from gausem_core.slam.loop_closure import LoopClosure, LoopOutcome
 from gausem_core.slam.loop_graphs import PoseGraphUpdate
 from gausem_core.slam.observation import Observation
+from gausem_core.slam.persistence import read_document, restore_session, save_session, saved_config
 from gausem_core.slam.relocalisation import RelocalisationResult
 from gausem_core.slam.submap import FrameRecord, Submap
 from gausem_core.slam.tracker import Tracker
@@ -200,17 +201,22 @@ class GauSemSLAM:
 
     def save(self, folder) -> None:
         """Write the whole state into ``folder`` (see :func:`gausem_core.slam.persistence.save_session`)."""
-        from gausem_core.slam.persistence import save_session
         self.drain()
-        save_session(self, folder)
+        save_session(folder, self.front_end, self.back_end)
 
-    @staticmethod
-    def load(folder, device: torch.device | str = "cpu", cfg: SlamConfig | None = None,
+    @classmethod
+    def load(cls, folder, device: torch.device | str = "cpu", cfg: SlamConfig | None = None,
              relocalise: bool = True) -> "GauSemSLAM":
-        """A saved system on ``device``, :attr:`lost` with ``relocalise`` (see
-        :func:`gausem_core.slam.persistence.load_session`)."""
-        from gausem_core.slam.persistence import load_session
-        return load_session(folder, cfg, device, relocalise)
+        """The system saved in ``folder`` (``slam.persistence``), on ``device``, with its saved configuration unless
+        ``cfg`` is given. With ``relocalise`` (default) it starts :attr:`lost` with a new tracking segment: its next
+        frame is placed against the map by relocalisation, without the motion model, before tracking goes on; without,
+        it goes on exactly as the saved system would have (lost too if that was)."""
+        document = read_document(folder)
+        slam = cls(cfg or saved_config(document), device, document["num_classes"], document["detect_loops"])
+        restore_session(folder, document, slam.front_end, slam.back_end)
+        if relocalise and slam.submaps:
+            slam.front_end.relocalise_next()
+        return slam
 
     def keyframe_states(self, submap_id: int | None = None) -> list[KeyframeState]:
         """The keyframes (of one submap, or all) with their current poses, in order."""
