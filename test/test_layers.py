@@ -1,5 +1,5 @@
 """The import graph: no arrow up the layers (core <- msg_adapters <- gausem_ros; the benchmark harness above all),
-and no module imports another's private names."""
+no module imports another's private names, and no core modules import each other round a loop."""
 import ast
 from pathlib import Path
 
@@ -12,10 +12,16 @@ FORBIDDEN = {"gausem_core": {"msg_adapters", "gausem_ros", "gausem_bench", "benc
              "gausem_ros": {"gausem_bench", "benchmarks"}}
 
 
-def imports(path: Path):
-    """(absolute module name, imported names) of every import in ``path`` (relative ones resolved)."""
+def imports(path: Path, runtime: bool = False):
+    """(absolute module name, imported names) of every import in ``path`` (relative ones resolved); ``runtime``: not
+    those under ``if TYPE_CHECKING:``."""
     parts = path.relative_to(ROOT).with_suffix("").parts
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    tree = ast.parse(path.read_text(), str(path))
+    typing_only = {id(node) for block in ast.walk(tree) if runtime and isinstance(block, ast.If)
+                   and "TYPE_CHECKING" in ast.unparse(block.test) for node in ast.walk(block)}
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
         if isinstance(node, ast.Import):
             yield from ((alias.name, []) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -44,3 +50,26 @@ def test_no_arrow_up_the_layers_and_no_private_imports(package):
 def test_the_check_sees_relative_imports():
     found = dict(imports(ROOT / "gausem_ros" / "launcher.py"))
     assert found["gausem_ros.nodes"] == ["NODE_MODULES"] and "gausem_ros.preflight" in found
+
+
+def test_no_import_cycle_in_the_core():
+    """Imports at run time, at module level or in a function (``if TYPE_CHECKING:`` ones do not count)."""
+    modules = {".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"): path
+               for path in (ROOT / "gausem_core").rglob("*.py")}
+    graph = {name: sorted({target for module, names in imports(path, runtime=True)
+                           for target in (module, *(f"{module}.{n}" for n in names)) if target in modules} - {name})
+             for name, path in modules.items()}
+    cycles, done = [], set()
+
+    def visit(name: str, path: list[str]) -> None:
+        for target in graph[name]:
+            if target in path:
+                cycles.append(" -> ".join(path[path.index(target):] + [target]))
+            elif target not in done:
+                visit(target, path + [target])
+        done.add(name)
+    for name in sorted(graph):
+        if name not in done:
+            visit(name, [name])
+    assert graph["gausem_core.slam.system"], "the check sees no imports"
+    assert not cycles, "\n".join(cycles)
