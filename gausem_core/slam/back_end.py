@@ -63,7 +63,7 @@ class BackEnd:
         self.num_classes = num_classes
         self.detect_loops = detect_loops
         self.mapper = Mapper(cfg.mapping, cfg.backend, cfg.seed)
-        self.lock = self.mapper.lock  # held while the map's poses change and while the front end reads them
+        self.lock = self.mapper.lock  # the map's lock: what it guards and who takes it, see ``Mapper.__init__``
         self.allocation = make_allocation(cfg.submaps)
         self.allocation_rules: Counter = Counter()  # (rule, whether it opened a submap) of every allocation decision
         self.vignetting = Vignetting(cfg.vignetting)

@@ -42,7 +42,15 @@ class Mapper:
         self.backend = backend
         self.generator = torch.Generator().manual_seed(seed)
         self.strategy = DensificationStrategy(cfg, backend, self.generator)  # where Gaussians are added and dropped
-        self.lock = threading.RLock()  # held while keyframe poses change (GauSemSLAM shares it with its tracker)
+        # The map's lock (re-entrant), shared as ``BackEnd.lock`` and ``GauSemSLAM.lock``. It guards what the
+        # tracking thread and the mapping worker (``worker.mode: async``) share besides the Gaussians (those are
+        # swapped whole under each submap's own lock, ``slam.submap``): keyframe poses, submap anchors, the lists of
+        # submaps and of their keyframes, and the frame records (appended, re-anchored). Writers hold it for each
+        # change: this mapper (bundle adjustment's poses), the back end (a new submap or keyframe, records
+        # re-anchored) and the loop closure (a correction's anchors and keyframe poses). Readers hold it for poses
+        # that must agree: the front end (the submap it tracks against, the motion model's poses, recording a frame),
+        # the occupancy grid's rays and the tracking node's TF. No optimisation or re-mapping runs under it.
+        self.lock = threading.RLock()
         self.hurry = threading.Event()  # set: optimisations stop at their next iteration (GauSemSLAM.interrupt)
         self.pressure = threading.Event()  # set (by the mapping worker): a newer keyframe waits, so optimisations
         self.min_iteration_fraction = 1.0  # stop after this fraction of their iterations (1: never cut short)

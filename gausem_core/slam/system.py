@@ -116,7 +116,8 @@ class GauSemSLAM:
 
     @property
     def lock(self):
-        """Held while the map's poses change and while the front end reads them."""
+        """The map's lock: held while the map's poses change and while they are read in one piece (what it guards
+        and who takes it: where it is created, ``Mapper.__init__``)."""
         return self.back_end.lock
 
     @property
