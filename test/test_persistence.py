@@ -3,6 +3,7 @@ relocalisation of the first frame after loading."""
 import json
 import math
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,7 @@ from gausem_core.slam.observation import Observation
 from gausem_core.slam.persistence import SESSION_FILE, SessionError, _state_tree, _TensorWriter
 from gausem_core.slam.submap import Submap
 from gausem_core.slam.system import GauSemSLAM
+from gausem_core.tools.run import session_config
 from scripted_policy import script_submaps
 
 SETTINGS = {"mapping.every": 2, "mapping.iterations": 10, "mapping.init_iterations": 60,
@@ -120,7 +122,8 @@ def test_each_part_exports_and_restores_its_own_state(saved):
     with GauSemSLAM(original.cfg, "cpu", original.num_classes) as fresh:
         untouched = fresh.front_end.state_dict()
         submaps = [Submap.from_state(submap.state_dict(), "cpu", fresh.back_end.store) for submap in back.submaps]
-        assert [s.is_active for s in submaps] == [s.is_active for s in back.submaps] == [False, False, True]
+        active = [s.is_active for s in back.submaps]  # the module's system: earlier tests may have gone on with it
+        assert [s.is_active for s in submaps] == active and active[-1] and not any(active[:-1]) and len(active) > 1
         for copy, submap in zip(submaps, back.submaps):
             assert_same_tree(copy.state_dict(), submap.state_dict(), f"submap {submap.submap_id}")
         fresh.back_end.load_state_dict(back.state_dict(), submaps)
@@ -195,6 +198,11 @@ def test_a_session_saved_under_the_old_parameter_names_loads_with_its_values(sav
     assert "tracking.iterations" in document["config"] and "loop.global_refinement" in document["config"]
     (old / SESSION_FILE).write_text(json.dumps(document))
     assert GauSemSLAM.load(old, relocalise=False).cfg == GauSemSLAM.load(folder, relocalise=False).cfg
+    # gausem run --resume reads the parameters the same way, its overrides on top
+    original = GauSemSLAM.load(folder, relocalise=False).cfg
+    resumed = session_config(old, {"mapping.iterations": original.mapping.iterations + 1})
+    assert resumed.mapping.iterations == original.mapping.iterations + 1
+    assert replace(resumed, mapping=replace(resumed.mapping, iterations=original.mapping.iterations)) == original
 
 
 def test_relocalisation_places_an_earlier_frame(sequence, saved):

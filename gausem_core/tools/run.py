@@ -51,9 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def session_config(folder: Path, overrides: dict) -> SlamConfig:
     """The parameters of the session saved in ``folder`` with dotted-name ``overrides`` on top."""
-    from gausem_core.slam.persistence import read_document
+    from gausem_core.slam.persistence import read_document, saved_config
 
-    return from_flat(overrides, from_flat(read_document(folder)["config"]))
+    return from_flat(overrides, saved_config(read_document(folder)))
 
 
 def live_defaults(args: argparse.Namespace) -> dict:
