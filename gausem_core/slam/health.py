@@ -82,11 +82,9 @@ def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig,
     color_ok = (values[:3, landed].T - obs.rgb[row, col]).abs().mean(-1) < cfg.inlier_color
     inliers = torch.where(obs.valid_depth[row, col], depth_ok, color_ok)
     inlier_fraction = float(inliers.sum()) / len(row) if len(row) else math.nan
-    if view.present is None or torch.equal(view.present, view.mask):
-        mapped = len(row)
-    else:
-        rays = view.camera.pixel_rays(view.depth.dtype, view.depth.device)
-        mapped = len(_land((rays * view.depth[..., None])[view.present], motion, cam)[2])
+    present = view.mask if view.present is None else view.present
+    rays = view.camera.pixel_rays(view.depth.dtype, view.depth.device)
+    mapped = len(_land((rays * view.depth[..., None])[present], motion, cam)[2])
     return {"inlier_fraction": inlier_fraction, "condition": condition(hessian, z[landed]),
             "valid_depth": float(obs.valid_depth.float().mean()), "coverage": mapped / (cam.width * cam.height)}
 

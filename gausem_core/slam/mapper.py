@@ -108,6 +108,7 @@ class Mapper:
         return {"generator": self.generator.get_state()}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`: the draws go on as the saved mapper's would have."""
         self.generator.set_state(state["generator"])
 
     def _keyframe_index(self, count: int) -> int:
