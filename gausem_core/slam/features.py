@@ -16,7 +16,6 @@ import numpy as np
 import torch
 
 from gausem_core.config import BowConfig
-from gausem_core.geometry import se3_exp, skew
 
 DESCRIPTOR_BYTES = 32  # ORB: 256 bits
 
@@ -146,10 +145,12 @@ def refine_with_depth(points: np.ndarray, pixels: np.ndarray, depths: np.ndarray
     fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
     has_depth = np.isfinite(depths)
     sigma = depth_noise * depths[has_depth] ** 2
-    eye = np.broadcast_to(np.eye(3), (len(points), 3, 3))
+    moved = np.zeros((len(points), 3, 6))  # d(points)/d(twist): [I, -skew(point)]
+    moved[:, [0, 1, 2], [0, 1, 2]] = 1
     for _ in range(iterations):
         x, y, z = (points @ pose[:3, :3].T + pose[:3, 3]).T
-        moved = np.concatenate([eye, -skew(torch.from_numpy(np.stack([x, y, z], 1))).numpy()], 2)  # d(points)/d(twist)
+        moved[:, 0, 4], moved[:, 0, 5], moved[:, 1, 3] = z, -y, -z
+        moved[:, 1, 5], moved[:, 2, 3], moved[:, 2, 4] = x, y, -x
         d_pixel = np.zeros((len(points), 2, 3))
         d_pixel[:, 0, 0], d_pixel[:, 0, 2] = fx / z, -fx * x / z ** 2
         d_pixel[:, 1, 1], d_pixel[:, 1, 2] = fy / z, -fy * y / z ** 2
@@ -158,7 +159,9 @@ def refine_with_depth(points: np.ndarray, pixels: np.ndarray, depths: np.ndarray
                                    (z[has_depth] - depths[has_depth]) / sigma])
         weight = np.minimum(1.0, _HUBER_DELTA / np.maximum(np.abs(residual), 1e-12))
         step = np.linalg.solve(jacobian.T @ (weight[:, None] * jacobian), -jacobian.T @ (weight * residual))
-        pose = se3_exp(torch.from_numpy(step)).numpy() @ pose
+        update = np.eye(4)  # the twist's rotation and translation: the same derivative at 0 as se3_exp
+        update[:3, :3], update[:3, 3] = cv2.Rodrigues(step[3:])[0], step[:3]
+        pose = update @ pose
         if np.abs(step).max() < 1e-9:
             break
     return pose
