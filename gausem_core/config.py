@@ -105,10 +105,6 @@ class TrackingConfig:
     w_depth: float = 0.5
     w_semantic: float = 0.5
     silhouette_threshold: float = 0.99
-    # tracking health's coverage counts the pixels rendered at least this opaque, where the map has Gaussians whether
-    # optimised or not (mapping.densify_silhouette_threshold's value: where a keyframe adds none): a map just grown on
-    # the tracker's clock (worker.mode async) has not reached silhouette_threshold yet, and is there all the same
-    coverage_alpha: float = 0.5
     # frame-to-keyframe where the map is thin: the newest keyframe's own depth and colour fill the model view's pixels
     # outside the silhouette ("async": in worker.mode async, where a keyframe's Gaussians are tracked against before
     # any optimisation; "always"; "never")
@@ -125,7 +121,8 @@ class MappingConfig:
 
     every: int = 5  # d_map: map (and take a keyframe) every this many frames, ...
     # ... and (coverage_keyframes: "gaps" after skipped or lost frames, as tracking.gauss_newton.search, "always" or
-    # "never") whenever the map has Gaussians (tracking.coverage_alpha) on less than min_coverage of the view
+    # "never") whenever what tracking aligns against (the map's silhouette, and the newest keyframe where
+    # tracking.keyframe_fill applies) covers less than min_coverage of the view
     coverage_keyframes: str = "gaps"
     min_coverage: float = 0.6
     keyframes: str = "every"  # "every" (every-th frame, as above) or "motion": by need (slam.keyframes), when the view
@@ -335,9 +332,8 @@ class HealthConfig:
     lost_jump: float = 15.0  # ... lost beyond this many
     degraded_valid_depth: float = 0.3  # degraded below this fraction of pixels with valid depth ...
     lost_valid_depth: float = 0.05  # ... lost below this one
-    degraded_coverage: float = 0.3  # degraded when the map has Gaussians (tracking.coverage_alpha) over less than this
-    # fraction of the image at the pose (benchmarks/results/health_160x120.json: the worst tracked frames of the noisy
-    # walk, 0.21-0.26)
+    degraded_coverage: float = 0.3  # degraded when what tracking aligns against covers less than this fraction of the
+    # image at the pose (benchmarks/results/health_160x120.json: the worst tracked frames of the noisy walk, 0.21-0.26)
     recovery_inlier_fraction: float = 0.3  # after a loss, relocalisation accepts from this inlier fraction (its own)
     recovery_residual_z: float = 20.0  # ... and only with a residual z-score (against the frames before) up to this
 

@@ -17,6 +17,7 @@ from gausem_core.geometry import PinholeCamera, invert_pose, make_pose, so3_exp,
 from gausem_core.pipeline import Pipeline
 from gausem_core.slam.direct_alignment import ModelView
 from gausem_core.slam.health import SIGNALS, HealthMonitor, condition, image_signals, thresholds
+from gausem_core.slam.keyframe_view import KeyframeView
 from gausem_core.slam.system import GauSemSLAM
 from gausem_core.slam.tracker import model_view
 
@@ -86,24 +87,23 @@ def test_image_signals_measure_the_map_in_view_and_the_share_it_explains():
     assert beside["inlier_fraction"] == pytest.approx(12 / 16)
 
 
-def test_coverage_counts_the_maps_gaussians_below_the_tracking_silhouette_too():
+def test_coverage_counts_what_tracking_aligns_against_the_newest_keyframes_pixels_too():
     """A map grown but not optimised yet (one layer of Gaussians at opacity 0.9) renders no pixel above the 0.99
-    silhouette that tracking compares, yet it is there: coverage counts where its alpha passes ``coverage_alpha``, so
-    that a camera looking at it is not taken for one outrunning its map."""
+    silhouette that tracking compares: without the keyframe fill nothing covers the view; with it (async mode),
+    tracking aligns against the newest keyframe's own pixels there, and coverage counts them."""
     camera = PinholeCamera(20.0, 20.0, 10.0, 8.0, 20, 16)
     xs, ys = torch.meshgrid(torch.linspace(-0.4, 0.0, 9), torch.linspace(-0.5, 0.5, 11), indexing="xy")
     means = torch.stack([xs.reshape(-1), ys.reshape(-1), torch.full((99,), 1.0)], 1)  # the left half, 1 m ahead
     grey = torch.full((99, 3), 0.5)
     cloud = GaussianCloud.from_points(means, grey, grey, torch.full((99,), 0.04), opacity=0.9)
-    view = model_view(cloud, torch.eye(4), camera, TrackingConfig(), "torch")
     depth = torch.ones(16, 20)
-    obs = SimpleNamespace(valid_depth=torch.ones(16, 20, dtype=torch.bool), depth=depth,
-                          rgb=torch.full((16, 20, 3), 0.5), camera=camera)
-    assert not view.mask.any()
-    coverage = image_signals(view, obs, None, HealthConfig())["coverage"]
-    assert coverage == pytest.approx(float(view.present.float().mean())) and 0.35 < coverage < 0.65
-    strict = model_view(cloud, torch.eye(4), camera, TrackingConfig(coverage_alpha=0.995), "torch")
-    assert image_signals(strict, obs, None, HealthConfig())["coverage"] == 0.0
+    depth[:, 15:] = 0  # the keyframe has no depth on the right quarter: nothing to fill there
+    obs = SimpleNamespace(valid_depth=depth > 0, depth=depth, rgb=torch.full((16, 20, 3), 0.5),
+                          semantic=torch.zeros(16, 20, 3), camera=camera)
+    bare = model_view(cloud, torch.eye(4), camera, TrackingConfig(), "torch")
+    assert not bare.mask.any() and image_signals(bare, obs, None, HealthConfig())["coverage"] == 0.0
+    filled = model_view(cloud, torch.eye(4), camera, TrackingConfig(), "torch", KeyframeView.of(obs, torch.eye(4)))
+    assert image_signals(filled, obs, None, HealthConfig())["coverage"] == pytest.approx(0.75)
 
 
 def test_residual_is_judged_against_its_recent_distribution_not_its_level():

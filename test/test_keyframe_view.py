@@ -1,10 +1,8 @@
 """Frame-to-keyframe fill: the newest keyframe's own images where the rendered model view has no silhouette."""
 import torch
 
-from gausem_core.config import HealthConfig
 from gausem_core.geometry import PinholeCamera, se3_exp
 from gausem_core.slam.direct_alignment import ModelView
-from gausem_core.slam.health import image_signals
 from gausem_core.slam.keyframe_view import KeyframeView, fill_from_keyframe
 from gausem_core.slam.observation import Observation
 
@@ -31,7 +29,7 @@ def test_at_the_keyframes_own_pose_its_valid_pixels_fill_the_view_as_they_are():
     rendered[10:14, 10:20] = True  # the map covers these: they keep their rendered values
     view = fill_from_keyframe(empty_view(rendered), torch.eye(4), KeyframeView.of(obs, torch.eye(4)))
     expected = (depth > 0) & ~rendered
-    assert torch.equal(view.mask, expected | rendered) and torch.equal(view.present, rendered)
+    assert torch.equal(view.mask, expected | rendered)
     assert torch.equal(view.depth[expected], depth[expected]) and torch.equal(view.color[expected], obs.rgb[expected])
     assert torch.equal(view.semantic[expected], obs.semantic[expected])
     assert (view.depth[rendered] == 5.0).all() and (view.color[rendered] == 0.5).all()
@@ -45,16 +43,6 @@ def test_a_moved_keyframe_lands_where_its_points_project_and_the_nearest_wins():
     view = fill_from_keyframe(empty_view(), torch.eye(4), KeyframeView.of(obs, shift))
     # a point at depth d moves 0.1 * 40 / d pixels: 4 px at 1 m, 2 px at 2 m; the view's left 4 columns see nothing,
     # and on columns 18-19 the near half's edge hides the far half's first two columns
-    assert not view.mask[:, :4].any() and view.mask[:, 4:].all() and not view.present.any()
+    assert not view.mask[:, :4].any() and view.mask[:, 4:].all()
     assert (view.depth[:, 4:20] == 1.0).all() and torch.equal(view.color[:, 4:20], obs.rgb[:, :16])
     assert (view.depth[:, 20:] == 2.0).all() and torch.equal(view.color[:, 20:], obs.rgb[:, 18:30])
-
-
-def test_coverage_counts_the_maps_own_pixels_only():
-    depth = torch.full((24, 32), 2.0)
-    obs = keyframe(depth)
-    rendered = torch.zeros(24, 32, dtype=torch.bool)
-    rendered[:12] = True
-    view = fill_from_keyframe(empty_view(rendered), torch.eye(4), KeyframeView.of(obs, torch.eye(4)))
-    signals = image_signals(view, obs, None, HealthConfig())
-    assert signals["coverage"] == 0.5 and view.mask.all()

@@ -23,9 +23,7 @@ from gausem_core.native import kernel_available, require_kernel
 @dataclass
 class ModelView:
     """A rendered model view: colour and semantic colour (H,W,3), expected depth (H,W), valid mask (H,W), and
-    optional dense features (H,W,F) matching the observation's feature channels; ``present`` (H,W): the pixels where
-    the map itself has Gaussians, optimised or not (rendered alpha above ``tracking.coverage_alpha``; None: the
-    mask), which may lie outside the mask and exclude the pixels a keyframe filled (``slam.keyframe_view``)."""
+    optional dense features (H,W,F) matching the observation's feature channels."""
 
     color: torch.Tensor
     semantic: torch.Tensor
@@ -33,7 +31,6 @@ class ModelView:
     mask: torch.Tensor
     camera: PinholeCamera
     features: torch.Tensor | None = None
-    present: torch.Tensor | None = None
 
     @functools.cached_property
     def samples(self) -> tuple[torch.Tensor, torch.Tensor]:

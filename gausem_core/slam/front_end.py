@@ -151,7 +151,7 @@ class FrontEnd:
             judged = relocalised.health or TrackingHealth("lost")
             return replace(placement, relocalised=relocalised,
                            health=replace(judged, status="lost", reasons=(*judged.reasons, "relocalisation_failed")))
-        health = self._assess(obs, tracked, relocalised, motion, cloud)
+        health = self._assess(obs, tracked, relocalised, motion, cloud, keyframe)
         missed, self.dropped, self.skipped = self.dropped + self.skipped, 0, 0
         pose = tracked.cam_to_world.detach()
         self.lost = health.status == "lost"
@@ -250,15 +250,15 @@ class FrontEnd:
         return None
 
     def _assess(self, obs: Observation, tracked: TrackingResult, relocalised: RelocalisationResult | None,
-                motion: MotionPrediction, cloud: GaussianCloud) -> TrackingHealth:
-        """The health of a frame tracked to ``tracked`` against ``cloud`` (before it is recorded), its pose jump
-        judged against ``motion``. A relocalised frame was judged by relocalisation (against the submap that placed
-        it): after a restart ok, and a new motion history starts; after a tracking loss as the health monitor judged
-        it, degraded at least (``relocalised``)."""
+                motion: MotionPrediction, cloud: GaussianCloud, keyframe: KeyframeView | None) -> TrackingHealth:
+        """The health of a frame tracked to ``tracked`` against ``cloud`` (``keyframe`` filling it, as in tracking;
+        before the frame is recorded), its pose jump judged against ``motion``. A relocalised frame was judged by
+        relocalisation (against the submap that placed it): after a restart ok, and a new motion history starts; after
+        a tracking loss as the health monitor judged it, degraded at least (``relocalised``)."""
         if relocalised is not None:
             return self._relocalised_health(obs, relocalised)
         view, moved, hessian = inspect_pose(cloud, obs, tracked.cam_to_world, self.cfg.tracking, self.cfg.backend,
-                                            tracked)  # the view tracking aligned against where it still holds
+                                            tracked, keyframe)  # the view tracking aligned against where it holds
         image = image_signals(view, obs, hessian, self.cfg.health, moved)
         return self.health.assess(tracked.loss, image, tracked.cam_to_world, motion.previous,
                                   motion.previous if motion.predicted is None else motion.predicted, motion.steps)

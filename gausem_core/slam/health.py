@@ -12,9 +12,9 @@ Signals of a tracked frame (:class:`TrackingHealth`):
 - ``jump``: how far the pose departs from the constant-velocity prediction, in typical per-frame motions (the median
   of the recent ones, floored by ``min_translation`` / ``min_rotation``), the larger of translation and rotation;
 - ``valid_depth``: the fraction of pixels with a valid depth;
-- ``coverage``: the fraction of the image where the map has Gaussians at the pose, rendered at least
-  ``tracking.coverage_alpha`` opaque whether optimised or not (little map in view leaves the pose weakly constrained,
-  as few tracked map points do in feature-based SLAM, and calls for a keyframe that adds Gaussians there).
+- ``coverage``: the fraction of the image that tracking aligns against at the pose: the map's silhouette and, where
+  ``tracking.keyframe_fill`` applies, the newest keyframe's own pixels (little of it leaves the pose weakly
+  constrained, as few tracked map points do in feature-based SLAM, and calls for a keyframe).
 
 Rules (:class:`HealthMonitor`, thresholds in ``HealthConfig``): lost when the inlier fraction, the valid depth or the
 jump passes its ``lost_`` threshold; else degraded when any signal passes its ``degraded_`` threshold; else ok.
@@ -69,8 +69,8 @@ class TrackingHealth:
 
 def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig,
                   motion: torch.Tensor | None = None) -> dict[str, float]:
-    """``inlier_fraction``, ``condition``, ``valid_depth`` and ``coverage`` (of the pixels where the map itself has
-    Gaussians, ``view.present``) of a frame from the model ``view`` (a
+    """``inlier_fraction``, ``condition``, ``valid_depth`` and ``coverage`` (of the view's mask, a keyframe's filled
+    pixels included) of a frame from the model ``view`` (a
     :class:`~gausem_core.slam.direct_alignment.ModelView`, colour as rendered) and the alignment ``hessian`` at its
     pose (see :func:`gausem_core.slam.tracker.inspect_pose`). ``motion`` (observed-from-model camera; None: the view
     was rendered at the pose) moves the view's pixels into the frame, each compared with the observed pixel it lands
@@ -82,11 +82,8 @@ def image_signals(view, obs, hessian: torch.Tensor | None, cfg: HealthConfig,
     color_ok = (values[:3, landed].T - obs.rgb[row, col]).abs().mean(-1) < cfg.inlier_color
     inliers = torch.where(obs.valid_depth[row, col], depth_ok, color_ok)
     inlier_fraction = float(inliers.sum()) / len(row) if len(row) else math.nan
-    present = view.mask if view.present is None else view.present
-    rays = view.camera.pixel_rays(view.depth.dtype, view.depth.device)
-    mapped = len(_land((rays * view.depth[..., None])[present], motion, cam)[2])
     return {"inlier_fraction": inlier_fraction, "condition": condition(hessian, z[landed]),
-            "valid_depth": float(obs.valid_depth.float().mean()), "coverage": mapped / (cam.width * cam.height)}
+            "valid_depth": float(obs.valid_depth.float().mean()), "coverage": len(row) / (cam.width * cam.height)}
 
 
 def _land(points: torch.Tensor, motion: torch.Tensor | None, cam

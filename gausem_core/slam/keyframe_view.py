@@ -5,8 +5,7 @@ In ``worker.mode: async`` a keyframe's Gaussians join the map on the tracker's c
 map that has not been optimised renders a silhouette too faint to track against (below ``silhouette_threshold``).
 The keyframe's measurements are what those Gaussians will come to render: each of its valid depth pixels is moved
 into the model view's camera and lands on its nearest pixel, the nearest point winning where several land on one.
-Rendered pixels keep their values; the view's ``present`` pixels stay the map's own, so that coverage still says how
-much of the view the map itself holds.
+Rendered pixels keep their values.
 """
 from __future__ import annotations
 
@@ -71,5 +70,4 @@ def fill_from_keyframe(view: ModelView, cam_to_world: torch.Tensor, keyframe: Ke
     depth = view.depth.reshape(-1).clone()
     depth[pixel] = nearest[pixel]
     return ModelView(put(view.color, keyframe.rgb), put(view.semantic, keyframe.semantic), depth.reshape(shape),
-                     view.mask | filled.reshape(shape), camera, view.features,
-                     view.mask if view.present is None else view.present)
+                     view.mask | filled.reshape(shape), camera, view.features)

@@ -62,12 +62,10 @@ def alignment_weights(cfg: TrackingConfig) -> AlignmentWeights:
 
 def model_view(cloud: GaussianCloud, cam_to_world: torch.Tensor, camera, cfg: TrackingConfig,
                backend: str, keyframe: KeyframeView | None = None) -> ModelView:
-    """The map rendered at ``cam_to_world``, masked to its silhouette (alpha above ``silhouette_threshold``), present
-    where its alpha passes ``coverage_alpha``; with a ``keyframe``, its own images fill the pixels outside the
-    silhouette (frame-to-keyframe, ``slam.keyframe_view``)."""
+    """The map rendered at ``cam_to_world``, masked to its silhouette (alpha above ``silhouette_threshold``); with a
+    ``keyframe``, its own images fill the pixels outside the silhouette (frame-to-keyframe, ``slam.keyframe_view``)."""
     out = render(cloud, invert_pose(cam_to_world), camera, backend=backend)
-    view = ModelView(out.color, out.semantic, out.expected_depth, out.alpha > cfg.silhouette_threshold, camera,
-                     present=out.alpha > cfg.coverage_alpha)
+    view = ModelView(out.color, out.semantic, out.expected_depth, out.alpha > cfg.silhouette_threshold, camera)
     return view if keyframe is None else fill_from_keyframe(view, cam_to_world, keyframe)
 
 
@@ -81,20 +79,20 @@ def motion_size(motion: torch.Tensor, view: ModelView) -> float:
 
 
 def inspect_pose(cloud: GaussianCloud, obs: Observation, cam_to_world: torch.Tensor, cfg: TrackingConfig,
-                 backend: str, tracked: TrackingResult | None = None
+                 backend: str, tracked: TrackingResult | None = None, keyframe: KeyframeView | None = None
                  ) -> tuple[ModelView, torch.Tensor, torch.Tensor | None]:
     """What tracking health is judged from: a model view, the motion (observed-from-model camera) that brings it to
     ``cam_to_world``, and the Gauss-Newton Hessian (6, 6) of the full-resolution alignment there (None when the views
     barely overlap). The view that ``tracked`` (the result at ``cam_to_world``) was aligned against serves when the
     pose moved at most ``rerender_motion`` from it, as it would in tracking; else the model is rendered at the pose
-    (identity motion)."""
+    (identity motion), ``keyframe`` filling it as tracking's views are filled."""
     with torch.no_grad():
         if (tracked is not None and tracked.view is not None
                 and motion_size(tracked.motion, tracked.view) <= cfg.gauss_newton.rerender_motion):
             view, motion = tracked.view, tracked.motion
         else:
             cloud = cloud.detach()
-            view = model_view(cloud, cam_to_world.detach().to(cloud.dtype), obs.camera, cfg, backend)
+            view = model_view(cloud, cam_to_world.detach().to(cloud.dtype), obs.camera, cfg, backend, keyframe)
             motion = torch.eye(4, dtype=cloud.dtype, device=cloud.means.device)
         observed = ObservedImages.build(obs.rgb, obs.semantic, obs.depth, obs.camera)
         step = normal_equations(observed, motion, alignment_weights(cfg), *model_samples(view, observed))
