@@ -345,6 +345,10 @@ class DepthFilterConfig:
     enabled: bool = True
     spatial_sigma: float = 0.01  # fraction of the image width (1.6 pixels at 160x120, 6.4 at 640x480)
     range_sigma: float = 0.005  # metres at 1 m range, growing with range squared like the sensor's noise
+    # whose depth: "all" frames' before tracking; "keyframes": only a keyframe's, after tracking, before it is mapped
+    # (the tracker aligns the raw depth and the filter costs nothing on other frames); "async": keyframes' in
+    # worker.mode async (a tracker on the camera's clock), all frames' in sync
+    frames: str = "async"
 
 
 @dataclass

@@ -5,7 +5,7 @@ import torch
 from gausem_core.config import DepthFilterConfig
 from gausem_core.geometry import PinholeCamera
 from gausem_core.slam import depth_filter
-from gausem_core.slam.depth_filter import bilateral_depth, filter_observation
+from gausem_core.slam.depth_filter import bilateral_depth, filter_observation, filters_every_frame
 from gausem_core.slam.observation import Observation
 
 CAMERA = PinholeCamera(80.0, 80.0, 40.0, 30.0, 80, 60)
@@ -84,3 +84,14 @@ def test_the_filter_is_its_formula_and_wide_windows_still_filter(monkeypatch):
     inner = (slice(12, -12), slice(12, -12))
     after, before = (bilateral_depth(wide, 6.4, 0.005) - clean)[inner], (wide - clean)[inner]
     assert after.std() < 0.5 * before.std() and abs(float(after.mean())) < 5e-4
+
+
+@pytest.mark.parametrize("frames, worker_mode, every", [("all", "async", True), ("keyframes", "sync", False),
+                                                        ("async", "async", False), ("async", "sync", True)])
+def test_which_frames_are_filtered_before_tracking(frames, worker_mode, every):
+    assert filters_every_frame(DepthFilterConfig(frames=frames), worker_mode) is every
+
+
+def test_an_unknown_frames_mode_is_an_error_naming_the_parameter():
+    with pytest.raises(ValueError, match="depth_filter.frames"):
+        filters_every_frame(DepthFilterConfig(frames="some"), "sync")

@@ -1,6 +1,7 @@
 """The mapping worker (``worker.mode: async``): its queue on its own, then GauSemSLAM tracking while the worker maps,
 opens submaps and closes a loop."""
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose
 from gausem_core.live import LiveCamera, frame_bytes
+from gausem_core.slam.depth_filter import filter_observation
 from gausem_core.slam.observation import Observation
 from gausem_core.slam.submap import Submap
 from gausem_core.slam.submap_store import SubmapStore
@@ -353,6 +355,37 @@ def test_async_between_keyframes_the_worker_goes_on_optimising_the_newest_window
     assert back.window_iterations[4] == 5 + 12 and back.worker.idle and len(slam.submaps) == 1
     assert len(back.window_ages) >= 3
     slam.close()
+
+
+@pytest.mark.parametrize("mode", ["async", "sync"])
+def test_a_live_tracker_takes_the_raw_depth_and_the_map_each_keyframes_filtered(mode):
+    """``depth_filter.frames: async``: in async mode the filter runs on keyframes alone, after tracking and before
+    mapping (the map's first frame too); in sync every frame is filtered before tracking."""
+    data = SyntheticDataset("default", resolution=(40, 30))
+    slam = GauSemSLAM(from_flat({**CHEAP, "worker.mode": mode}), "cpu", len(SYNTHETIC_CLASSES))
+    seen = {"tracked": [], "mapped": []}
+
+    def recording(kind, method):
+        def record(obs, *args):
+            seen[kind].append(obs.depth)
+            return method(obs, *args)
+        return record
+
+    slam.front_end.place = recording("tracked", slam.front_end.place)
+    slam.back_end.start = recording("mapped", slam.back_end.start)
+    slam.back_end.add_keyframe = recording("mapped", slam.back_end.add_keyframe)
+    generator, raw = torch.Generator().manual_seed(0), []
+    for f in (data[i] for i in range(5)):  # keyframes 0, 2 and 4 (mapping.every 2)
+        obs = Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette, f.timestamp)
+        obs = replace(obs, depth=obs.depth * (1 + 0.01 * torch.randn(obs.depth.shape, generator=generator)))
+        raw.append(obs)
+        slam.process(obs)
+    slam.close()
+    filtered = [filter_observation(obs, slam.cfg.depth_filter).depth for obs in raw]
+    assert all(not torch.equal(f, obs.depth) for f, obs in zip(filtered, raw))  # the filter changes the noisy depth
+    expected = filtered if mode == "sync" else [obs.depth for obs in raw]
+    assert all(torch.equal(a, b) for a, b in zip(seen["tracked"], expected[1:], strict=True))
+    assert all(torch.equal(a, b) for a, b in zip(seen["mapped"], filtered[::2], strict=True))
 
 
 def test_sync_and_async_reject_an_unknown_mode():

@@ -22,6 +22,7 @@ from gausem_core.config import DepthFilterConfig
 from gausem_core.slam.observation import Observation
 
 
+FRAME_MODES = ("all", "keyframes", "async")  # depth_filter.frames
 _TAPS_PER_SIDE = 4  # at most this many taps each side of the centre: wider windows are sampled every few pixels
 _STRIP_ELEMENTS = 1 << 22  # CUDA: window taps x pixels filtered at once, bounding the memory at any resolution
 
@@ -80,6 +81,14 @@ def _sums_at_once(depth: torch.Tensor, padded: torch.Tensor, offsets: list[int],
         totals.append(weights.sum(0))
         weighted.append(weights.mul_(neighbours).sum(0))
     return torch.cat(totals), torch.cat(weighted)
+
+
+def filters_every_frame(cfg: DepthFilterConfig, worker_mode: str) -> bool:
+    """Whether every frame's depth is filtered before tracking (else only keyframes', before mapping:
+    ``depth_filter.frames``)."""
+    if cfg.frames not in FRAME_MODES:
+        raise ValueError(f"depth_filter.frames must be one of {FRAME_MODES}, got {cfg.frames!r}")
+    return cfg.frames == "all" or (cfg.frames == "async" and worker_mode != "async")
 
 
 def filter_observation(obs: Observation, cfg: DepthFilterConfig) -> Observation:

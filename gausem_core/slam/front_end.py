@@ -18,6 +18,7 @@ from gausem_core.config import SlamConfig, gap_mode_applies
 from gausem_core.gaussians import GaussianCloud
 from gausem_core.geometry import invert_pose
 from gausem_core.slam.back_end import TIMES_KEPT, BackEnd
+from gausem_core.slam.depth_filter import filter_observation, filters_every_frame
 from gausem_core.slam.feature_start import FeatureStart
 from gausem_core.slam.health import HealthMonitor, TrackingHealth, image_signals
 from gausem_core.slam.keyframe_view import FILL_MODES, KeyframeView
@@ -45,7 +46,8 @@ class MotionPrediction(NamedTuple):
 class Placement:
     """A frame as the front end placed it. ``record`` is None when the frame was dropped (lost and not relocalised:
     ``relocalised`` says why); else it is the frame's record, already in the back end's frames, and ``pose`` its
-    cam_to_world in ``submap``, the submap tracked against."""
+    cam_to_world in ``submap``, the submap tracked against. At a keyframe, ``observation`` is the frame as the map
+    takes it (:meth:`FrontEnd.for_map`)."""
 
     submap: Submap
     map_age: int  # frames between the newest keyframe of ``submap`` and this frame
@@ -55,6 +57,7 @@ class Placement:
     relocalised: RelocalisationResult | None = None
     health: TrackingHealth | None = None
     keyframe: bool = False
+    observation: Observation | None = None
 
 
 class FrontEnd:
@@ -76,6 +79,7 @@ class FrontEnd:
             raise ValueError(f"tracking.keyframe_fill must be one of {FILL_MODES}, got {cfg.tracking.keyframe_fill!r}")
         self.fill = cfg.tracking.keyframe_fill == "always" or (cfg.tracking.keyframe_fill == "async"
                                                              and cfg.worker.mode == "async")
+        self.filter_every_frame = filters_every_frame(cfg.depth_filter, cfg.worker.mode)
         self._keyframe: tuple[KeyframeView, FrameRecord | None] | None = None  # the newest keyframe handed over and
         # its record (None: the map's first frame)
         self.lost = False  # the next frame is relocalised (:meth:`relocalise_next`; a caller may set it after a
@@ -90,6 +94,14 @@ class FrontEnd:
     @property
     def frames(self) -> list[FrameRecord]:
         return self.back_end.frames
+
+    def observed(self, obs: Observation) -> Observation:
+        """A frame as tracking takes it: its depth filtered where every frame's is (``depth_filter.frames``)."""
+        return filter_observation(obs, self.cfg.depth_filter) if self.filter_every_frame else obs
+
+    def for_map(self, obs: Observation) -> Observation:
+        """A keyframe (an :meth:`observed` frame) as the map takes it: its depth filtered."""
+        return obs if self.filter_every_frame else filter_observation(obs, self.cfg.depth_filter)
 
     def start(self, obs: Observation) -> None:
         """The map's first frame (placed by the back end at the origin, its first keyframe) is the last good one."""
@@ -165,10 +177,11 @@ class FrontEnd:
             world = record.cam_to_world
         keyframe = not self.lost and self.keyframes.is_keyframe(frame_id, world, obs, health,
                                                                 motion.gap or relocalised is not None)
+        mapped = self.for_map(obs) if keyframe else None
         if keyframe and self.fill:
-            self._keyframe = (KeyframeView.of(obs, pose), record)
+            self._keyframe = (KeyframeView.of(mapped, pose), record)
         return replace(placement, record=record, pose=pose, tracked=tracked, relocalised=relocalised, health=health,
-                       keyframe=keyframe)
+                       keyframe=keyframe, observation=mapped)
 
     def _track_or_relocalise(self, obs: Observation, motion: MotionPrediction, submap: Submap, cloud: GaussianCloud,
                              keyframe: KeyframeView | None

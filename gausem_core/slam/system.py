@@ -18,7 +18,6 @@ from gausem_core.native import kernel_available
 from gausem_core.render import prepare_backend
 from gausem_core.slam.allocation import Decision
 from gausem_core.slam.back_end import BackEnd
-from gausem_core.slam.depth_filter import filter_observation
 from gausem_core.slam.events import Correction, FrameEvents, KeyframeState, SubmapChange
 from gausem_core.slam.front_end import FrontEnd
 from gausem_core.slam.health import TrackingHealth
@@ -153,10 +152,11 @@ class GauSemSLAM:
             raise ValueError(f"skipped must be >= 0, got {skipped}")
         back = self.back_end
         back.raise_error()
-        obs = filter_observation(back.vignetting.correct(obs), self.cfg.depth_filter)
+        obs = self.front_end.observed(back.vignetting.correct(obs))
         frame_id = len(self.frames)
         back.mapper.hurry.clear()
         if not self.submaps:
+            obs = self.front_end.for_map(obs)
             self.front_end.start(obs)
             events, loss = back.start(obs, frame_id)
             return self._result(frame_id, True, 0.0, 0, loss, events=events)
@@ -166,7 +166,7 @@ class GauSemSLAM:
             return FrameResult(frame_id, reloc.cam_to_world, False, reloc.tracking_loss, reloc.iterations, None,
                                placed.submap.num_gaussians, placed.submap.submap_id, None, reloc, placed.health,
                                mapped=self.take_mapped(), map_age=placed.map_age)
-        mapped = back.add_keyframe(obs, placed.record, placed.pose) if placed.keyframe else None
+        mapped = back.add_keyframe(placed.observation, placed.record, placed.pose) if placed.keyframe else None
         events, loss, decision = mapped or (None, None, None)
         tracked = placed.tracked
         return self._result(frame_id, placed.keyframe, tracked.loss, tracked.iterations, loss, decision,
