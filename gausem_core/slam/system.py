@@ -29,6 +29,8 @@ from gausem_core.slam.persistence import read_document, restore_session, save_se
 from gausem_core.slam.relocalisation import RelocalisationResult
 from gausem_core.slam.submap import FrameRecord, Submap
 from gausem_core.slam.tracker import Tracker
+from gausem_core.slam.vignetting import Vignetting
+from gausem_core.slam.worker import MappingWorker
 
 
 @dataclass
@@ -125,7 +127,23 @@ class GauSemSLAM:
 
     @property
     def detect_loops(self) -> bool:
+        """Whether loops are detected here (False: elsewhere, see the class docstring); settable, e.g. on a loaded
+        system that is to hand its place signatures to another detector."""
         return self.back_end.detect_loops
+
+    @detect_loops.setter
+    def detect_loops(self, value: bool) -> None:
+        self.back_end.detect_loops = value
+
+    @property
+    def worker(self) -> MappingWorker | None:
+        """The mapping worker of ``worker.mode: async`` (its queue ``depth``, its ``stats``); None in sync mode."""
+        return self.back_end.worker
+
+    @property
+    def vignetting(self) -> Vignetting:
+        """The online vignetting estimate: V(r) = exp(a r^2), ``a`` its current value."""
+        return self.back_end.vignetting
 
     @property
     def asynchronous(self) -> bool:
