@@ -41,7 +41,9 @@ from .nodes.common import ros_process
 from .nodes.loop_detection import LoopDetectionNode
 from .nodes.pose_graph import PoseGraphNode
 from .nodes.segmentation import SegmentationNode
-from .nodes.tracking_mapping import LOCKSTEP_DEFAULTS, NO_LABELS_FIX, TrackingMappingNode
+from .nodes.tracking.frame_input import NO_LABELS_FIX
+from .nodes.tracking.parameters import LOCKSTEP_DEFAULTS
+from .nodes.tracking_mapping import TrackingMappingNode
 from .player import add_player_arguments, is_bag, player_from_args
 
 
@@ -120,7 +122,7 @@ def report(tracking: TrackingMappingNode, player, ns: argparse.Namespace, argv: 
     in ``input.json``) and print the summary."""
     if not tracking.frames_processed:
         raise ValueError("--report: no frame was processed, there is nothing to evaluate")
-    camera = tracking.camera
+    camera = tracking.frame_input.camera
     reference = open_dataset(ns.reference or ns.source, size=(camera.width, camera.height))
     metrics = write_report(tracking.slam, tracking.cfg, reference, ns.report, tracking.seconds,
                            health=tracking.health_log, eval_every=ns.eval_every, params_file=params_file(argv))

@@ -79,7 +79,7 @@ class _Session:
 
     def camera_info(self, camera: PinholeCamera) -> None:
         self.info_pub.publish(ma.camera_to_camera_info(camera, ma.make_header(0.0, "cam")))
-        assert spin_until(self.executor, lambda: self.node.camera == camera, 5.0)
+        assert spin_until(self.executor, lambda: self.node.frame_input.camera == camera, 5.0)
 
     def send(self, messages, expect) -> None:
         for pub, msg in zip(self.pubs, messages):

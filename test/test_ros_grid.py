@@ -10,7 +10,8 @@ from nav_msgs.msg import OccupancyGrid  # noqa: E402
 
 import msg_adapters as ma  # noqa: E402
 from gausem_core.maps.occupancy import OCCUPIED  # noqa: E402
-from gausem_core.maps.slam_grid import slam_grid  # noqa: E402
+from gausem_core.data.classes import SYNTHETIC_CLASSES  # noqa: E402
+from gausem_core.maps.slam_grid import floor_class_id, slam_grid  # noqa: E402
 from gausem_ros.nodes.tracking_mapping import TrackingMappingNode  # noqa: E402
 from gausem_ros.player import Player, open_source  # noqa: E402
 from gausem_ros.qos import LATCHED_QOS  # noqa: E402
@@ -42,7 +43,7 @@ def test_the_node_publishes_the_occupancy_grid_latched_in_the_floor_frame():
         for node in (tracking, player, early.node):
             executor.add_node(node)
         assert spin_until(executor, lambda: player.done, 50.0)
-        assert spin_until(executor, lambda: not tracking._grid_dirty, 10.0)
+        assert spin_until(executor, lambda: not tracking.map_outputs.grid_dirty, 10.0)
         keyframes = sum(len(s.keyframes) for s in tracking.slam.submaps)
         spin_for(executor, 1.0)  # five periods: an unchanged map publishes no new grid
         assert 1 <= len(early.messages["gausem/grid"]) <= keyframes
@@ -54,7 +55,8 @@ def test_the_node_publishes_the_occupancy_grid_latched_in_the_floor_frame():
         cells, resolution, origin = ma.occupancy_grid_to_cells(msg)
         assert resolution == pytest.approx(tracking.cfg.grid.resolution)
         assert (cells == OCCUPIED).any() and (cells == 0).any() and (cells == -1).any()
-        grid = slam_grid(tracking.slam, tracking.cfg.grid, tracking.palette, tracking._floor_class)
+        grid = slam_grid(tracking.slam, tracking.cfg.grid, tracking.palette,
+                         floor_class_id(SYNTHETIC_CLASSES.names, tracking.cfg.grid.floor_class))
         assert np.array_equal(cells, grid.cells) and np.allclose(origin, grid.local_pose, atol=1e-6)
         assert abs(origin[2, 3]) < 1e-9 and np.allclose(origin[:3, 2], [0, 0, 1])  # level: x, y, yaw only
         if static_tf:

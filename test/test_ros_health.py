@@ -8,14 +8,15 @@ import pytest
 pytest.importorskip("rclpy")
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
+from nav_msgs.msg import Odometry, Path  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
 import msg_adapters as ma  # noqa: E402
 from gausem_core.geometry import PinholeCamera  # noqa: E402
 from gausem_core.slam.health import TrackingHealth  # noqa: E402
-from gausem_ros.nodes.tracking_mapping import DEGRADED_VARIANCE, TrackingMappingNode  # noqa: E402
-from gausem_ros.qos import EVENT_QOS, IMAGE_QOS  # noqa: E402
+from gausem_ros.nodes.tracking.trajectory import DEGRADED_VARIANCE  # noqa: E402
+from gausem_ros.nodes.tracking_mapping import TrackingMappingNode  # noqa: E402
+from gausem_ros.qos import EVENT_QOS, IMAGE_QOS, LATCHED_QOS  # noqa: E402
 from ros_harness import FAST_SLAM, Recorder, overrides, ros_session, spin_for, spin_until  # noqa: E402
 
 
@@ -37,7 +38,7 @@ def test_tracking_health_reaches_diagnostics_and_odometry_and_a_lost_frame_is_dr
     with ros_session(160) as (ctx, executor):
         never_lost = {"health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0}
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides({**FAST_SLAM, **never_lost}))
-        recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS),
+        recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS), (Path, "gausem/path", LATCHED_QOS),
                                   (DiagnosticArray, "gausem/diagnostics", EVENT_QOS)])
         node = recorder.node
         pubs = [node.create_publisher(Image, t, IMAGE_QOS) for t in ("rgb/image", "depth/image", "semantic/labels")]
@@ -76,16 +77,18 @@ def test_tracking_health_reaches_diagnostics_and_odometry_and_a_lost_frame_is_dr
         assert spin_until(executor, lambda: latest().level == DiagnosticStatus.WARN, 5.0)
         values = {kv.key: kv.value for kv in latest().values}
         assert values["tracking.status"] == "degraded" and values["tracking.inlier_fraction"] == "0.5"
-        assert float(values["camera.vignetting_corner_gain"]) == math.exp(tracking.slam.back_end.vignetting.a)
+        assert float(values["camera.vignetting_corner_gain"]) == math.exp(tracking.slam.vignetting.a)
         assert "tracking degraded" in latest().message
 
         send(1.2, TrackingHealth("lost", jump=40.0, reasons=("jump",)),
              lambda: tracking.drops.counts["tracking_lost"] == 1)
         spin_for(executor, 0.3)
         assert len(recorder.messages["gausem/odometry"]) == 2 and tracking.frames_processed == 2
-        tracking._path = None  # as after a correction: rebuilt from the trajectory, the lost frame not in it
-        tracking._publish_path()
-        assert len(tracking.slam.frames) == 3 and len(tracking._path.poses) == 2
+        paths = len(recorder.messages["gausem/path"])
+        tracking.trajectory.path_corrected()  # as after a correction: rebuilt from the trajectory, the lost frame not
+        tracking.trajectory.publish_path()  # in it
+        assert spin_until(executor, lambda: len(recorder.messages["gausem/path"]) > paths, 5.0)
+        assert len(tracking.slam.frames) == 3 and len(recorder.messages["gausem/path"][-1].poses) == 2
         _, written = tracking.save_map(tmp_path)
         assert len(written.read_text().splitlines()) == 1 + 2  # a header line, the two published poses
         assert latest().level == DiagnosticStatus.ERROR and "tracking lost" in latest().message

@@ -378,9 +378,10 @@ def test_loop_detection_holds_a_loaded_map_and_a_revisit_of_it_is_a_loop_candida
         player = Player(dataset_frames([dataclasses.replace(frames[0], timestamp=10.0)]), rate=0.0, lockstep=True,
                         timeout=30.0, context=ctx)  # back at the first place
         executor.add_node(player)
-        assert spin_until(executor, lambda: player.done and tracking.loop_candidates, 60.0)
+        assert spin_until(executor, lambda: player.done and tracking.loop_link.candidates, 60.0)
     assert tracking.frames_processed == 1
-    assert [(c.query_keyframe_id, c.match_keyframe_id in (0, 2, 4)) for c in tracking.loop_candidates] == [(6, True)]
+    candidates = tracking.loop_link.candidates
+    assert [(c.query_keyframe_id, c.match_keyframe_id in (0, 2, 4)) for c in candidates] == [(6, True)]
 
 
 def torch_equal(a, b) -> bool:

@@ -165,7 +165,7 @@ def test_the_node_maps_on_its_worker_by_default_and_publishes_the_keyframes_it_f
                                                      "worker.map_age_frames"} <= set(status)
         tracking.finish()
         keyframes = [k.frame_id for s in tracking.slam.submaps for k in s.keyframes]
-        stats = tracking.slam.back_end.worker.stats
+        stats = tracking.slam.worker.stats
         assert len(keyframes) >= 2 and stats.mapped == len(keyframes) == stats.submitted - stats.superseded
         tracked = tracking.frames_processed  # every frame not judged lost
         assert tracked >= frames - 2
@@ -226,20 +226,20 @@ def test_bad_input_is_dropped_and_reported_and_the_node_keeps_running():
         uncalibrated.k = np.zeros(9)
         info_pub.publish(uncalibrated)  # dropped: the valid camera_info before it stays in use
         assert spin_until(executor, lambda: tracking.drops.rejected["bad_camera_info"] == 1, 5.0)
-        assert tracking.lens_distortion == () and tracking.camera == camera
+        assert tracking.frame_input.lens_distortion == () and tracking.frame_input.camera == camera
         distorted = ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam"))
         distorted.d = [0.1, 0.0, 0.0, 0.0, 0.0]  # frames are undistorted into a longer-focal pinhole
         info_pub.publish(distorted)
-        assert spin_until(executor, lambda: tracking.lens_distortion == (0.1, 0.0, 0.0, 0.0, 0.0), 5.0)
-        assert tracking.camera.fx > camera.fx and tracking._status()["camera.undistorted"] is True
+        assert spin_until(executor, lambda: tracking.frame_input.lens_distortion == (0.1, 0.0, 0.0, 0.0, 0.0), 5.0)
+        assert tracking.frame_input.camera.fx > camera.fx and tracking._status()["camera.undistorted"] is True
         obs = tracking._observation(*_frame_messages(1.05))  # what the core would get: the undistorted frame
-        assert obs.camera == tracking.camera and bool((obs.depth > 0).all())
+        assert obs.camera == tracking.frame_input.camera and bool((obs.depth > 0).all())
         distorted.d = [0.1, 0.2]  # a model it cannot undo: rejected, the one before stays
         info_pub.publish(distorted)
         assert spin_until(executor, lambda: tracking.drops.rejected["bad_camera_info"] == 2, 5.0)
-        assert tracking.lens_distortion == (0.1, 0.0, 0.0, 0.0, 0.0)
+        assert tracking.frame_input.lens_distortion == (0.1, 0.0, 0.0, 0.0, 0.0)
         info_pub.publish(ma.camera_to_camera_info(camera, ma.make_header(1.0, "cam")))
-        assert spin_until(executor, lambda: tracking.camera == camera, 5.0)
+        assert spin_until(executor, lambda: tracking.frame_input.camera == camera, 5.0)
         send(_frame_messages(1.1, rgb_encoding="mono16"), dropped("bad_encoding"))
         send(_frame_messages(1.2, size=(20, 30)), dropped("size_mismatch"))  # all three differ from camera_info
         send(_frame_messages(1.21, depth=np.full((30, 20), 2.0)), dropped("size_mismatch", 2))  # rgb vs depth
@@ -501,17 +501,17 @@ def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
 
         loop_detection, pose_graph = start_helpers()
         play(0, 4)
-        assert spin_until(executor, lambda: tracking.loop_candidates, 5.0)  # keyframe 2 -> 0
+        assert spin_until(executor, lambda: tracking.loop_link.candidates, 5.0)  # keyframe 2 -> 0
         for node in (loop_detection, pose_graph):  # both "crash"
             assert executor.retire_node(node)
-        candidates_before = len(tracking.loop_candidates)
+        candidates_before = len(tracking.loop_link.candidates)
         play(4, 6)  # keyframe 4 reaches nobody; tracking goes on
         assert spin_until(executor, lambda: len(recorder.messages["gausem/odometry"]) == 6, 5.0)
-        assert len(tracking.loop_candidates) == candidates_before
+        assert len(tracking.loop_link.candidates) == candidates_before
 
         loop_detection, pose_graph = start_helpers()
         play(6, 10)
-        assert spin_until(executor, lambda: len(tracking.loop_candidates) > candidates_before, 5.0)
+        assert spin_until(executor, lambda: len(tracking.loop_link.candidates) > candidates_before, 5.0)
         assert spin_until(executor, lambda: sorted(pose_graph.keyframes) == [6, 8], 5.0)
         before = {k.frame_id: k.cam_to_world.clone() for s in tracking.slam.submaps for k in s.keyframes}
         (_, pose_6), (_, pose_8) = pose_graph.keyframes[6], pose_graph.keyframes[8]  # as the records carried them
@@ -519,11 +519,11 @@ def test_tracker_keeps_tracking_while_loop_detection_and_pose_graph_restart():
         constraint = ma.LoopConstraintRecord(6, 8, 0, 0, relative, 1.0, ma.sigmas_to_information((0.005, 0.01)),
                                              True)  # stands in for registration
         constraint_pub.publish(ma.records_to_pointcloud2([constraint], ma.make_header(1.0, "map")))
-        assert spin_until(executor, lambda: tracking.pose_graph_updates, 10.0)
+        assert spin_until(executor, lambda: tracking.loop_link.pose_graph_updates, 10.0)
         after = {k.frame_id: k.cam_to_world for s in tracking.slam.submaps for k in s.keyframes}
-    assert [c.query_keyframe_id for c in tracking.loop_candidates] == [2, 8]  # 4 and 6 found no earlier keyframe
-    assert tracking.loop_candidates[-1].match_keyframe_id == 6
-    update = {n.node_id: n.pose for n in tracking.pose_graph_updates[0].nodes}
+    assert [c.query_keyframe_id for c in tracking.loop_link.candidates] == [2, 8]  # 4 and 6 found no earlier keyframe
+    assert tracking.loop_link.candidates[-1].match_keyframe_id == 6
+    update = {n.node_id: n.pose for n in tracking.loop_link.pose_graph_updates[0].nodes}
     assert sorted(update) == [6, 8] and pose_graph.updates_published == 1
     np.testing.assert_allclose(after[8].double().numpy(), update[8], atol=1e-6)  # the tracker applied the correction
     assert not np.allclose(after[8].numpy(), before[8].numpy(), atol=1e-4)
@@ -556,7 +556,7 @@ def test_a_loop_candidate_is_registered_optimised_by_pose_graph_and_applied_with
         poses_before = {k.frame_id: k.cam_to_world.double().clone() for k in tracking.slam.active.keyframes}
         candidate = ma.LoopCandidateRecord(2, 0, 0, 0, 0.1, 0.0, True)
         candidate_pub.publish(ma.records_to_pointcloud2([candidate], ma.make_header(2.0, "map")))
-        assert spin_until(executor, lambda: tracking.pose_graph_updates, 60.0)
+        assert spin_until(executor, lambda: tracking.loop_link.pose_graph_updates, 60.0)
         keyframes = {k.frame_id: k.cam_to_world.double().numpy() for k in tracking.slam.active.keyframes}
         cloud_after = tracking.slam.active.cloud.means.detach()
     record = tracking.slam.loop_closure.records[-1]
@@ -566,7 +566,7 @@ def test_a_loop_candidate_is_registered_optimised_by_pose_graph_and_applied_with
     assert (constraint.keyframe_a, constraint.keyframe_b, constraint.intra_submap) == (0, 2, True)
     truth = np.linalg.inv(frames[0].gt_pose) @ frames[2].gt_pose
     assert np.linalg.norm(constraint.relative_pose[:3, 3] - truth[:3, 3]) < 0.01  # registration measured the motion
-    update = {n.node_id: n.pose for n in tracking.pose_graph_updates[0].nodes}
+    update = {n.node_id: n.pose for n in tracking.loop_link.pose_graph_updates[0].nodes}
     assert sorted(update) == [0, 2, 4]
     for frame_id, pose in update.items():
         np.testing.assert_allclose(keyframes[frame_id], pose, atol=1e-5)  # applied

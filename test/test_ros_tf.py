@@ -121,7 +121,7 @@ def test_a_tf2_listener_gets_map_odom_base_camera_composing_to_the_odometry_and_
         update = ma.PoseGraphUpdate([ma.PoseGraphNode(ma.PoseGraphNodeKind.ANCHOR, 0, shift)])
         listener.node.create_publisher(PointCloud2, "gausem/pose_graph", EVENT_QOS).publish(
             ma.pose_graph_update_to_pointcloud2(update, ma.make_header(1.0, "map")))
-        assert spin_until(executor, lambda: tracking.pose_graph_updates, 10.0)
+        assert spin_until(executor, lambda: tracking.loop_link.pose_graph_updates, 10.0)
         _play(ctx, executor, frames[3:])
         assert spin_until(executor, lambda: len(listener.messages["gausem/odometry"]) == 6
                           and len(listener.messages["/tf"]) == 6 and listener.messages["/tf_static"], 10.0)

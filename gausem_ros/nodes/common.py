@@ -82,10 +82,10 @@ class FrameRejected(ValueError):
 
 
 def survives_errors(handler: Callable | None = None, *, frame: bool = True) -> Callable:
-    """Decorator for a node method that handles one input: an exception it raises is logged (the traceback at debug
-    level) and counted on the node's ``drops`` as ``processing_error`` (a dropped frame, or with ``frame=False`` a
-    rejected message), and the node goes on with the next input. ``@survives_errors`` or
-    ``@survives_errors(frame=False)``."""
+    """Decorator for a method that handles one input, of a node or of a part of one (anything with ``get_logger()``
+    and ``drops``): an exception it raises is logged (the traceback at debug level) and counted on ``drops`` as
+    ``processing_error`` (a dropped frame, or with ``frame=False`` a rejected message), and the node goes on with the
+    next input. ``@survives_errors`` or ``@survives_errors(frame=False)``."""
     if handler is None:
         return functools.partial(survives_errors, frame=frame)
 
