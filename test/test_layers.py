@@ -1,5 +1,6 @@
 """The import graph: no arrow up the layers (core <- msg_adapters <- gausem_ros; the benchmark harness above all),
-no module imports another's private names, and no core modules import each other round a loop."""
+no module imports another's private names, and no core modules import each other round a loop; the ROS nodes read
+the core only through its public API, and the tracking node stays thin."""
 import ast
 from pathlib import Path
 
@@ -73,3 +74,19 @@ def test_no_import_cycle_in_the_core():
             visit(name, [name])
     assert graph["gausem_core.slam.system"], "the check sees no imports"
     assert not cycles, "\n".join(cycles)
+
+
+def test_the_ros_nodes_read_the_core_only_through_its_public_api():
+    """No ``back_end.`` in gausem_ros: events (``slam.events``) and ``GauSemSLAM``'s methods and properties only."""
+    offences = [f"{path.relative_to(ROOT)}:{number}" for path in sorted((ROOT / "gausem_ros").rglob("*.py"))
+                for number, line in enumerate(path.read_text().splitlines(), 1) if "back_end." in line]
+    assert not offences, "\n".join(offences)
+
+
+def test_the_tracking_node_is_thin_and_its_parts_small():
+    """tracking_mapping.py (inputs, the call into the core, the wiring) under 300 lines; each of its parts
+    (gausem_ros/nodes/tracking/) at most 250."""
+    nodes = ROOT / "gausem_ros" / "nodes"
+    parts = sorted((nodes / "tracking").glob("*.py"))
+    assert len((nodes / "tracking_mapping.py").read_text().splitlines()) < 300
+    assert len(parts) > 5 and {p.name: n for p in parts if (n := len(p.read_text().splitlines())) > 250} == {}
