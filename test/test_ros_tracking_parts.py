@@ -13,6 +13,7 @@ pytest.importorskip("rclpy")
 import rclpy  # noqa: E402
 from nav_msgs.msg import Odometry, Path  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
 
 import msg_adapters as ma  # noqa: E402
 from gausem_core.config import SlamConfig, flatten, from_flat  # noqa: E402
@@ -32,6 +33,7 @@ from gausem_ros.nodes.tracking.loop_link import LoopNodesLink  # noqa: E402
 from gausem_ros.nodes.tracking.map_outputs import MapPublisher  # noqa: E402
 from gausem_ros.nodes.tracking.parameters import NODE_DEFAULTS, check_parameters  # noqa: E402
 from gausem_ros.nodes.tracking.records import RecordPublisher  # noqa: E402
+from gausem_ros.nodes.tracking.services import MapServices  # noqa: E402
 from gausem_ros.nodes.tracking.trajectory import DEGRADED_VARIANCE, TrajectoryPublisher  # noqa: E402
 from gausem_ros.qos import EVENT_QOS, IMAGE_QOS, LATCHED_QOS  # noqa: E402
 from ros_harness import FAST_SLAM, Recorder, ros_session, spin_for, spin_until  # noqa: E402
@@ -325,3 +327,34 @@ def test_parameters_that_cannot_work_are_refused_naming_them(values, names):
     check_parameters(cfg, params())
     with pytest.raises(ValueError, match=f"tracking_mapping: {names}"):
         check_parameters(cfg, params(**values))
+
+
+def test_the_services_answer_with_what_their_action_did_or_why_it_failed(tmp_path):
+    """Each trigger runs the node's action and answers success with what it did, or failure naming the folder and
+    the error (a map that cannot be written or read stays as it is)."""
+    with ros_session(208) as (ctx, executor):
+        node = rclpy.create_node("parts", context=ctx)
+        node.declare_parameter("map_path", str(tmp_path / "no_session"))
+        done = []
+
+        def save_map(folder):
+            raise OSError("read-only file system")
+        node.params, node.save_map = params(output_dir=str(tmp_path)), save_map
+        node.slam = SimpleNamespace(submaps=[0])
+        node.finish, node.reset = (lambda: done.append("finish")), (lambda: done.append("reset"))
+        node.device, node.cfg = "cpu", None
+        MapServices(node)
+        client_node = rclpy.create_node("client", context=ctx)
+        for n in (node, client_node):
+            executor.add_node(n)
+
+        def call(name: str):
+            future = client_node.create_client(Trigger, name).call_async(Trigger.Request())
+            assert spin_until(executor, future.done, 10.0)
+            return future.result().success, future.result().message
+
+        assert call("gausem/save_map") == (False, f"could not write to {tmp_path}: read-only file system")
+        success, message = call("gausem/load_map")
+        assert not success and message.startswith(f"could not load {tmp_path / 'no_session'}: ")
+        assert call("gausem/finish") == (True, "global refinement done over 1 submaps")
+        assert call("gausem/reset") == (True, "map and trajectory cleared") and done == ["finish", "reset"]

@@ -68,7 +68,7 @@ class TrackingMappingNode(Node):
         self.palette = table.palette if table is not None else UNLABELLED_PALETTE
         self.device = resolve_device(self.cfg.device)
         self.drops = DropReport(self, status=self._status, level=lambda: HEALTH_LEVELS[self.health.status])
-        if self.device.type == "cuda":  # the inputs are subscribed once the renderer is ready
+        if self.device.type == "cuda":  # the images are subscribed once the renderer is ready
             self.get_logger().info("preparing the renderer on cuda (gsplat compiles its kernels on a machine's first "
                                    "run: one to two minutes)")
         tf_static = make_transform_broadcaster(self, static=True) if p.base_frame or p.grid_frame else None
