@@ -266,7 +266,7 @@ def run_node(factory: Callable, args=None) -> int:
     the frame in progress finishes early, the executor waits for it, and the node is destroyed."""
     node = None
     with ros_process(args):
-        executor = NodeExecutor(num_threads=2)
+        executor = NodeExecutor(num_threads=3)  # a thread each for tracking_mapping's groups: inputs, frames, map
         try:
             node = factory()
             executor.add_node(node)
