@@ -12,6 +12,8 @@ All three have ``sendTransform(transform_or_list)`` like tf2_ros.
 """
 from __future__ import annotations
 
+import threading
+
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile
 
 _TF_QOS = QoSProfile(depth=100)
@@ -56,7 +58,26 @@ class UnavailableTransformBroadcaster:
             self._warned = True
 
 
+class SerialisedBroadcaster:
+    """A broadcaster whose sends never overlap: a static one keeps every transform sent so far, and parts of a node
+    send through it from several callback groups (tracking_mapping's camera and grid frames)."""
+
+    def __init__(self, broadcaster):
+        self._broadcaster = broadcaster
+        self._lock = threading.Lock()
+
+    def sendTransform(self, transforms) -> None:  # noqa: N802 (tf2_ros' name)
+        with self._lock:
+            self._broadcaster.sendTransform(transforms)
+
+
 def make_transform_broadcaster(node, static: bool = False):
+    """The best broadcaster available (see the module docstring); a static one is serialised."""
+    broadcaster = _best_broadcaster(node, static)
+    return SerialisedBroadcaster(broadcaster) if static else broadcaster
+
+
+def _best_broadcaster(node, static: bool):
     try:
         from tf2_ros import StaticTransformBroadcaster, TransformBroadcaster
     except ImportError:

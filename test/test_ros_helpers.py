@@ -195,6 +195,27 @@ def test_tf_falls_back_to_a_tfmessage_publisher(monkeypatch):
     assert [m.transforms for m in pub_static.sent] == [[a], [a, b]]
 
 
+def test_a_static_broadcaster_shared_by_several_threads_sends_one_at_a_time():
+    """tracking_mapping's parts send static transforms from two callback groups; tf2_ros' static broadcaster
+    rebuilds its latched message in Python, so overlapping sends could lose one."""
+    inside, most = [0], [0]
+
+    class Slow:
+        def sendTransform(self, transforms):  # noqa: N802 (tf2_ros' name)
+            inside[0] += 1
+            most[0] = max(most[0], inside[0])
+            time.sleep(0.01)
+            inside[0] -= 1
+
+    broadcaster = tf.SerialisedBroadcaster(Slow())
+    threads = [threading.Thread(target=lambda: [broadcaster.sendTransform([]) for _ in range(5)]) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert most == [1]
+
+
 # --- QoS --------------------------------------------------------------------------------------------------------------
 def test_incompatibility_follows_the_request_offered_rules():
     assert qos.incompatibility(qos.SENSOR_QOS, qos.IMAGE_QOS) == ("it publishes best effort and this subscription "
