@@ -44,12 +44,12 @@ class FrameInput:
                  qos, callback_group):
         self.get_logger, self.drops = node.get_logger, drops  # as survives_errors takes them
         self._params, self._palette, self._device = params, palette, device
-        subscribe_camera(node, CameraInfo, "rgb/camera_info", self.camera_info, qos, callback_group, INPUT_QOS_HINT)
         # the latest valid camera_info: (the pinhole camera the frames are given in, the Undistortion that takes
         # them there or None), replaced whole so that a frame never pairs one camera_info's camera with another's
         self._camera: tuple[PinholeCamera, Undistortion | None] | None = None
         self.lens_distortion: tuple[float, ...] = ()  # its D (empty: none stated)
         self._rescaled_sizes: set[tuple[int, int]] = set()  # frame sizes said to be resized to the map's camera
+        subscribe_camera(node, CameraInfo, "rgb/camera_info", self.camera_info, qos, callback_group, INPUT_QOS_HINT)
 
     def reset(self) -> None:
         """A new map: a frame size resized to its camera is said again."""
