@@ -209,9 +209,9 @@ class CountingSlam:
             self.submaps[0].keyframes.append(len(self.frames))
 
     def save(self, folder) -> None:
+        self.saved.append(len(self.frames))
         if self.fail:
             raise OSError("disk full")
-        self.saved.append(len(self.frames))
 
 
 def test_checkpoints_every_few_keyframes_and_survive_a_failed_write(tmp_path):
@@ -232,7 +232,7 @@ def test_checkpoints_every_few_keyframes_and_survive_a_failed_write(tmp_path):
         for _ in range(3):
             failing.step(True)
             checkpoints.after_frame()  # logged; tried again two keyframes later, not at every frame
-        assert checkpoints.stats.written == 1
+        assert failing.saved == [2] and checkpoints.stats.written == 1
 
 
 def synchroniser() -> SimpleNamespace:
