@@ -9,7 +9,9 @@ under another name is mapped with ``--topic INPUT=TOPIC`` (e.g. ``--topic labels
 Published (relative names, remappable): ``rgb/image``, ``depth/image``, ``rgb/camera_info``, ``semantic/labels``
 (only when the data has labels) with reliable QoS, and ``/clock`` (the replayed stamps, for ``use_sim_time``).
 Ground truth is never published; ``--gt-out FILE`` writes the dataset's ground-truth poses of the replayed frames as a
-TUM trajectory for evaluation.
+TUM trajectory for evaluation. ``--loop`` replays the source again and again until stopped (a soak test): each pass
+is read anew and restamped to follow the last one by one frame interval, so stamps keep increasing (the nodes drop
+stale and duplicate ones); no ground truth then, so neither ``--gt-out`` nor ``--finish``.
 
 Timing: frames follow their recorded stamps scaled by ``--rate`` (0 = as fast as possible), on the wall clock: the
 player is the source of ``/clock``, so it never runs on sim time itself (``use_sim_time`` is forced off for it, also
@@ -30,11 +32,12 @@ command exits with 1) after the frames read so far; the player never dies in a c
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import threading
 import time
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +50,7 @@ from rclpy.parameter import Parameter
 from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 import msg_adapters as ma
@@ -66,6 +70,7 @@ GAUSEM_BAG_TOPICS = {key: "/" + topic for key, (_, topic) in OUTPUTS.items()}
 BAG_TOPIC_KEYS = {**{TUM_TOPICS[key]: key for key in ("rgb", "depth", "camera_info")},
                   **{topic: key for key, topic in GAUSEM_BAG_TOPICS.items()}}
 _STAMP_TOLERANCE_NS = 1000  # float-seconds round trips of stamps are exact to well below 1 us
+_LOOP_INTERVAL_NS = 33_333_333  # --loop: the gap after a pass of a single frame (a 30 Hz camera's)
 
 
 @dataclass
@@ -115,6 +120,28 @@ def bag_frames(path: str | Path, topics: dict[str, str] | None = None) -> Iterat
         (leading if frame is None else frame.messages).append((key, item.msg))
     if frame is not None:
         yield frame
+
+
+def looped(frames: Iterable[PlayerFrame], reopen: Callable[[], Iterable[PlayerFrame]]) -> Iterator[PlayerFrame]:
+    """``frames``, then ``reopen()``'s again and again (until one yields nothing), each pass's stamps and headers
+    shifted to follow the last frame by the last frame interval; without ground truth."""
+    offset, last, interval = 0, None, _LOOP_INTERVAL_NS
+    while True:
+        passed = 0
+        for frame in frames:
+            if not passed and last is not None:  # a pass starts one interval after the last one's end
+                offset = last + interval - frame.stamp_ns
+            for _, msg in frame.messages:  # a new header each: a frame's messages may share one
+                msg.header = Header(stamp=ma.ns_to_time(ma.time_to_ns(msg.header.stamp) + offset),
+                                    frame_id=msg.header.frame_id)
+            stamp = frame.stamp_ns + offset
+            if last is not None:
+                interval = stamp - last
+            last, passed = stamp, passed + 1
+            yield replace(frame, stamp_ns=stamp, gt_pose=None)
+        if not passed:
+            return
+        frames = reopen()
 
 
 def parse_topics(pairs: list[str]) -> dict[str, str]:
@@ -336,12 +363,21 @@ def add_player_arguments(parser: argparse.ArgumentParser, required: bool = True,
                             help="after the last frame, call gausem/finish (global refinement) and wait for it")
         parser.add_argument("--finish-timeout", type=float, default=600.0, help="wait for gausem/finish at most (s)")
     parser.add_argument("--gt-out", help="write the replayed frames' ground truth here (TUM format)")
+    parser.add_argument("--loop", action="store_true", help="replay the source again and again, restamped to follow "
+                        "on, until stopped (no ground truth)")
 
 
 def source_from_args(ns: argparse.Namespace) -> Iterator[PlayerFrame]:
-    """The frames :func:`add_source_arguments`' options name (a dataset opens now, a bag is read as iterated)."""
-    return open_source(ns.source, size=ns.size, stride=ns.stride, max_frames=ns.max_frames, frame_id=ns.frame_id,
-                       depth_encoding=ns.depth_encoding, topics=parse_topics(getattr(ns, "topic", [])))
+    """The frames :func:`add_source_arguments`' options name (a dataset opens now, a bag is read as iterated), looped
+    with ``--loop``."""
+    source = functools.partial(open_source, ns.source, size=ns.size, stride=ns.stride, max_frames=ns.max_frames,
+                               frame_id=ns.frame_id, depth_encoding=ns.depth_encoding,
+                               topics=parse_topics(getattr(ns, "topic", [])))
+    if not getattr(ns, "loop", False):
+        return source()
+    if getattr(ns, "gt_out", None) or getattr(ns, "finish", False):
+        raise ValueError("--loop replays until stopped: --gt-out and --finish need an end")
+    return looped(source(), source)
 
 
 def player_from_args(ns: argparse.Namespace, **node_kwargs) -> Player:

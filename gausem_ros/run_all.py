@@ -146,6 +146,8 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
     ns = parser.parse_args(remove_ros_args(argv)[1:])
     if ns.report and not ns.source:
         parser.error("--report needs a SOURCE to play")
+    if ns.report and ns.loop:
+        parser.error("--report needs the replay to end: not with --loop")
     if ns.report and not ns.reference and is_bag(ns.source):
         parser.error("--report with a bag needs --reference SPEC: the dataset the bag was made from")
     if ns.report:  # read the reference (its frames, class table) now, not after the replay

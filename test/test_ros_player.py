@@ -1,4 +1,8 @@
-"""The player (ROS 1 bag with TUM topic names, ROS 2 bag from gausem-bag), and nodes as separate processes."""
+"""The player (ROS 1 bag with TUM topic names, ROS 2 bag from gausem-bag, a looped source), and nodes as separate
+processes."""
+import argparse
+import functools
+import itertools
 import os
 import re
 import subprocess
@@ -19,7 +23,8 @@ from std_srvs.srv import Trigger  # noqa: E402
 import msg_adapters as ma  # noqa: E402
 from gausem_core.geometry import PinholeCamera  # noqa: E402
 from gausem_ros import bags, convert  # noqa: E402
-from gausem_ros.player import GAUSEM_BAG_TOPICS, Player, open_source  # noqa: E402
+from gausem_ros.player import (GAUSEM_BAG_TOPICS, Player, add_player_arguments, looped, open_source,  # noqa: E402
+                               player_from_args, source_from_args)
 from gausem_ros.player import main as player_main  # noqa: E402
 from gausem_ros.qos import IMAGE_QOS  # noqa: E402
 from gausem_ros.run_all import main as run_all_main  # noqa: E402
@@ -184,3 +189,33 @@ def test_a_replay_whose_labels_never_come_stops_with_code_2_and_names_the_fix(tm
     assert run_all_main([str(bag), "--topic", "labels=/camera/labels", "--lockstep", "--rate", "0", "--timeout", "30",
                          "--quiet", *ros_args]) == 0
     assert re.search(r"frames in 12, processed 12, dropped 0", capfd.readouterr().err)
+
+
+def test_a_looped_source_plays_on_with_increasing_stamps():
+    """--loop: the source again and again, each pass one frame interval after the last (the nodes drop stale and
+    duplicate stamps), its headers restamped with it, without ground truth; the player plays on past its end."""
+    source = functools.partial(open_source, "synthetic", size=(16, 12), max_frames=3)
+    frames = list(itertools.islice(looped(source(), source), 7))
+    stamps = [frame.stamp_ns for frame in frames]
+    assert all(abs(gap - 33_333_333) <= 1 for gap in np.diff(stamps)), stamps
+    assert all(ma.time_to_ns(msg.header.stamp) == frame.stamp_ns for frame in frames for _, msg in frame.messages)
+    assert all(frame.gt_pose is None for frame in frames)
+    rgb = [ma.image_to_rgb(dict(frame.messages)["rgb"]) for frame in frames]
+    assert np.array_equal(rgb[3], rgb[0]) and np.array_equal(rgb[6], rgb[0]) and not np.array_equal(rgb[1], rgb[0])
+    assert len(list(looped(source(), lambda: iter(())))) == 3  # a pass of nothing ends it
+
+    parser = argparse.ArgumentParser()
+    add_player_arguments(parser)
+    with pytest.raises(ValueError, match="--loop"):
+        source_from_args(parser.parse_args(["synthetic", "--loop", "--gt-out", "gt.txt"]))
+    ns = parser.parse_args(["synthetic", "--size", "16x12", "--max-frames", "2", "--rate", "0", "--loop",
+                            "--wait-subscribers", "0"])
+    with ros_session(118) as (ctx, executor):
+        player = player_from_args(ns, context=ctx)
+        recorder = Recorder(ctx, [(Clock, "/clock", IMAGE_QOS)])
+        executor.add_node(player)
+        executor.add_node(recorder.node)
+        assert spin_until(executor, lambda: len(recorder.messages["/clock"]) >= 5, 20.0)
+        clock = [ma.time_to_ns(c.clock) for c in recorder.messages["/clock"]]
+        assert not player.done
+    assert all(b > a for a, b in zip(clock, clock[1:])), clock
