@@ -98,7 +98,7 @@ CHAPTERS = [
         "slam_tracking_synthetic_loop_noisy", "slam_tracking_synthetic_default", "slam_tracking_synthetic_default_noisy",
         "slam_tracking_7scenes_redkitchen"]),
     ("ROS 2", ["realtime_tum_fr1_rpy_160x120", "ros_overhead", "checkpoint_cost_synthetic_loop_160x120",
-               "checkpoint_cost_tum_fr1_rpy_160x120"]),
+               "checkpoint_cost_tum_fr1_rpy_160x120", "soak_synthetic_loop_160x120"]),
     ("The live view", ["viewer_cost_synthetic_160x120"]),
     ("Renderer", ["render_cpu", "render_cuda"]),
     ("GPU", ["gpu_acceptance", "gpu_synthetic_640x480_h200"]),
