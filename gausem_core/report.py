@@ -133,7 +133,7 @@ def rendered_views(result: RunResult, pipeline: Pipeline, positions: list[int]):
         world_to_cam = invert_pose(torch.as_tensor(result.poses[k], dtype=cloud.dtype, device=cloud.device))
         with torch.no_grad():
             out = render(cloud, world_to_cam, obs.camera, backend=pipeline.cfg.backend)
-        yield frame, obs, replace(out, color=result.slam.back_end.vignetting.apply(out.color, obs.camera))
+        yield frame, obs, replace(out, color=result.slam.vignetting.apply(out.color, obs.camera))
 
 
 def evaluate_rendering(result: RunResult, pipeline: Pipeline, eval_every: int,
@@ -324,7 +324,7 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
     if evaluation.rows:
         write_montage(out / "montage.png", evaluation.rows)
     metrics.update(performance_metrics(result, pipeline.device))
-    a = result.slam.back_end.vignetting.a
+    a = result.slam.vignetting.a
     metrics["vignetting"] = {"a": a, "corner_gain": math.exp(a)}  # V(r) = exp(a r^2); corner_gain: V at r = 1
     descriptor = result.slam.back_end.descriptor
     metrics["semantics"] = {**pipeline.semantics.summary(),
