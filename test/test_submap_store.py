@@ -77,3 +77,36 @@ def test_close_deletes_the_cache_directory(tmp_path):
     assert not directory.exists() and list(tmp_path.iterdir()) == []
     with pytest.raises(ValueError, match="closed"):
         store.store(0, entry(5, 0))
+
+
+def test_threads_storing_and_loading_at_once_under_a_tight_budget_lose_nothing(tmp_path):
+    """The mapping worker stores and spills while a node's map publisher loads every submap: each call is atomic, so
+    no entry goes missing half-spilled and every load returns what was stored."""
+    import threading
+
+    entries = {("cloud", i): {"means": torch.full((2000, 3), float(i))} for i in range(8)}
+    store = SubmapStore(max_bytes=2 * tensor_bytes(entries["cloud", 0]), cache_dir=tmp_path)
+    for key, tensors in entries.items():
+        store.store(key, tensors)
+    errors = []
+
+    def hammer(keys, storing):
+        try:
+            for _ in range(60):
+                for key in keys:
+                    if storing:
+                        store.store(key, entries[key])
+                    loaded = store.load(key)
+                    assert torch.equal(loaded["means"], entries[key]["means"])
+        except Exception as err:  # noqa: BLE001 - reported by the assertion below
+            errors.append(err)
+
+    threads = [threading.Thread(target=hammer, args=(list(entries)[i::2], i == 0)) for i in range(2)]
+    threads += [threading.Thread(target=hammer, args=(list(entries), False))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    assert not errors, errors
+    assert len(store) == 8 and all(torch.equal(store.load(key)["means"], t["means"]) for key, t in entries.items())
+    store.close()

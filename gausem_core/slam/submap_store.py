@@ -6,17 +6,29 @@ least recently used ones (stored or loaded longest ago) are written to the cache
 dropped from memory. :meth:`SubmapStore.load` returns copies on the requested device, reading a spilled entry back
 (it becomes the most recently used in-memory entry again). Round trips are bit-identical (same dtypes, shapes and
 values). The store owns a fresh temporary directory (inside ``cache_dir`` when given) and deletes it on
-:meth:`SubmapStore.close` or on leaving a ``with`` block.
+:meth:`SubmapStore.close` or on leaving a ``with`` block. It is safe to use from several threads (the mapping worker
+spills while a node's map publisher loads): each call holds the store's own lock.
 """
 from __future__ import annotations
 
+import functools
 import shutil
 import tempfile
+import threading
 from collections import OrderedDict
 from collections.abc import Hashable
 from pathlib import Path
 
 import torch
+
+
+def _locked(method):
+    """``method`` run under the store's lock."""
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+    return run
 
 
 def tensor_bytes(tensors: dict[str, torch.Tensor]) -> int:
@@ -37,33 +49,41 @@ class SubmapStore:
         self._memory: OrderedDict[Hashable, dict[str, torch.Tensor]] = OrderedDict()  # oldest use first
         self._disk: dict[Hashable, tuple[Path, int]] = {}  # key -> (file, tensor bytes)
         self._files = 0
+        self._lock = threading.RLock()
 
     # --- queries ----------------------------------------------------------------------------------------------------
     @property
+    @_locked
     def nbytes(self) -> int:
         """Tensor bytes held in CPU memory."""
         return sum(tensor_bytes(t) for t in self._memory.values())
 
     @property
+    @_locked
     def disk_bytes(self) -> int:
         """Tensor bytes of the entries spilled to disk."""
         return sum(size for _, size in self._disk.values())
 
+    @_locked
     def __contains__(self, key: Hashable) -> bool:
         return key in self._memory or key in self._disk
 
+    @_locked
     def __len__(self) -> int:
         return len(self._memory) + len(self._disk)
 
+    @_locked
     def keys(self) -> list[Hashable]:
         return [*self._memory, *self._disk]
 
+    @_locked
     def on_disk(self, key: Hashable) -> bool:
         """Whether ``key``'s entry is currently spilled to disk (KeyError when absent)."""
         self._check_key(key)
         return key in self._disk
 
     # --- operations -------------------------------------------------------------------------------------------------
+    @_locked
     def store(self, key: Hashable, tensors: dict[str, torch.Tensor]) -> None:
         """Keep detached CPU copies of ``tensors`` under ``key`` (replacing an entry of that key), then enforce the
         budget."""
@@ -76,6 +96,7 @@ class SubmapStore:
         self._memory[key] = copies
         self._spill()
 
+    @_locked
     def load(self, key: Hashable, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
         """Copies of ``key``'s tensors on ``device``; marks the entry as used. A spilled entry is read back into memory
         and stays there (even past the budget) until a later store or load spills it again."""
@@ -89,6 +110,7 @@ class SubmapStore:
         self._memory.move_to_end(key)
         return {name: t.to(device, copy=True) for name, t in self._memory[key].items()}
 
+    @_locked
     def evict(self, key: Hashable, missing_ok: bool = False) -> None:
         """Forget ``key``'s entry (memory and disk)."""
         self._check_open()
@@ -99,6 +121,7 @@ class SubmapStore:
         elif not missing_ok:
             raise KeyError(f"SubmapStore: no entry {key!r}")
 
+    @_locked
     def close(self) -> None:
         """Drop every entry and delete the cache directory (idempotent)."""
         if self.directory is not None:
