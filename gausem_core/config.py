@@ -44,7 +44,7 @@ class GaussNewtonTrackingConfig:
     # at full resolution, its pyramid made by downsampling, and again at the estimate only when that moved
     # rerender_motion (translation / median model depth + rotation in radians) from where it was rendered
     model_views: str = "per_frame"
-    rerender_motion: float = 0.05
+    rerender_motion: float = 0.02
     full_resolution_points: str = "checkerboard"  # per_frame: the model pixels aligned at full resolution, "all" or
     # "checkerboard" (every other one: half the cost of the finest level)
     # per_frame: a start is kept instead of the estimate only when the estimate's cost exceeds the start's by more
