@@ -305,12 +305,16 @@ class RefinementConfig:
 
 @dataclass
 class RelocalisationConfig:
-    """Placing the first frame after a restart (a loaded session) against the saved map."""
+    """Placing a frame against the map without the motion model: after a tracking loss, or a restart (a loaded
+    session); and what follows when that keeps failing."""
 
     candidates: int = 5  # start poses: the last tracked pose plus this many keyframes nearest by global descriptor
     inlier_depth: float = 0.05  # metres: a pixel is an inlier when the map renders there within this of its depth ...
     inlier_alpha: float = 0.5  # ... with at least this silhouette (opacity)
     min_inlier_fraction: float = 0.6  # accept the best start when this fraction of the valid-depth pixels are inliers
+    new_segment_after: int = 5  # at this many failed relocalisations in a row, the frame (with depth enough for a
+    # map: health.degraded_valid_depth) starts a new, disconnected tracking segment at the last good pose, which a
+    # loop to the old map merges with it (0: never; the frames are dropped until one is relocalised)
 
 
 @dataclass
@@ -334,6 +338,7 @@ class HealthConfig:
     lost_valid_depth: float = 0.05  # ... lost below this one
     degraded_coverage: float = 0.3  # degraded when what tracking aligns against covers less than this fraction of the
     # image at the pose (benchmarks/results/health_160x120.json: the worst tracked frames of the noisy walk, 0.21-0.26)
+    lost_coverage: float = 0.01  # ... lost below this one (the map is not in view: a camera that jumped off it)
     recovery_inlier_fraction: float = 0.3  # after a loss, relocalisation accepts from this inlier fraction (its own)
     recovery_residual_z: float = 20.0  # ... and only with a residual z-score (against the frames before) up to this
 

@@ -326,6 +326,8 @@ def write_outputs(result: RunResult, dataset, cfg: SlamConfig, out: str | Path, 
     metrics.update(performance_metrics(result, pipeline.device))
     a = result.slam.vignetting.a
     metrics["vignetting"] = {"a": a, "corner_gain": math.exp(a)}  # V(r) = exp(a r^2); corner_gain: V at r = 1
+    metrics["segments"] = {"started": 1 + sum(s.starts_segment for s in result.slam.submaps),
+                           "separate_at_end": len(result.slam.segments())}
     descriptor = result.slam.back_end.descriptor
     metrics["semantics"] = {**pipeline.semantics.summary(),
                             "descriptor": descriptor.kind if descriptor is not None else None}

@@ -14,7 +14,8 @@ from gausem_ros.executor import NodeExecutor
 # a map of 3 initialisation iterations covers little of any view: without coverage_keyframes never, every frame after
 # a gap would be a keyframe mapped in 2 iterations
 FAST_SLAM = {"mapping.iterations": 2, "mapping.init_iterations": 3, "mapping.init_samples_fraction": 0.1,
-             "mapping.every": 100, "mapping.coverage_keyframes": "never", "device": "cpu", "backend": "torch"}
+             "mapping.every": 100, "mapping.coverage_keyframes": "never", "device": "cpu", "backend": "torch",
+             "health.lost_coverage": 0.0}  # these maps are too thin to cover 1 % of a view
 
 
 def overrides(values: dict) -> list[Parameter]:

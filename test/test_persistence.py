@@ -155,7 +155,7 @@ def test_the_session_tree_keeps_its_layout(saved):
     assert set(state) == {"submaps", "frames", "vignetting", "mapper_generator", "loop_closure", "segment_start",
                           "lost", "dropped", "skipped", "health", "feature_start"}
     submap, frame = state["submaps"][0], state["frames"][0]
-    assert set(submap) == {"id", "active", "anchor", "extent", "cloud", "keyframes"}
+    assert set(submap) == {"id", "active", "anchor", "starts_segment", "extent", "cloud", "keyframes"}
     assert set(submap["keyframes"][0]) == {"frame_id", "fixed", "timestamp", "camera", "cam_to_world", "images"}
     assert set(frame) == {"frame_id", "timestamp", "submap", "reference", "relative", "lost", "skipped"}
     assert submap["cloud"]["means"]["$tensor"].startswith("submap_0000.")  # its own file; poses in the state file

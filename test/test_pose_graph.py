@@ -148,3 +148,36 @@ def test_loop_graphs_optimise_the_level_of_each_loop_and_keep_nothing_from_a_bad
     update = graphs.add(inter)
     assert sorted(update.anchors) == [0, 1, 2] and not update.keyframes
     assert 1.8 < update.anchors[2][0, 3] < 2.0 and graphs.constraints == [intra, inter]
+
+
+def test_a_segment_stays_where_it_is_until_a_loop_merges_it_onto_the_first():
+    """Anchors 0-2 and, after a break, 3-5 (a second tracking segment started at a wrong guess, 2 m and 90 degrees
+    off): optimised without a loop between them, each segment keeps its poses (the second is held, not left free);
+    a loop 1 -> 4 moves the whole second segment rigidly onto the first (its odometry kept), and the graph knows
+    them as one segment from then on."""
+    from gausem_core.config import LoopConfig
+    from gausem_core.slam.loop_closure import LoopConstraint
+    from gausem_core.slam.loop_graphs import LoopGraphs
+    from gausem_core.slam.pose_graph import optimise_chain
+
+    truth = {s: _pose([s, 0, 0], [0, 0.1 * s, 0]) for s in range(6)}
+    wrong = _pose([2.0, 0.5, 0.0], [0.0, math.pi / 2, 0.0])
+    start = {s: truth[s] if s < 3 else wrong @ truth[s] for s in range(6)}
+    sigmas = lambda _: (0.01, 0.02)  # noqa: E731
+    alone = optimise_chain(start, [], sigmas, breaks=[3])
+    for s in range(6):
+        np.testing.assert_allclose(alone.poses[s], start[s], atol=1e-6)
+    loop = (1, 4, np.linalg.inv(truth[1]) @ truth[4], (0.005, 0.01))
+    merged = optimise_chain(start, [loop], sigmas, breaks=[3])
+    for s in range(6):
+        np.testing.assert_allclose(merged.poses[s], truth[s], atol=1e-6)
+    bound = optimise_chain(start, [loop], sigmas)  # no break: odometry 2 -> 3 holds the wrong guess against the loop
+    assert np.abs(bound.poses[5] - truth[5]).max() > 0.1
+
+    graphs = LoopGraphs(LoopConfig())
+    for s in range(6):
+        graphs.set_anchor(s, start[s], starts_segment=s == 3)
+    assert graphs.segments() == [{0, 1, 2}, {3, 4, 5}] and not graphs.connected(1, 4)
+    update = graphs.add(LoopConstraint(10, 40, 1, 4, torch.from_numpy(loop[2]), loop[3], 1.0, False))
+    assert graphs.segments() == [set(range(6))] and graphs.connected(1, 4)
+    np.testing.assert_allclose(update.anchors[5], truth[5], atol=1e-6)

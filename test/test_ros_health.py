@@ -36,7 +36,8 @@ def frame(stamp: float):
 def test_tracking_health_reaches_diagnostics_and_odometry_and_a_lost_frame_is_dropped(tmp_path):
     """The node reports the health its core returns (injected here; the core's own never says lost)."""
     with ros_session(160) as (ctx, executor):
-        never_lost = {"health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0}
+        never_lost = {"health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0,
+                      "health.lost_coverage": 0.0}
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides({**FAST_SLAM, **never_lost}))
         recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS), (Path, "gausem/path", LATCHED_QOS),
                                   (DiagnosticArray, "gausem/diagnostics", EVENT_QOS)])

@@ -24,7 +24,8 @@ from scripted_policy import script_submaps
 CHEAP = {"backend": "torch", "loop.enabled": False, "mapping.iterations": 2, "mapping.init_iterations": 5,
          "mapping.init_samples_fraction": 0.25, "submaps.boundary_iterations": 2,
          # the oracle's poses are right; the thin maps of these settings would be judged lost
-         "health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0}
+         "health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0,
+         "health.lost_coverage": 0.0}
 SEQUENCE_STRIDE = 5  # the conftest's `sequence`: every 5th frame
 DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(),
                                                                                      reason="needs CUDA")])]

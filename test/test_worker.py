@@ -292,7 +292,8 @@ def odometry_loop_run(mode: str, pace: bool) -> tuple[GauSemSLAM, list, list]:
     cfg = from_flat({**CONFIG, "worker.mode": mode, "worker.queue_size": 1000, "tracking.constant_velocity": False,
                      "tracking.feature_start.mode": "never", "worker.publish_every": 5,
                      # the odometry is given: a map still being optimised must not have it judged lost
-                     "health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0})
+                     "health.lost_inlier_fraction": 0.0, "health.lost_jump": 1e9, "health.lost_valid_depth": 0.0,
+                     "health.lost_coverage": 0.0})
     slam = GauSemSLAM(cfg, "cpu", len(SYNTHETIC_CLASSES))
     slam.front_end.tracker = InitOdometry(truth, BIAS)
     results = []

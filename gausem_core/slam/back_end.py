@@ -30,6 +30,7 @@ from gausem_core.slam.loop_closure import LoopClosure, LoopOutcome
 from gausem_core.slam.loop_graphs import PoseGraphUpdate
 from gausem_core.slam.mapper import Keyframe, Mapper
 from gausem_core.slam.observation import Observation
+from gausem_core.slam.pose_graph import chain_links, components
 from gausem_core.slam.refinement import global_refinement
 from gausem_core.slam.submap import FrameRecord, Submap
 from gausem_core.slam.submap_store import SubmapStore
@@ -128,6 +129,21 @@ class BackEnd:
         before any optimisation)."""
         return self.submaps[-1]
 
+    def segments(self) -> list[set[int]]:
+        """Submap ids by tracking segment (a new one starts where the tracker lost the map for good), segments that
+        inter-submap loops joined merged; ordered by their first submap."""
+        keys = [s.submap_id for s in self.submaps]
+        breaks = [s.submap_id for s in self.submaps if s.starts_segment]
+        loops = [] if self.loop_closure is None else [(c.submap_a, c.submap_b) for c in self.loop_closure.constraints
+                                                      if not c.intra]
+        return components(keys, chain_links(keys, breaks) + loops)
+
+    def segment_submaps(self) -> list[Submap]:
+        """The submaps of the active one's segment (merged ones included), in order: those a frame tracked in it can
+        be placed against."""
+        group = next(g for g in self.segments() if self.active.submap_id in g)
+        return [s for s in self.submaps if s.submap_id in group]
+
     def raise_error(self) -> None:
         """Raise the mapping worker's error, if a job failed (nothing in sync mode)."""
         if self.worker is not None:
@@ -147,15 +163,22 @@ class BackEnd:
             self.worker.drain()
             self._mapped.extend(self.worker.take_events())
 
-    def start(self, obs: Observation, frame_id: int) -> tuple[FrameEvents | None, float | None]:
+    def start(self, obs: Observation, frame_id: int, segment: tuple[torch.Tensor, int] | None = None
+              ) -> tuple[FrameEvents | None, float | None]:
         """The map's first frame, which defines the world frame: a submap from its depth (semantic sampling), then
-        optimised. Returns its events and last mapping loss (async: (None, None); the optimisation runs on the
-        worker, the unoptimised Gaussians tracked against meanwhile)."""
-        submap = self._place_submap(obs, frame_id, torch.eye(4, device=self.device))
+        optimised. With ``segment`` (the guess of its pose, the camera frames missed before it): the first frame of a
+        new, disconnected tracking segment (the tracker lost the map for good), its submap anchored at the guess and
+        the active one closed. Returns its events and last mapping loss (async: (None, None); the optimisation runs on
+        the worker, the unoptimised Gaussians tracked against meanwhile)."""
+        anchor, missed = segment if segment is not None else (torch.eye(4, device=self.device), 0)
+        closing = self.active if self.submaps else None
+        self.drain()  # async: keyframes queued before the loss map into the submap they were tracked in
+        submap = self._place_submap(obs, frame_id, anchor, starts_segment=closing is not None)
+        self.frames[-1].skipped = missed
         if self.worker is not None:
-            self.worker.submit(Job(frame_id, "open", lambda: self._timed(self._first_job, submap, obs)[0]))
+            self.worker.submit(Job(frame_id, "open", lambda: self._timed(self._first_job, submap, obs, closing)[0]))
             return None, None
-        return self._timed(self._first_job, submap, obs)
+        return self._timed(self._first_job, submap, obs, closing)
 
     def add_keyframe(self, obs: Observation, record: FrameRecord,
                      pose: torch.Tensor) -> tuple[FrameEvents, float | None, Decision] | None:
@@ -180,12 +203,19 @@ class BackEnd:
         self.mapping_seconds.append(time.perf_counter() - start)
         return result
 
-    def _first_job(self, submap: Submap, obs: Observation) -> tuple[FrameEvents, float | None]:
+    def _first_job(self, submap: Submap, obs: Observation,
+                   closing: Submap | None = None) -> tuple[FrameEvents, float | None]:
         """The mapping half of :meth:`start` (async: on the worker): optimisation, vignetting calibration, the
-        keyframe's events; and the last mapping loss."""
+        submap it follows closed (``closing``: a new tracking segment's), the keyframe's events; and the last mapping
+        loss."""
         loss = self._optimise_first(submap)
         self._calibrate(obs, submap.keyframes[0].cam_to_world)
-        return self._keyframe_events([]), loss
+        closed = []
+        if closing is not None:
+            closed.append(self._submap_change(closing, opened=False))
+            self._boundary_adjust(closing)
+            closing.offload(self.store)
+        return self._keyframe_events(closed), loss
 
     def _keyframe_job(self, obs: Observation, record: FrameRecord) -> FrameEvents:
         """The worker's mapping of a keyframe the front end recorded as ``record``: at its current pose (corrections
@@ -235,7 +265,8 @@ class BackEnd:
     def _anchor_record(self, record: FrameRecord | None, submap: Submap, keyframe: Keyframe) -> None:
         """Make ``record`` (the keyframe's frame) relative to its keyframe, the frames recorded after it (async)
         re-expressed relative to it too (their poses unchanged: later corrections carry them with their nearest
-        keyframe); the map's first frame (``record`` None) is recorded so. Under :attr:`lock`."""
+        keyframe); a frame not tracked (``record`` None: the map's first, a new segment's) is recorded so. Under
+        :attr:`lock`."""
         eye = torch.eye(4, device=self.device)
         if record is None:
             self.frames.append(FrameRecord(keyframe.frame_id, keyframe.obs.timestamp, submap, keyframe, eye))
@@ -261,16 +292,17 @@ class BackEnd:
             kf.obs = self.vignetting.correct(kf.obs, before)
         return self.vignetting.correct(obs, before)
 
-    def _place_submap(self, obs: Observation, frame_id: int, anchor: torch.Tensor,
-                      record: FrameRecord | None = None) -> Submap:
+    def _place_submap(self, obs: Observation, frame_id: int, anchor: torch.Tensor, record: FrameRecord | None = None,
+                      starts_segment: bool = False) -> Submap:
         """A new active submap anchored (world-from-submap) at ``anchor``: its first keyframe is ``obs``, fixed at the
         identity, and its Gaussians come from semantic sampling of its depth, tracked against at once (async: before
-        :meth:`_optimise_first`). ``record``: the frame's record (None for the map's first frame)."""
+        :meth:`_optimise_first`). ``record``: the frame's record (None for a frame not tracked: the map's first, or a
+        new tracking segment's, ``starts_segment``)."""
         eye = torch.eye(4, device=self.device)
         kf = Keyframe(frame_id, obs, eye, fixed=True)
         opacity = self.cfg.worker.first_opacity if self.worker is not None else None
         submap = Submap(len(self.submaps), anchor, self.mapper.strategy.initial(obs, eye, opacity), [kf],
-                        SubmapExtent.start(obs, eye, self.num_classes))
+                        SubmapExtent.start(obs, eye, self.num_classes), starts_segment)
         with self.lock:
             self.submaps.append(submap)
             self._anchor_record(record, submap, kf)

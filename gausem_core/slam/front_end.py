@@ -58,6 +58,7 @@ class Placement:
     health: TrackingHealth | None = None
     keyframe: bool = False
     observation: Observation | None = None
+    new_segment: bool = False  # dropped, and the frame is to start a new tracking segment (:meth:`FrontEnd.give_up`)
 
 
 class FrontEnd:
@@ -80,8 +81,7 @@ class FrontEnd:
         self.fill = cfg.tracking.keyframe_fill == "always" or (cfg.tracking.keyframe_fill == "async"
                                                              and cfg.worker.mode == "async")
         self.filter_every_frame = filters_every_frame(cfg.depth_filter, cfg.worker.mode)
-        self._keyframe: tuple[KeyframeView, FrameRecord | None] | None = None  # the newest keyframe handed over and
-        # its record (None: the map's first frame)
+        self._keyframe: tuple[KeyframeView, FrameRecord] | None = None  # the newest keyframe handed over, its record
         self.lost = False  # the next frame is relocalised (:meth:`relocalise_next`; a caller may set it after a
         # tracking failure)
         self.segment_start = 0  # first frame id of the current tracking segment (the motion model stays inside it;
@@ -103,12 +103,22 @@ class FrontEnd:
         """A keyframe (an :meth:`observed` frame) as the map takes it: its depth filtered."""
         return obs if self.filter_every_frame else filter_observation(obs, self.cfg.depth_filter)
 
-    def start(self, obs: Observation) -> None:
-        """The map's first frame (placed by the back end at the origin, its first keyframe) is the last good one."""
+    def start(self, obs: Observation, record: FrameRecord) -> None:
+        """A submap's first keyframe that the back end placed without tracking (the map's first frame, or a new tracking
+        segment's), recorded as ``record``, is the last good frame."""
         self.skipped = 0
         self.feature_start.remember(obs)
-        self.keyframes.remember(0, torch.eye(4, device=self.device))
-        self._keyframe = (KeyframeView.of(obs, torch.eye(4, device=self.device)), None) if self.fill else None
+        self.keyframes.remember(record.frame_id, record.cam_to_world)
+        self._keyframe = (KeyframeView.of(obs, torch.eye(4, device=self.device)), record) if self.fill else None
+
+    def give_up(self) -> tuple[torch.Tensor, int]:
+        """Stop relocalising (the map is lost for good): the next frame starts a new tracking segment. Returns the
+        guess of its pose, the last good frame's, and the camera frames missed before it (dropped or skipped)."""
+        with self.back_end.lock:
+            guess = self.frames[self._last_good()].cam_to_world
+        missed, self.dropped, self.skipped = self.dropped + self.skipped, 0, 0
+        self.lost, self.segment_start = False, len(self.frames)
+        return guess, missed
 
     def state_dict(self) -> dict:
         """What the front end carries from frame to frame besides the map: the tracking segment's start, whether it is
@@ -159,9 +169,10 @@ class FrontEnd:
         placement = Placement(submap, frame_id - submap.keyframes[-1].frame_id)
         tracked, relocalised = self._track_or_relocalise(obs, motion, submap, cloud, keyframe)
         if tracked is None:
-            self.dropped += 1
+            new_segment = self._gives_up(obs)
+            self.dropped += not new_segment
             judged = relocalised.health or TrackingHealth("lost")
-            return replace(placement, relocalised=relocalised,
+            return replace(placement, relocalised=relocalised, new_segment=new_segment,
                            health=replace(judged, status="lost", reasons=(*judged.reasons, "relocalisation_failed")))
         health = self._assess(obs, tracked, relocalised, motion, cloud, keyframe)
         missed, self.dropped, self.skipped = self.dropped + self.skipped, 0, 0
@@ -182,6 +193,12 @@ class FrontEnd:
             self._keyframe = (KeyframeView.of(mapped, pose), record)
         return replace(placement, record=record, pose=pose, tracked=tracked, relocalised=relocalised, health=health,
                        keyframe=keyframe, observation=mapped)
+
+    def _gives_up(self, obs: Observation) -> bool:
+        """Whether a frame that relocalisation failed to place starts a new tracking segment instead of being dropped
+        (the ``relocalisation.new_segment_after``-th failure in a row)."""
+        after = self.cfg.relocalisation.new_segment_after
+        return 0 < after <= self.dropped + 1 and float(obs.valid_depth.float().mean()) >= self.cfg.health.degraded_valid_depth
 
     def _track_or_relocalise(self, obs: Observation, motion: MotionPrediction, submap: Submap, cloud: GaussianCloud,
                              keyframe: KeyframeView | None
@@ -218,7 +235,7 @@ class FrontEnd:
         if self._keyframe is None:
             return None
         keyframe, record = self._keyframe
-        return keyframe.posed(invert_pose(submap.anchor) @ (record or self.frames[0]).cam_to_world)
+        return keyframe.posed(invert_pose(submap.anchor) @ record.cam_to_world)
 
     def motion_model(self, timestamp: float) -> MotionPrediction:
         """For a frame stamped ``timestamp``: the last good (not lost) frame's pose in the submap tracked against, the
@@ -289,7 +306,8 @@ class FrontEnd:
         """Place a frame against the map without trusting the motion model (``slam.relocalisation``): tracked from
         the constant-velocity prediction when the tracking segment has one (after a tracking loss), the last good pose
         and the ``relocalisation.candidates`` keyframes nearest by global descriptor (or the active submap's
-        keyframes), the best start kept. After a tracking loss it accepts from ``health.recovery_inlier_fraction``
+        keyframes) of the active submap's segment (merged ones included: the others' poses are unrelated), the best
+        start kept. After a tracking loss it accepts from ``health.recovery_inlier_fraction``
         (the map lacks what the lost frames would have added) and only a placement that passes the health monitor
         (:meth:`_judge_recovery`). With ``tracking.feature_start`` on, the feature start from the last good frame
         comes first. Changes nothing."""
@@ -304,7 +322,7 @@ class FrontEnd:
         loop_closure = self.back_end.loop_closure
         ranked = loop_closure.nearest_keyframes(obs, cfg.candidates) if loop_closure is not None else []
         local = invert_pose(last.submap.anchor) @ last.cam_to_world
-        starts = relocalisation_starts(self.back_end.submaps, (last.submap, local), ranked, cfg.candidates)
+        starts = relocalisation_starts(self.back_end.segment_submaps(), (last.submap, local), ranked, cfg.candidates)
         with self.back_end.lock:
             predicted = self.motion_model(obs.timestamp).predicted
         if predicted is not None:

@@ -4,7 +4,7 @@ Signals of a tracked frame (:class:`TrackingHealth`):
 
 - ``inlier_fraction``: among the pixels where the map renders a silhouette, the share it explains: observed depth
   within ``inlier_depth`` of the rendered depth, or, where the depth is invalid, colour within ``inlier_color`` (NaN
-  when the map renders no silhouette: then no rule on it fires, and the infinite ``condition`` marks it degraded);
+  when the map renders no silhouette: then no rule on it fires, and ``coverage`` decides);
 - ``residual_z``: robust z-score of the tracking residual against the median/MAD of the recent frames' (the raw loss
   drifts over a run, its jumps do not);
 - ``condition``: log10 of the condition number of the Gauss-Newton Hessian at the pose, translation scaled by the
@@ -14,10 +14,11 @@ Signals of a tracked frame (:class:`TrackingHealth`):
 - ``valid_depth``: the fraction of pixels with a valid depth;
 - ``coverage``: the fraction of the image that tracking aligns against at the pose: the map's silhouette and, where
   ``tracking.keyframe_fill`` applies, the newest keyframe's own pixels (little of it leaves the pose weakly
-  constrained, as few tracked map points do in feature-based SLAM, and calls for a keyframe).
+  constrained, as few tracked map points do in feature-based SLAM, and calls for a keyframe; almost none: the camera
+  looks where the map is not, e.g. it jumped, and the pose is only the start it was tracked from).
 
-Rules (:class:`HealthMonitor`, thresholds in ``HealthConfig``): lost when the inlier fraction, the valid depth or the
-jump passes its ``lost_`` threshold; else degraded when any signal passes its ``degraded_`` threshold; else ok.
+Rules (:class:`HealthMonitor`, thresholds in ``HealthConfig``): lost when the inlier fraction, the valid depth, the
+coverage or the jump passes its ``lost_`` threshold; else degraded when any signal passes its ``degraded_`` threshold; else ok.
 The residual and motion histories learn from frames that are not lost only; a session saves them
 (:meth:`HealthMonitor.state_dict`).
 """
@@ -41,7 +42,7 @@ def thresholds(cfg: HealthConfig) -> dict[str, dict[str, float]]:
     """The thresholds of each level by signal; a signal a level does not list never fires it."""
     return {
         "lost": {"inlier_fraction": cfg.lost_inlier_fraction, "jump": cfg.lost_jump,
-                 "valid_depth": cfg.lost_valid_depth},
+                 "valid_depth": cfg.lost_valid_depth, "coverage": cfg.lost_coverage},
         "degraded": {"inlier_fraction": cfg.degraded_inlier_fraction, "residual_z": cfg.degraded_residual_z,
                      "condition": cfg.degraded_condition, "jump": cfg.degraded_jump,
                      "valid_depth": cfg.degraded_valid_depth, "coverage": cfg.degraded_coverage},

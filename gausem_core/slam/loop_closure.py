@@ -30,7 +30,9 @@ detected loop (k, j) is closed as follows.
 A loop is closed only when its registration is accepted (overlap, fitness and per-view consistency, see
 ``RegistrationConfig``) and the correction it implies is plausible: within ``max_correction_sigmas`` of the odometry
 uncertainty accumulated over the keyframes between the two ends (a revisit of a look-alike place implies a jump far
-beyond the drift). Every detection is recorded, accepted or not.
+beyond the drift). A loop between two tracking segments not yet merged (the tracker lost the map for good and began
+a new one, ``relocalisation.new_segment_after``) has no such bound, their relative pose being a guess: it merges them.
+Every detection is recorded, accepted or not.
 """
 from __future__ import annotations
 
@@ -474,7 +476,10 @@ class LoopClosure:
         constraint = LoopConstraint(ends[target.submap_id], ends[source.submap_id], target.submap_id,
                                     source.submap_id, registration.transform.detach().cpu().double(),
                                     registration.sigmas, registration.fine.fitness, False)
-        return constraint, registration.accepted and self._plausible(current, registration.transform, between)
+        self._set_graph(by_id.values())
+        judged = self.graphs.connected(source.submap_id, target.submap_id)  # else the anchors' pose is a guess
+        return constraint, registration.accepted and (not judged or self._plausible(current, registration.transform,
+                                                                                    between))
 
     @staticmethod
     def _verified_transform(candidate: LoopCandidate, source, target, loop_pair: tuple[int, int]) -> tuple:
@@ -499,13 +504,17 @@ class LoopClosure:
         """Add an accepted loop to the pose graph of its level (:class:`LoopGraphs`, given the current keyframe poses
         and anchors), optimise it with every loop of that level so far and move the map (:meth:`apply`)."""
         start = time.perf_counter()
-        for s in submaps:
-            self.graphs.set_anchor(s.submap_id, s.anchor)
-            for kf in s.keyframes:
-                self.graphs.set_keyframe(kf.frame_id, s.submap_id, kf.cam_to_world)
+        self._set_graph(submaps)
         correction = self.apply(submaps, self.graphs.add(constraint))
         self.seconds["correct"] += time.perf_counter() - start
         return correction
+
+    def _set_graph(self, submaps) -> None:
+        """The pose graphs given the map's current anchors, segments and keyframe poses."""
+        for s in submaps:
+            self.graphs.set_anchor(s.submap_id, s.anchor, s.starts_segment)
+            for kf in s.keyframes:
+                self.graphs.set_keyframe(kf.frame_id, s.submap_id, kf.cam_to_world)
 
     def apply(self, submaps: Sequence, update: PoseGraphUpdate) -> Correction:
         """Move the map to a pose-graph answer: anchors (:meth:`move_anchors`), then keyframes grouped by their

@@ -7,7 +7,9 @@ the pose_graph node.
 inter-submap loop the anchors, each with odometry edges between consecutive nodes (``loop.odometry_sigma_*``, grown
 with the keyframes in between), the first node fixed, and every loop of that level so far as a robust edge
 (``loop.robust_kernel``) with its registration's sigmas. The optimised poses replace the kept ones and come back as a
-:class:`PoseGraphUpdate`, which the map applies (``GauSemSLAM.apply_pose_graph``).
+:class:`PoseGraphUpdate`, which the map applies (``GauSemSLAM.apply_pose_graph``). A submap that starts a new tracking
+segment (the tracker lost the map for good) has no odometry edge to the one before: its segment is disconnected until
+an inter-submap loop merges it (:meth:`LoopGraphs.connected`).
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gausem_core.config import LoopConfig
-from gausem_core.slam.pose_graph import PoseGraph, optimise_chain
+from gausem_core.slam.pose_graph import PoseGraph, chain_links, components, optimise_chain
 
 
 @dataclass(frozen=True)
@@ -53,15 +55,28 @@ class LoopGraphs:
         self.constraints: list = []
         self.keyframes: dict[int, tuple[int, np.ndarray]] = {}  # frame id -> (submap id, pose in the submap frame)
         self.anchors: dict[int, np.ndarray] = {}  # submap id -> world-from-submap
+        self.breaks: set[int] = set()  # submaps that start a disconnected segment (no odometry edge from the previous)
         self.last_error: tuple[float, float] | None = None  # graph error before and after the last optimisation
 
     def set_keyframe(self, frame_id: int, submap_id: int, pose) -> None:
         """The latest pose of a keyframe in its submap's frame."""
         self.keyframes[int(frame_id)] = (int(submap_id), _matrix(pose))
 
-    def set_anchor(self, submap_id: int, anchor) -> None:
-        """The latest anchor (world-from-submap) of a submap."""
+    def set_anchor(self, submap_id: int, anchor, starts_segment: bool = False) -> None:
+        """The latest anchor (world-from-submap) of a submap, and whether it starts a disconnected segment."""
         self.anchors[int(submap_id)] = _matrix(anchor)
+        (self.breaks.add if starts_segment else self.breaks.discard)(int(submap_id))
+
+    def segments(self) -> list[set[int]]:
+        """The submaps in groups that odometry and accepted loops connect (one group once every segment is merged)."""
+        keys = sorted(self.anchors)
+        loops = [(c.submap_a, c.submap_b) for c in self.constraints if not c.intra]
+        return components(keys, chain_links(keys, self.breaks) + loops)
+
+    def connected(self, a: int, b: int) -> bool:
+        """Whether submaps ``a`` and ``b`` are in one segment (or merged ones): a loop between them can be judged
+        against their current relative pose; between unmerged segments that pose is only a guess."""
+        return any(a in group and b in group for group in self.segments())
 
     def missing(self, constraint) -> list[str]:
         """The nodes of a loop this graph does not know (e.g. ``keyframe 12``, ``submap 3``)."""
@@ -85,16 +100,18 @@ class LoopGraphs:
                 self.keyframes.update({k: (submap, pose) for k, pose in optimised.items()})
                 return PoseGraphUpdate(keyframes=optimised)
             counts = Counter(s for s, _ in self.keyframes.values())
-            optimised = self._optimise(self.anchors, lambda s: odometry_sigmas(self.cfg, counts[s]), False)
+            optimised = self._optimise(self.anchors, lambda s: odometry_sigmas(self.cfg, counts[s]), False,
+                                       breaks=self.breaks)
             self.anchors.update(optimised)
             return PoseGraphUpdate(anchors=optimised)
         except ValueError:
             self.constraints.pop()
             raise
 
-    def _optimise(self, poses: dict, sigmas, intra: bool, submap: int | None = None) -> dict[int, np.ndarray]:
+    def _optimise(self, poses: dict, sigmas, intra: bool, submap: int | None = None,
+                  breaks: set[int] = frozenset()) -> dict[int, np.ndarray]:
         loops = [c.edge for c in self.constraints if c.intra == intra and (not intra or c.submap_a == submap)]
-        result = optimise_chain(poses, loops, sigmas, self.cfg.robust_kernel, self.max_iterations)
+        result = optimise_chain(poses, loops, sigmas, self.cfg.robust_kernel, self.max_iterations, breaks)
         self.last_error = (result.error_before, result.error_after)
         return result.poses
 

@@ -6,9 +6,9 @@ of their fields. The folder (format ``gausem-session``, version :data:`VERSION`)
 
 - ``session.json``: format and version, the configuration (dotted ROS parameter names), ``num_classes``,
   ``detect_loops`` and the state tree: ``submaps``, each one's :meth:`~gausem_core.slam.submap.Submap.state_dict`
-  (id, anchor, keyframes with poses, cameras and timestamps, allocation extent), and beside it the keys of the back
-  end's :meth:`~gausem_core.slam.back_end.BackEnd.state_dict` (frame records, the vignetting estimate, the mapper's
-  random generator, the loop closure's state) and of the front end's
+  (id, anchor, whether it starts a tracking segment, keyframes with poses, cameras and timestamps, allocation
+  extent), and beside it the keys of the back end's :meth:`~gausem_core.slam.back_end.BackEnd.state_dict` (frame
+  records, the vignetting estimate, the mapper's random generator, the loop closure's state) and of the front end's
   :meth:`~gausem_core.slam.front_end.FrontEnd.state_dict` (the tracker's motion segment, whether the system is lost,
   the frames dropped and skipped since the last recorded one, the health monitor's histories, the feature start's
   last good frame). Every tensor in the tree is a reference ``{"$tensor": "FILE:KEY"}`` into one of the tensor

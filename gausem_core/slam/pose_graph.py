@@ -3,10 +3,14 @@
 Nodes carry cam_to_world (world-from-node) poses. An edge (a, b) measures the relative pose a^-1 b, GTSAM's
 ``BetweenFactorPose3`` convention. For an inter-submap loop found by registration, T_{s->t} (source-submap to
 target-submap coordinates) equals A_t^-1 A_s for the anchors A_s, A_t, so it is the edge (target anchor, source anchor).
+
+A chain may be broken into disconnected segments (a tracker that lost the map for good started a new one, with no
+odometry to the old): :func:`optimise_chain` holds each segment that no loop joins to the first where it is, and moves
+one that a loop joins onto it rigidly before optimising, as ORB-SLAM3's Atlas merges maps.
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,6 +99,12 @@ class PoseGraph:
             self._graph.add(self._gtsam.PriorFactorPose3(key, pose, self._prior_noise))
         self._keys.append(key)
 
+    def fix(self, key: int) -> None:
+        """Hold a node at its initial pose (a prior, as on the first node)."""
+        if key not in self._keys:
+            raise ValueError(f"PoseGraph.fix: unknown node {key}")
+        self._graph.add(self._gtsam.PriorFactorPose3(key, self._initial.atPose3(key), self._prior_noise))
+
     def add_odometry(self, a: int, b: int, sigmas: tuple[float, float] | None = None) -> None:
         """An odometry edge a -> b measuring their current relative pose a^-1 b; ``sigmas`` (rotation, translation)
         replaces the graph's odometry sigmas for this edge (e.g. grown with the distance between the nodes)."""
@@ -141,16 +151,75 @@ class PoseGraph:
 
 def optimise_chain(poses: Mapping[int, object], loops: Iterable[tuple[int, int, object, tuple[float, float]]],
                    odometry_sigmas: Callable[[int], tuple[float, float]], robust_kernel: str = "huber",
-                   max_iterations: int = 100) -> PoseGraphResult:
+                   max_iterations: int = 100, breaks: Iterable[int] = ()) -> PoseGraphResult:
     """The graph of both loop-closure levels (keyframes of one submap, or submap anchors): ``poses`` (world-from-node
-    by key) in key order, an odometry edge from each node to the next with ``odometry_sigmas(key of the first)``, the
-    first node fixed, and the ``loops`` (a, b, measured a^-1 b, (rotation, translation) sigmas) as robust edges."""
+    by key) in key order, an odometry edge from each node to the next with ``odometry_sigmas(key of the first)``
+    except into the ``breaks`` (nodes that start a disconnected segment), and the ``loops`` (a, b, measured a^-1 b,
+    (rotation, translation) sigmas) as robust edges. The first node is fixed, and so is the first node of every
+    segment that no loop joins to it; a segment a loop joins starts where that loop puts it (:func:`joined`)."""
     graph = PoseGraph(robust_kernel=robust_kernel)
     keys = sorted(poses)
+    links = chain_links(keys, breaks)
+    loops = list(loops)
+    initial = joined(poses, links, loops)
     for key in keys:
-        graph.add_node(key, poses[key])
-    for a, b in zip(keys, keys[1:]):
+        graph.add_node(key, initial[key])
+    for a, b in links:
         graph.add_odometry(a, b, odometry_sigmas(a))
     for a, b, relative, sigmas in loops:
         graph.add_loop(a, b, relative, sigmas)
+    groups = components(keys, links + [(a, b) for a, b, _, _ in loops])
+    for group in groups[1:]:
+        graph.fix(min(group))
     return graph.optimize(max_iterations)
+
+
+def chain_links(keys: Sequence[int], breaks: Iterable[int]) -> list[tuple[int, int]]:
+    """The odometry links of a chain of ``keys`` (in order): each node to the next, except into the ``breaks``."""
+    breaks = set(breaks)
+    return [(a, b) for a, b in zip(keys, keys[1:]) if b not in breaks]
+
+
+def components(keys: Iterable[int], edges: Iterable[tuple[int, int]]) -> list[set[int]]:
+    """The connected sets of ``keys`` under ``edges``, ordered by their smallest key."""
+    parent = {key: key for key in keys}
+
+    def root(key: int) -> int:
+        while parent[key] != key:
+            parent[key] = parent[parent[key]]
+            key = parent[key]
+        return key
+
+    for a, b in edges:
+        parent[root(a)] = root(b)
+    groups: dict[int, set[int]] = {}
+    for key in parent:
+        groups.setdefault(root(key), set()).add(key)
+    return sorted(groups.values(), key=min)
+
+
+def joined(poses: Mapping[int, object], links: Iterable[tuple[int, int]],
+           loops: Sequence[tuple[int, int, object, tuple[float, float]]]) -> dict[int, np.ndarray]:
+    """``poses`` (float64 4x4) with each segment (nodes joined by ``links``) that a loop joins to the first node's
+    moved rigidly so that the first such loop holds exactly; segments no loop reaches stay where they are."""
+    out = {key: np.asarray(pose.detach().cpu() if hasattr(pose, "detach") else pose, dtype=np.float64)
+           for key, pose in poses.items()}
+    segments = components(sorted(out), links)
+    segment_of = {key: i for i, group in enumerate(segments) for key in group}
+    placed = {segment_of[min(out)]} if out else set()
+    moved = True
+    while moved:
+        moved = False
+        for a, b, relative, _ in loops:
+            relative = np.asarray(relative.detach().cpu() if hasattr(relative, "detach") else relative, np.float64)
+            if (segment_of[a] in placed) == (segment_of[b] in placed):
+                continue
+            if segment_of[a] in placed:  # b's segment goes where a^-1 b = relative
+                change, other = out[a] @ relative @ np.linalg.inv(out[b]), segment_of[b]
+            else:
+                change, other = out[b] @ np.linalg.inv(relative) @ np.linalg.inv(out[a]), segment_of[a]
+            for key in segments[other]:
+                out[key] = change @ out[key]
+            placed.add(other)
+            moved = True
+    return out

@@ -52,9 +52,12 @@ class Submap:
     """
 
     def __init__(self, submap_id: int, anchor: torch.Tensor, cloud: GaussianCloud,
-                 keyframes: list[Keyframe] | None = None, extent: SubmapExtent | None = None):
+                 keyframes: list[Keyframe] | None = None, extent: SubmapExtent | None = None,
+                 starts_segment: bool = False):
         self.submap_id = submap_id
         self.anchor = anchor
+        self.starts_segment = starts_segment  # opened after the tracker lost the map for good: no odometry joins it
+        # to the previous submap, and its anchor is a guess until a loop merges its segment with the others
         self.keyframes = list(keyframes or [])
         self.extent = extent  # what allocation needs while the submap is active
         self._cloud: GaussianCloud | None = cloud
@@ -150,7 +153,7 @@ class Submap:
 
     def state_dict(self) -> dict:
         """The submap as plain values and tensors (an inactive one's read back from its store): id, whether active,
-        anchor, allocation extent, Gaussians and keyframes (pose, camera, timestamp, images); :meth:`from_state`
+        anchor, whether it starts a segment, allocation extent, Gaussians and keyframes (pose, camera, timestamp, images); :meth:`from_state`
         rebuilds it."""
         keyframes = []
         for kf in self.keyframes:
@@ -158,9 +161,9 @@ class Submap:
             keyframes.append({"frame_id": kf.frame_id, "fixed": kf.fixed, "timestamp": obs.timestamp,
                               "camera": asdict(obs.camera), "cam_to_world": kf.cam_to_world,
                               "images": {name: getattr(obs, name) for name in KEYFRAME_IMAGES}})
+        extent = None if self.extent is None else self.extent.state_dict()
         return {"id": self.submap_id, "active": self.is_active, "anchor": self.anchor,
-                "extent": None if self.extent is None else self.extent.state_dict(),
-                "cloud": self.load_cloud().tensors(), "keyframes": keyframes}
+                "starts_segment": self.starts_segment, "extent": extent, "cloud": self.load_cloud().tensors(), "keyframes": keyframes}
 
     @classmethod
     def from_state(cls, state: dict, device: torch.device | str, store: SubmapStore) -> "Submap":
@@ -173,7 +176,7 @@ class Submap:
                               kf["cam_to_world"].to(device), kf["fixed"]) for kf in state["keyframes"]]
         extent = None if state["extent"] is None else SubmapExtent.from_state(state["extent"], device)
         submap = cls(state["id"], state["anchor"].to(device), GaussianCloud(**state["cloud"]).to(place), keyframes,
-                     extent)
+                     extent, state.get("starts_segment", False))
         if not state["active"]:
             submap.offload(store)
         return submap

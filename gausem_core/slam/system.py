@@ -8,7 +8,7 @@ everything that changes it: ``slam.back_end``), each owning its state.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -135,6 +135,11 @@ class GauSemSLAM:
     def detect_loops(self, value: bool) -> None:
         self.back_end.detect_loops = value
 
+    def segments(self) -> list[set[int]]:
+        """Submap ids by tracking segment (a new one starts where the tracker lost the map for good), those a loop
+        merged together; one set while the map is one."""
+        return self.back_end.segments()
+
     @property
     def worker(self) -> MappingWorker | None:
         """The mapping worker of ``worker.mode: async`` (its queue ``depth``, its ``stats``); None in sync mode."""
@@ -174,11 +179,10 @@ class GauSemSLAM:
         frame_id = len(self.frames)
         back.mapper.hurry.clear()
         if not self.submaps:
-            obs = self.front_end.for_map(obs)
-            self.front_end.start(obs)
-            events, loss = back.start(obs, frame_id)
-            return self._result(frame_id, True, 0.0, 0, loss, events=events)
+            return self._start(obs, frame_id)
         placed = self.front_end.place(obs, frame_id, skipped)
+        if placed.new_segment:
+            return self._start(obs, frame_id, placed.health)
         if placed.record is None:  # lost and not relocalised: the frame is dropped
             reloc = placed.relocalised
             return FrameResult(frame_id, reloc.cam_to_world, False, reloc.tracking_loss, reloc.iterations, None,
@@ -189,6 +193,16 @@ class GauSemSLAM:
         tracked = placed.tracked
         return self._result(frame_id, placed.keyframe, tracked.loss, tracked.iterations, loss, decision,
                             placed.relocalised, placed.health, events, placed.map_age)
+
+    def _start(self, obs: Observation, frame_id: int, lost: TrackingHealth | None = None) -> FrameResult:
+        """The map's first frame; or, once the tracker has lost the map for good (``lost``: the health of the last
+        failed relocalisation), a new tracking segment's first frame (see ``relocalisation.new_segment_after``)."""
+        obs = self.front_end.for_map(obs)
+        segment = None if lost is None else self.front_end.give_up()
+        events, loss = self.back_end.start(obs, frame_id, segment)
+        self.front_end.start(obs, self.frames[-1])
+        health = None if lost is None else replace(lost, status="degraded", reasons=(*lost.reasons, "new_segment"))
+        return self._result(frame_id, True, 0.0, 0, loss, health=health, events=events)
 
     def _result(self, frame_id: int, is_keyframe: bool, tracking_loss: float, iterations: int,
                 mapping_loss: float | None, allocation: Decision | None = None,

@@ -83,10 +83,12 @@ def latency_stats(latencies: list[float]) -> dict:
 
 
 def core_status(slam: GauSemSLAM, health: TrackingHealth, map_age: int, undistorted: bool) -> dict:
-    """The last frame's tracking health, the camera's vignetting and undistortion, the mapping worker's state."""
+    """The last frame's tracking health, the camera's vignetting and undistortion, the mapping worker's state, the
+    map's separate tracking segments (1 once merged)."""
     status = {"tracking.status": health.status, **{f"tracking.{name}": v for name, v in health.signals().items()},
               "camera.vignetting_corner_gain": math.exp(slam.vignetting.a), "camera.undistorted": undistorted,
-              "worker.mode": slam.cfg.worker.mode, "worker.map_age_frames": map_age}
+              "worker.mode": slam.cfg.worker.mode, "worker.map_age_frames": map_age,
+              "map.segments": len(slam.segments())}
     worker = slam.worker
     if worker is not None:
         lags = worker.stats.lag_frames
