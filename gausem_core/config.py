@@ -338,7 +338,8 @@ class HealthConfig:
     lost_valid_depth: float = 0.05  # ... lost below this one
     degraded_coverage: float = 0.3  # degraded when what tracking aligns against covers less than this fraction of the
     # image at the pose (benchmarks/results/health_160x120.json: the worst tracked frames of the noisy walk, 0.21-0.26)
-    lost_coverage: float = 0.01  # ... lost below this one (the map is not in view: a camera that jumped off it)
+    lost_coverage: float = 0.001  # ... lost below this one (no map in view, as after a camera jumped off it; thin
+    # maps, e.g. 80x60 ones mapped for a few iterations, cover 1-5 % of a view and track well)
     recovery_inlier_fraction: float = 0.3  # after a loss, relocalisation accepts from this inlier fraction (its own)
     recovery_residual_z: float = 20.0  # ... and only with a residual z-score (against the frames before) up to this
 

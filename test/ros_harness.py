@@ -15,7 +15,7 @@ from gausem_ros.executor import NodeExecutor
 # a gap would be a keyframe mapped in 2 iterations
 FAST_SLAM = {"mapping.iterations": 2, "mapping.init_iterations": 3, "mapping.init_samples_fraction": 0.1,
              "mapping.every": 100, "mapping.coverage_keyframes": "never", "device": "cpu", "backend": "torch",
-             "health.lost_coverage": 0.0}  # these maps are too thin to cover 1 % of a view
+             "health.lost_coverage": 0.0}  # these maps are too thin to cover a view
 
 
 def overrides(values: dict) -> list[Parameter]:

@@ -139,3 +139,49 @@ def test_loop_closure_lowers_the_ate_of_a_drifting_run(place_recognition, labell
                          timestamps=timestamps(len(truth)), **DEFAULT_PROTOCOL)
     assert scores.precision == 1.0
     assert any(r.query_frame >= len(data) for r in closed)  # a loop from the revisit (frames len(data) on)
+
+
+class JumpingOdometry:
+    """The drifting odometry between the frames given (``index``: the current one's in the sequence), from the last
+    frame recorded; while ``blind``, answers a metre off (the frame is lost and relocalisation fails)."""
+
+    def __init__(self, slam: GauSemSLAM, truth: list[torch.Tensor]):
+        self.slam, self.truth, self.backend = slam, truth, "torch"
+        self.index, self.recorded, self.blind = 0, [], False  # sequence index of each recorded frame
+
+    def track(self, cloud, obs, init_cam_to_world, alternatives=(), search=False, keyframe=None) -> TrackingResult:
+        last = self.recorded[-1]
+        world = self.slam.frames[-1].cam_to_world @ invert_pose(self.truth[last]) @ self.truth[self.index] @ BIAS
+        if self.blind:
+            world = world @ se3_exp(torch.tensor([1.0, 0, 0, 0, 0, 0]))
+        return TrackingResult(rigid(invert_pose(self.slam.active.anchor) @ world), 0.0, 0)
+
+
+@pytest.mark.slow
+def test_a_camera_that_jumps_starts_a_segment_that_the_revisit_merges():
+    """The drifting run's walk with 15 processed frames (45 camera frames) never seen after frame 40, and the three
+    before the gap lost: the tracker gives up, a new tracking segment starts at its last good pose, a sixth of the
+    loop behind the camera, and the revisit's loop merges it into the first: one segment at the end, a loop between
+    the two, and the ATE of the frames not lost within twice the drifting run's without the jump."""
+    _, frames = revisit_frames()
+    first = torch.tensor(frames[0].gt_pose)
+    truth = [(invert_pose(first) @ torch.tensor(f.gt_pose)).float() for f in frames]
+    cfg = from_flat({**CONFIG, "relocalisation.new_segment_after": 3, "tracking.feature_start.mode": "never"})
+    slam = GauSemSLAM(cfg, "cpu", len(SYNTHETIC_CLASSES.palette))
+    odometry = slam.front_end.tracker = JumpingOdometry(slam, truth)
+    for n in [n for n in range(len(frames)) if not 41 <= n <= 55]:
+        odometry.index, odometry.blind = n, 38 <= n <= 40
+        recorded = len(slam.frames)
+        f = frames[n]
+        slam.process(Observation.from_arrays(f.rgb, f.depth, f.labels, f.camera, SYNTHETIC_CLASSES.palette, n / RATE))
+        odometry.recorded += [n] * (len(slam.frames) - recorded)
+    slam.finish()
+    starts = [s.submap_id for s in slam.submaps if s.starts_segment]
+    assert len(starts) == 1 and slam.segments() == [{s.submap_id for s in slam.submaps}]
+    assert any(min(r.query_submap, r.match_submap) < starts[0] <= max(r.query_submap, r.match_submap)
+               for r in slam.loop_closure.loops), "no loop joined the segments"
+    placed = [(record.cam_to_world, truth[n]) for record, n in zip(slam.frames, odometry.recorded, strict=True)
+              if not record.lost]
+    drifting, drift_truth = drifting_run()
+    unbroken = ate_rmse([pose for _, pose in drifting.trajectory()], drift_truth)
+    assert ate_rmse(*zip(*placed)) <= 2 * unbroken
