@@ -25,32 +25,21 @@ costs 26 ms a frame, and a player doing so beside the node on a 2-core machine s
 from __future__ import annotations
 
 import argparse
-import os
-import re
-import shlex
 import signal
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from tqdm import tqdm
 
 from gausem_bench import results
-from gausem_core.options import parse_size
-from gausem_ros.convert import convert
-from gausem_ros.nodes import NODE_MODULES
-from gausem_ros.nodes.common import DIAGNOSTICS_TOPIC
-from gausem_ros.player import is_bag, open_source
+from gausem_bench.launch import (DiagnosticsListener, add_launch_arguments, adds_up, children, launch_command,
+                                 local_domain, log_file, parse_launch_arguments, process_stats, scan_log, source_bag,
+                                 start_launcher, stop)
 from gausem_ros.preflight import TRACKING_NODE
-from gausem_ros.qos import EVENT_QOS
 
 REPO = Path(__file__).resolve().parents[1]
 GROWTH_WINDOW_S = 20 * 60  # the RSS growth is measured over the last 20 minutes (the run's, when shorter)
@@ -59,132 +48,6 @@ WHAT = ("`benchmarks/soak.py`: `gausem-launch` with the player looping a bag of 
         "160x120, the tracking node's live defaults), each process's resident set, threads and open files and the "
         "tracking node's input accounting (`gausem/diagnostics`) sampled at the given interval.")
 COUNT_KEYS = ("frames_in", "frames_processed", "dropped", "frames_pending")
-
-
-def process_name(pid: int) -> str | None:
-    """``player``, a node's name or ``launcher`` from the process's command line; None when it is gone."""
-    try:
-        words = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")
-    except OSError:
-        return None
-    module = next((b for a, b in zip(words, words[1:]) if a == "-m"), "")
-    return module.rpartition(".")[2] or None
-
-
-def children(pid: int) -> dict[str, int]:
-    """The node and player processes among the children of ``pid``, by name (not one forked and not yet started)."""
-    found = {}
-    for entry in Path("/proc").iterdir():
-        try:
-            if entry.name.isdigit() and int((entry / "stat").read_text().rpartition(")")[2].split()[1]) == pid:
-                found[process_name(int(entry.name))] = int(entry.name)
-        except (OSError, IndexError, ValueError):
-            continue
-    return {name: child for name, child in found.items() if name in (*NODE_MODULES, "player")}
-
-
-def process_stats(pid: int) -> dict | None:
-    """Resident set (MB), threads and open files of a process; None when it is gone."""
-    try:
-        status = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines())
-        return {"rss_mb": round(int(status["VmRSS"].split()[0]) / 1024, 1), "threads": int(status["Threads"]),
-                "files": len(os.listdir(f"/proc/{pid}/fd"))}
-    except (OSError, KeyError):  # gone, or a zombie (no VmRSS)
-        return None
-
-
-def counts(values: dict[str, str]) -> dict[str, int]:
-    """frames in, processed, dropped (every reason) and pending of a tracking node's diagnostics values."""
-    return {"frames_in": int(values["frames_in"]), "frames_processed": int(values["frames_processed"]),
-            "dropped": sum(int(v) for k, v in values.items() if k.startswith("dropped.")),
-            "frames_pending": int(values["frames_pending"])}
-
-
-def adds_up(c: dict[str, int]) -> bool:
-    return c["frames_in"] == c["frames_processed"] + c["dropped"] + c["frames_pending"]
-
-
-class DiagnosticsListener:
-    """The tracking node's latest input accounting from ``gausem/diagnostics`` (its own context on ``domain``), and
-    how many of the messages added up."""
-
-    def __init__(self, domain: int):
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain)
-        self.node = rclpy.create_node("soak_listener", context=self.context)
-        self.node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics, EVENT_QOS)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.latest: dict[str, int] | None = None
-        self.dropped: dict[str, int] = {}  # by reason
-        self.received_at = 0.0
-        self.messages = self.mismatches = 0
-        self.first_mismatch: dict | None = None
-
-    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            values = {kv.key: kv.value for kv in status.values}
-            if status.name.rpartition("/")[2] != TRACKING_NODE or "frames_in" not in values:
-                continue
-            self.latest, self.received_at = counts(values), time.monotonic()
-            self.dropped = {k.removeprefix("dropped."): int(v) for k, v in values.items() if k.startswith("dropped.")}
-            self.messages += 1
-            if not adds_up(self.latest):
-                self.mismatches += 1
-                self.first_mismatch = self.first_mismatch or self.latest
-
-    def spin(self, seconds: float) -> None:
-        """Take the messages that arrive within ``seconds``."""
-        end = time.monotonic() + seconds
-        while self.context.ok() and (left := end - time.monotonic()) > 0:
-            self.executor.spin_once(timeout_sec=left)
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-
-
-def launch_command(args, bag: str, ros_args: list[str]) -> list[str]:
-    play = f"{shlex.quote(bag)} --rate {args.rate:g} --loop --wait-subscribers 60"
-    return [sys.executable, "-m", "gausem_ros.launcher", "--params-file", str(args.params), "--nodes", args.nodes,
-            "--play", play, "--grace", str(args.grace), "--", "-p", f"device:={args.device}", *ros_args]
-
-
-def stop(launcher: subprocess.Popen, wait: float) -> list[str]:
-    """SIGINT to the launcher (it stops its children and kills what is left after its grace), then SIGKILL to its
-    process group if anything of it is left ``wait`` s later; what was killed so."""
-    if launcher.poll() is None:
-        launcher.send_signal(signal.SIGINT)
-        try:
-            launcher.wait(wait)
-        except subprocess.TimeoutExpired:
-            pass
-    left = [f"{process_name(int(p.name)) or p.name} (pid {p.name})" for p in Path("/proc").iterdir()
-            if p.name.isdigit() and _group(int(p.name)) == launcher.pid]
-    if left:
-        os.killpg(launcher.pid, signal.SIGKILL)
-    launcher.wait()
-    return left
-
-
-def _group(pid: int) -> int | None:
-    try:
-        return os.getpgid(pid)
-    except OSError:
-        return None
-
-
-def scan_log(text: str) -> dict[str, list[str]]:
-    """The exceptions (each traceback's last line), error log lines and the launcher's reports of dead processes."""
-    lines = text.splitlines()
-    exceptions = []
-    for i, line in enumerate(lines):
-        if line.startswith("Traceback (most recent call last)"):
-            exceptions.append(next((x for x in lines[i + 1:] if x and not x[0].isspace()), "(traceback cut short)"))
-    return {"exceptions": exceptions,
-            "errors": [line for line in lines if re.search(r"\[(ERROR|FATAL)\]", line)],
-            "launcher": [line for line in lines if line.startswith("[gausem-launch]") and " ended with " in line]}
 
 
 def rss_growth(samples: list[dict], process: str = TRACKING_NODE) -> dict | None:
@@ -226,14 +89,11 @@ def plot(path: Path, samples: list[dict], title: str) -> None:
 def soak(args, bag: str, ros_args: list[str], log_path: Path) -> dict:
     """Run the launcher playing ``bag`` for ``args.minutes``, sampling; the samples, the dead processes and how it
     ended."""
-    domain = int(os.environ.get("ROS_DOMAIN_ID", "71"))
-    os.environ.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")  # the listener's too
+    domain = local_domain(71)
     listener = DiagnosticsListener(domain)
     samples, dead, ended = [], [], "ran its time"
     duration = 60 * args.minutes
-    with log_path.open("w") as log:
-        launcher = subprocess.Popen(launch_command(args, bag, ros_args), cwd=REPO, stdout=log,
-                                    stderr=subprocess.STDOUT, start_new_session=True)
+    launcher = start_launcher(launch_command(args, bag, ros_args), log_path)
     start, pids = time.monotonic(), {}
     bar = tqdm(total=round(duration), unit="s", desc="soak")
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
@@ -342,28 +202,14 @@ def notes(run: dict, summary: dict, png: str) -> list[str]:
 
 
 def main() -> int:
-    argv = sys.argv[1:]
-    ros_args = argv[argv.index("--") + 1:] if "--" in argv else []
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--minutes", type=float, default=30.0, help="how long to run (default %(default)s)")
     parser.add_argument("--sample-every", type=float, default=60.0, help="seconds between samples")
-    parser.add_argument("--source", default="synthetic:loop", help="a dataset spec (written to a bag first) or a bag")
-    parser.add_argument("--size", default="160x120", help="a dataset's frame size")
-    parser.add_argument("--rate", type=float, default=1.0, help="playback speed (1: the recorded pace)")
-    parser.add_argument("--params", type=Path, help="params file (default params/<source kind>.yaml)")
-    parser.add_argument("--nodes", default=TRACKING_NODE, help="gausem-launch --nodes")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--grace", type=float, default=10.0, help="seconds the processes get to exit after SIGINT")
-    parser.add_argument("--name", default="soak_synthetic_loop_160x120", help="record name")
-    args = parser.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
-    args.params = args.params or REPO / "params" / f"{args.source.partition(':')[0]}.yaml"
-    log_path = REPO / "out" / f"{args.name}.log"
-    log_path.parent.mkdir(exist_ok=True)
+    add_launch_arguments(parser, "soak_synthetic_loop_160x120")
+    args, ros_args = parse_launch_arguments(parser, sys.argv[1:])
+    log_path = log_file(args.name)
     with tempfile.TemporaryDirectory() as tmp:
-        bag = args.source
-        if not is_bag(bag):  # read as a driver hands frames over: a bag, not rendered or decoded on the way
-            bag = str(Path(tmp) / "source")
-            convert(open_source(args.source, size=parse_size(args.size)), bag, "mcap")
+        bag = source_bag(args.source, args.size, tmp)
         run = soak(args, bag, ros_args, log_path)
     summary = summarise(run, scan_log(log_path.read_text(errors="replace")))
     png = results.RESULTS / f"{args.name}.png"

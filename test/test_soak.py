@@ -1,5 +1,5 @@
-"""The soak benchmark's parts: the input accounting read from diagnostics values, the RSS growth window, the log scan
-and the shutdown that leaves no process behind."""
+"""The soak benchmark's parts and the launch helpers it shares (``gausem_bench.launch``): the input accounting read
+from diagnostics values, the RSS growth window, the log scan and the shutdown that leaves no process behind."""
 import subprocess
 import time
 
@@ -7,7 +7,8 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from soak import adds_up, counts, rss_growth, scan_log, stop  # noqa: E402
+from gausem_bench.launch import adds_up, counts, scan_log, stop  # noqa: E402
+from soak import rss_growth  # noqa: E402
 
 
 def test_the_accounting_adds_every_drop_reason():
