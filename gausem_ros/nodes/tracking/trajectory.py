@@ -30,6 +30,13 @@ from ...tf import make_transform_broadcaster
 DEGRADED_VARIANCE = 1.0  # m^2 and rad^2 on the odometry's pose covariance diagonal for a degraded frame
 
 
+def path_poses(slam: GauSemSLAM) -> list[tuple[float, np.ndarray]]:
+    """(stamp, map-from-camera float64) of the frames a path rebuilt from ``slam``'s trajectory holds: not the lost
+    ones, nor one whose pose is not finite."""
+    poses = ((t, rigid_float64(p).numpy()) for t, p in slam.trajectory(False))
+    return [(t, m) for t, m in poses if np.isfinite(m).all()]
+
+
 class TrajectoryPublisher:
     """Odometry, path and TF of one map's frames (:meth:`reset` with each new map); ``tf_static``: the node's
     /tf_static broadcaster."""
@@ -79,9 +86,7 @@ class TrajectoryPublisher:
         publish no odometry."""
         map_frame = self._params.map_frame
         if self._path is None:
-            self._path = ma.poses_to_path([(t, m) for t, m in ((t, rigid_float64(p).numpy())
-                                                               for t, p in self._slam.trajectory(False))
-                                           if np.isfinite(m).all()], map_frame)
+            self._path = ma.poses_to_path(path_poses(self._slam), map_frame)
         elif new is not None:
             entry = ma.matrix_to_pose_stamped(new[1], ma.make_header(new[0], map_frame))
             self._path.poses.append(entry)
