@@ -8,7 +8,8 @@ Each node runs as ``python -m gausem_ros.nodes.<name> --ros-args --params-file F
 player runs too (a ``--lockstep`` one makes tracking_mapping map each keyframe before it answers:
 ``-p worker.mode:=sync`` ahead of ROS_ARGS) and, once it exits, the nodes are stopped with SIGINT. A node that dies is reported (name, exit code
 or signal) and the others go on; with ``--respawn`` it is started again after ``--respawn-delay`` s (doubled after
-each crash within 10 s of its start, at most 32x). The launcher ends when the player is done, when every node has
+each crash within 10 s of its start, at most 32x) and every child talks over Fast DDS's UDP transport alone
+(:func:`respawn_environment`). The launcher ends when the player is done, when every node has
 ended, or on SIGINT/SIGTERM, which it forwards to every child; children still running ``--grace`` s later are killed.
 The exit code is the worst of every child process that ended, crashed ones included (a child ended by signal N
 counts as 128 + N). Before anything starts, the parameters, ``map_path`` and the player's source are checked
@@ -17,6 +18,7 @@ counts as 128 + N). Before anything starts, the parameters, ``map_path`` and the
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import signal
 import subprocess
@@ -57,6 +59,17 @@ def describe(returncode: int) -> str:
     return f"exit code {returncode}"
 
 
+RESPAWN_ENVIRONMENT = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+
+
+def respawn_environment(environ: dict[str, str]) -> dict[str, str]:
+    """``environ`` with Fast DDS on UDP only, unless it sets ``FASTDDS_BUILTIN_TRANSPORTS`` itself: over shared memory
+    a node killed with SIGKILL can leave the writers that fed it delivering to no one, its respawned self included
+    (Fast DDS 2.14, eProsima/Fast-DDS#5469; ``benchmarks/chaos.py`` met it: after a kill the player's frames reached
+    neither the new tracker nor a new listener)."""
+    return {**RESPAWN_ENVIRONMENT, **environ}
+
+
 QUICK_CRASH_S = 10.0  # a node that dies sooner after its start waits longer before its next respawn
 
 
@@ -66,6 +79,7 @@ class Child:
 
     name: str
     command: list[str]
+    env: dict[str, str] | None = None  # None: the launcher's
     process: subprocess.Popen = field(init=False)
     started: float = field(init=False)
     restarts: int = 0
@@ -77,18 +91,19 @@ class Child:
         self.start()
 
     def start(self) -> None:
-        self.process = subprocess.Popen(self.command)
+        self.process = subprocess.Popen(self.command, env=self.env)
         self.started, self.restart_at = time.monotonic(), None
 
 
 class Launcher:
-    """Runs ``nodes`` ({name: command}) and an optional ``player`` command; see the module docstring."""
+    """Runs ``nodes`` ({name: command}) and an optional ``player`` command; see the module docstring. ``env``: the
+    children's environment (None: the launcher's)."""
 
     def __init__(self, nodes: dict[str, list[str]], player: list[str] | None = None, grace: float = 10.0,
-                 respawn: bool = False, respawn_delay: float = 1.0):
+                 respawn: bool = False, respawn_delay: float = 1.0, env: dict[str, str] | None = None):
         self.grace, self.respawn, self.respawn_delay = grace, respawn, respawn_delay
-        self.nodes = [Child(name, cmd) for name, cmd in nodes.items()]
-        self.player = Child("player", player) if player else None
+        self.nodes = [Child(name, cmd, env) for name, cmd in nodes.items()]
+        self.player = Child("player", player, env) if player else None
         self.exit_codes: list[int] = []  # of every child process that ended
         self._stopping = False
 
@@ -189,7 +204,8 @@ def main(args=None) -> int:
     if problems:  # before any node starts: each would fail the same way (and again at every respawn)
         parser.exit(2, "".join(f"gausem-launch: error: {problem}\n" for problem in problems))
     player = player_command(ns.play, ros_args) if ns.play else None
-    return Launcher(nodes, player, ns.grace, ns.respawn, ns.respawn_delay).wait()
+    env = respawn_environment(dict(os.environ)) if ns.respawn else None
+    return Launcher(nodes, player, ns.grace, ns.respawn, ns.respawn_delay, env).wait()
 
 
 if __name__ == "__main__":

@@ -29,7 +29,7 @@ from gausem_core.data import SYNTHETIC_CLASSES, open_dataset  # noqa: E402
 from gausem_core.slam.loop import PlaceSignature  # noqa: E402
 from gausem_core.slam.observation import Observation  # noqa: E402
 from gausem_core.slam.system import GauSemSLAM  # noqa: E402
-from gausem_ros.launcher import Launcher, node_command  # noqa: E402
+from gausem_ros.launcher import Launcher, node_command, respawn_environment  # noqa: E402
 from gausem_ros.nodes.loop_detection import LoopDetectionNode  # noqa: E402
 from gausem_ros.nodes.pose_graph import PoseGraphNode  # noqa: E402
 from gausem_ros.nodes.tracking_mapping import TrackingMappingNode  # noqa: E402
@@ -223,6 +223,19 @@ def test_the_launcher_keeps_the_other_nodes_when_one_is_killed_and_respawns_on_r
     thread.join(10.0)
     assert not thread.is_alive() and all(c.process.poll() is not None for c in launcher.nodes)
     assert "loop_detection restarted (1 so far)" in capfd.readouterr().err
+
+
+def test_respawned_children_talk_over_udp_unless_told_otherwise(tmp_path):
+    """Over Fast DDS's shared memory a SIGKILLed reader can leave its writers delivering to no one (chaos.py met it:
+    the player's frames reached neither the respawned tracker nor a new listener); under --respawn the children use
+    UDP alone, unless FASTDDS_BUILTIN_TRANSPORTS says otherwise."""
+    assert respawn_environment({"PATH": "/bin"}) == {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4", "PATH": "/bin"}
+    assert respawn_environment({"FASTDDS_BUILTIN_TRANSPORTS": "SHM"})["FASTDDS_BUILTIN_TRANSPORTS"] == "SHM"
+    out = tmp_path / "transports"
+    launcher = Launcher({"tracking_mapping": _child(
+        f"import os; open({str(out)!r}, 'w').write(os.environ.get('FASTDDS_BUILTIN_TRANSPORTS', ''))")},
+        respawn=True, env=respawn_environment({}))
+    assert launcher.nodes[0].process.wait(30) == 0 and out.read_text() == "UDPv4"
 
 
 @pytest.mark.slow
