@@ -71,6 +71,7 @@ TENSOR_FILE = re.compile(r"^(state|submap_\d{4})(\.[0-9a-f]+)?\.pt$")
 PARTIAL = SESSION_FILE + ".partial"
 EVENT_WINDOW_S = 1.0  # a kill this soon after a submap opened or a loop closed counts as during it
 POLL_S = 0.003  # how often a kill aimed at a checkpoint looks at the map folder
+STALL_WINDOW_S = 5.0  # a node that does not get ready: its CPU time is measured over this long
 
 
 # --- the plan and the moments ---------------------------------------------------------------------------------------
@@ -219,6 +220,15 @@ def open_in(pid: int, folder: Path) -> list[str]:
     return names
 
 
+def cpu_seconds(pid: int | None) -> float | None:
+    """The CPU time (user and system) process ``pid`` used so far; None when it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def spin_until(listener: DiagnosticsListener, condition: Callable[[], bool], timeout: float,
                step: float = 0.1) -> bool:
     """Spin until ``condition()`` or ``timeout`` s passed; whether it held."""
@@ -252,6 +262,19 @@ class Chaos:
                         and int(self.listener.values.get("checkpoint.written", 0)) > 0, timeout)
         return self.tracker() if ok else None
 
+    def stalled(self) -> dict:
+        """What the node showed when it did not get ready: its last diagnostics (the counts, the checkpoints, the
+        mapping worker) and their age, and the CPU seconds its process used over :data:`STALL_WINDOW_S`."""
+        pid, values = self.tracker(), self.listener.values
+        keys = ("frames_in", "frames_processed", "frames_pending", "checkpoint.written", "worker.queue_depth",
+                "worker.lag_frames", "tracking.status")
+        before = cpu_seconds(pid)
+        self.listener.spin(STALL_WINDOW_S)
+        after = cpu_seconds(pid)
+        return {"pid": pid, "diagnostics": {k: values[k] for k in keys if k in values},
+                "diagnostics_age_s": round(time.monotonic() - self.listener.received_at, 1) if values else None,
+                "cpu_s": round(after - before, 2) if None not in (before, after) else None}
+
     def aim(self, pid: int, target: str) -> tuple[str | None, bool]:
         """Wait for ``target``'s moment (at most ``--arm-timeout`` s); the checkpoint phase then and whether the
         target was met."""
@@ -279,7 +302,7 @@ class Chaos:
         entry = {"kill": index + 1, "target": target, "wait_s": wait}
         pid = self.ready(self.args.restart_timeout)
         if pid is None:
-            return {**entry, "error": "the node was not tracking and checkpointing"}
+            return {**entry, "error": "the node was not tracking and checkpointing", "stalled": self.stalled()}
         self.listener.spin(wait)
         phase, met = self.aim(pid, target)
         ages, loads = self.watch.ages(), self.loads_logged()
@@ -427,18 +450,22 @@ def kill_table(kills: list[dict]) -> dict:
 
 def notes(run: dict, summary: dict) -> list[str]:
     moments = ", ".join(f"{m} {n}" for m, n in summary["moments"].items())
-    return [f"{summary['resumed']} of {summary['planned']} restarts resumed a readable checkpoint "
-            f"(acceptance, issue 63: {'passed' if summary['passed'] else 'FAILED'}); the run {summary['ended']}, "
-            f"in {run['seconds']} s.",
-            f"Kills by moment: {moments}; {summary['targets_met']} of {summary['kills']} met what they were aimed at.",
-            f"The launcher reported {summary['launcher_sigkills']} SIGKILLs and {summary['launcher_restarts']} "
-            f"restarts for {summary['kills']} kills; frames in = processed + dropped + pending at "
-            f"{summary['samples_adding_up']} restart samples and in "
-            f"{run['diagnostics_messages'] - run['diagnostics_mismatches']} of {run['diagnostics_messages']} "
-            "diagnostics messages.",
-            f"Exceptions in the nodes' log: {'; '.join(summary['exceptions']) or 'none'}; error lines: "
-            f"{summary['errors_total']}" + (f"; killed at shutdown: {', '.join(run['killed'])}" if run["killed"]
-                                           else "") + "."]
+    lines = [f"{summary['resumed']} of {summary['planned']} restarts resumed a readable checkpoint "
+             f"(acceptance, issue 63: {'passed' if summary['passed'] else 'FAILED'}); the run {summary['ended']}, "
+             f"in {run['seconds']} s.",
+             f"Kills by moment: {moments}; {summary['targets_met']} of {summary['kills']} met what they were aimed at.",
+             f"The launcher reported {summary['launcher_sigkills']} SIGKILLs and {summary['launcher_restarts']} "
+             f"restarts for {summary['kills']} kills; frames in = processed + dropped + pending at "
+             f"{summary['samples_adding_up']} restart samples and in "
+             f"{run['diagnostics_messages'] - run['diagnostics_mismatches']} of {run['diagnostics_messages']} "
+             "diagnostics messages.",
+             f"Exceptions in the nodes' log: {'; '.join(summary['exceptions']) or 'none'}; error lines: "
+             f"{summary['errors_total']}" + (f"; killed at shutdown: {', '.join(run['killed'])}" if run["killed"]
+                                            else "") + "."]
+    lines += [f"Kill {k['kill']}: the node (pid {k['stalled']['pid']}) did not get ready; its last diagnostics, "
+              f"{k['stalled']['diagnostics_age_s']} s old: {k['stalled']['diagnostics']}; it used "
+              f"{k['stalled']['cpu_s']} CPU s in {STALL_WINDOW_S:g} s." for k in run["kills"] if "stalled" in k]
+    return lines
 
 
 def main() -> int:
