@@ -4,14 +4,14 @@ Runs ``gausem-launch`` (each node its own process; the player ``--loop``-ing a b
 160x120; the tracking node on the CPU in its live defaults, ``worker.mode`` async) for ``--minutes``, and every
 ``--sample-every`` seconds samples each process's resident set, threads and open files (``/proc/PID/status``,
 ``/proc/PID/fd``) and the tracking node's input accounting from its ``gausem/diagnostics`` (frames in, processed,
-dropped, pending), read by a listener in this process. A message is assembled from several threads' counters
-without one lock, so a rare one is off by a frame in passing: those are counted, the samples decide. Then SIGINT to
-the launcher, which stops its children (what is left after ``--grace`` s is killed). A process that dies ends the
-soak early, as a failure. Writes the record ``benchmarks/results/<name>.json`` (the samples; the RSS growth over the
-last 20 minutes, whether frames in = processed + dropped + pending at every sample, the exceptions and errors in the
-nodes' log, the dead processes), the curves in ``benchmarks/results/<name>.png`` and the log in
-``out/<name>.log``. Issue 63's acceptance (exit code 1 when not met): at most 10 % RSS growth over the last 20
-minutes, the counts add up, no exception.
+dropped, pending), read by a listener in this process. The node changes and reads them under one lock, so every
+message should add up: the record counts the messages that do not (naming the first). Then SIGINT to the launcher,
+which stops its children (what is left after ``--grace`` s is killed). A process that dies ends the soak early, as a
+failure. Writes the record ``benchmarks/results/<name>.json`` (the samples; the RSS growth over the last 20 minutes,
+whether frames in = processed + dropped + pending at every sample, the exceptions and errors in the nodes' log, the
+dead processes), the curves in ``benchmarks/results/<name>.png`` and the log in ``out/<name>.log``. Issue 63's
+acceptance (exit code 1 when not met): at most 10 % RSS growth over the last 20 minutes, the counts add up, no
+exception.
 
 The default source is the synthetic loop (360 frames, 12 s a pass, with labels): its labels let the semantic submap
 policy open and close submaps, which spill to disk beyond ``submaps.memory_budget_mb`` as in a long session (TUM

@@ -21,10 +21,15 @@ message's stamp in seconds; None for one never received). Reasons:
   the DDS publication sequence number of the message info, which rclpy hands to a two-argument callback); a
   subscription whose queue overflowed before the node took its messages loses them this way. Counted in ``lost``.
 
+``lock``: a caller's lock (an RLock) held through each :meth:`~ApproximateTimeSync.add` and
+:meth:`~ApproximateTimeSync.flush`, the callbacks included, so that a caller reading its own counts and these under
+it sees every message in one place (received, queued, matched and handed on, or dropped).
+
 ``message_filters`` (not on PyPI) is not used: its synchroniser drops without telling.
 """
 from __future__ import annotations
 
+import contextlib
 import itertools
 import threading
 import time
@@ -41,7 +46,7 @@ from .qos import INPUT_QOS_HINT, subscribe_camera
 class ApproximateTimeSync:
     def __init__(self, names: Sequence[str], callback: Callable[..., None], queue_size: int = 10,
                  slop: float = 0.02, on_drop: Callable[[int, str, str, float | None], None] = lambda *drop: None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, lock: threading.RLock | None = None):
         if len(names) < 1 or queue_size < 1 or not slop >= 0:
             raise ValueError(f"ApproximateTimeSync needs at least one input, queue_size >= 1 and slop >= 0, "
                              f"got {list(names)}, {queue_size}, {slop}")
@@ -49,6 +54,7 @@ class ApproximateTimeSync:
         self.callback, self.queue_size, self.slop, self.on_drop = callback, queue_size, slop, on_drop
         self.clock = clock  # when a message arrived (flush)
         self._lock = threading.Lock()
+        self._outer = lock or contextlib.nullcontext()
         self.reset()
 
     def reset(self) -> None:
@@ -73,32 +79,34 @@ class ApproximateTimeSync:
         if not 0 <= index < len(self._queues):
             raise ValueError(f"input index {index} out of range 0..{len(self._queues) - 1}")
         drops: list[tuple[int, str, str, float | None]] = []
-        with self._lock:
-            self.received[index] += 1
-            self._count_lost(index, sequence, drops)
-            match = self._add(index, stamp, msg, drops)
-            self._count(drops)
-        for drop in drops:
-            self.on_drop(*drop)
-        if match is not None:
-            self.callback(*match)
+        with self._outer:
+            with self._lock:
+                self.received[index] += 1
+                self._count_lost(index, sequence, drops)
+                match = self._add(index, stamp, msg, drops)
+                self._count(drops)
+            for drop in drops:
+                self.on_drop(*drop)
+            if match is not None:
+                self.callback(*match)
 
     def flush(self, max_age: float) -> None:
         """Drop, as unmatched, every message that arrived more than ``max_age`` seconds ago and is still waiting; and
         every waiting message while an input has delivered nothing in the ``max_age`` s since the first message of
         any arrived (a silent input: waiting for it would only delay each message by ``max_age``)."""
         drops: list[tuple[int, str, str, float | None]] = []
-        with self._lock:
-            now = self.clock()
-            silent = not all(self.received) and self._first_arrival is not None and \
-                now - self._first_arrival >= max_age
-            oldest = now if silent else now - max_age
-            for index, queue in enumerate(self._queues):
-                for stamp in sorted(s for s, (_, arrived) in queue.items() if arrived < oldest or silent):
-                    self._evict(index, stamp, drops)
-            self._count(drops)
-        for drop in drops:
-            self.on_drop(*drop)
+        with self._outer:
+            with self._lock:
+                now = self.clock()
+                silent = not all(self.received) and self._first_arrival is not None and \
+                    now - self._first_arrival >= max_age
+                oldest = now if silent else now - max_age
+                for index, queue in enumerate(self._queues):
+                    for stamp in sorted(s for s, (_, arrived) in queue.items() if arrived < oldest or silent):
+                        self._evict(index, stamp, drops)
+                self._count(drops)
+            for drop in drops:
+                self.on_drop(*drop)
 
     def _count(self, drops: list) -> None:
         for i, reason, _, _ in drops:
@@ -187,10 +195,11 @@ def _feed(sync: ApproximateTimeSync, index: int, msg, info: dict) -> None:
 def make_synchronizer(node, inputs: Sequence[tuple[str, type, str]], callback: Callable[..., None], qos, *,
                       queue_size: int = 10, slop: float = 0.02,
                       on_drop: Callable[[int, str, str, float | None], None] = lambda *drop: None,
-                      callback_group=None) -> SynchronizedInputs:
+                      callback_group=None, lock: threading.RLock | None = None) -> SynchronizedInputs:
     """Subscribe ``node`` to ``inputs`` ((name, msg type, topic), stamped messages) and call ``callback(*msgs)``
-    with approximately synchronised messages, in the order of ``inputs`` (subscribed with :func:`subscribe_camera`)."""
-    sync = ApproximateTimeSync([name for name, _, _ in inputs], callback, queue_size, slop, on_drop)
+    with approximately synchronised messages, in the order of ``inputs`` (subscribed with :func:`subscribe_camera`);
+    ``lock``: :class:`ApproximateTimeSync`'s."""
+    sync = ApproximateTimeSync([name for name, _, _ in inputs], callback, queue_size, slop, on_drop, lock=lock)
     subs = [subscribe_camera(node, msg_type, topic, partial(_feed, sync, i), qos, callback_group, INPUT_QOS_HINT)
             for i, (_, msg_type, topic) in enumerate(inputs)]
     return SynchronizedInputs(sync, subs)

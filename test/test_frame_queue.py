@@ -74,3 +74,23 @@ def test_a_drop_newer_than_the_pending_frame_counts_towards_the_frame_after_it()
     queue.put("e", stamp=5.0)  # c superseded, and the drop after it is now before e
     node.callback()
     assert handed == [("a", 2), ("e", 3)]  # e: the drop after a, c and the drop after c
+
+
+def test_an_item_is_in_progress_from_its_taking_until_settled_or_done():
+    node, seen = ManualGuard(), []
+    queue = None
+
+    def process(item, arrived, skipped):
+        del arrived, skipped
+        seen.append((item, queue.pending, queue.in_progress))
+        if item == "a":
+            queue.settle()  # counted (processed or dropped) before the processing ends
+            seen.append(("settled", queue.in_progress))
+
+    queue = NewestFrameQueue(node, process, lambda _: None)
+    queue.put("a")
+    assert (queue.pending, queue.in_progress) == (1, 0)
+    node.callback()
+    queue.put("b")
+    node.callback()  # b is not settled by process: done all the same
+    assert seen == [("a", 0, 1), ("settled", 0), ("b", 0, 1)] and queue.in_progress == 0

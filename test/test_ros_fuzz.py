@@ -1,6 +1,8 @@
 """No input kills a node (issue 24): every documented encoding reaches the core, image size limits, exceptions on one
 input are counted and the node goes on, and a seeded fuzz of every node's inputs."""
+import threading
 import time
+from collections import Counter
 
 import cv2
 import numpy as np
@@ -174,6 +176,73 @@ def test_an_exception_while_handling_an_input_is_counted_and_the_node_goes_on():
         report = {kv.key: kv.value for kv in session.recorder.messages["gausem/diagnostics"][-1].status[0].values}
     assert report["dropped.processing_error"] == "1"
 
+
+
+def test_the_input_accounting_adds_up_whenever_another_thread_can_read_it():
+    """Issue 63: a soak's diagnostics message now and then did not add up (frames in = processed + dropped +
+    pending), read between two steps of a frame's way. A reader thread looks before and after every step of every way
+    (superseded, unmatched, lost in transport, rejected, an exception, processed): it finds the counts being changed
+    (the accounting's lock held) or adding up."""
+    with ros_session(144) as (ctx, _):
+        node = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
+        node.frame_input.camera_info(ma.camera_to_camera_info(CAMERA, ma.make_header(0.0, "cam")))
+        seen = Counter()
+
+        def read():
+            if not node.accounting.lock.acquire(blocking=False):
+                seen["held"] += 1
+                return
+            try:
+                values = node.drops.values()
+                dropped = sum(n for key, n in values.items() if key.startswith("dropped."))
+                seen["adds up" if values["frames_in"] == values["frames_processed"] + dropped
+                     + values["frames_pending"] else "torn"] += 1
+            finally:
+                node.accounting.lock.release()
+
+        def look():
+            reader = threading.Thread(target=read)
+            reader.start()
+            reader.join()
+
+        def watched(step):
+            def run(*args, **kwargs):
+                look()
+                result = step(*args, **kwargs)
+                look()
+                return result
+            return run
+        sync, queue = node._inputs.synchronizer, node._queue
+        sync.callback, sync.on_drop = watched(sync.callback), watched(sync.on_drop)
+        queue._process, queue._on_superseded = watched(queue._process), watched(queue._on_superseded)
+        for owner, name in ((queue, "put"), (queue, "skip"), (queue, "settle"), (node.drops, "drop"),
+                            (node.accounting, "published"), (node.accounting, "dropped"), (node.slam, "process")):
+            setattr(owner, name, watched(getattr(owner, name)))
+        sequences = [0, 0, 0]  # each input's publication sequence number
+
+        def send(stamp: float, frame: list[Image], inputs=(0, 1, 2), gap: int = 0) -> None:
+            for i in inputs:
+                sequences[i] += 1 + gap * (i == 0)
+                sync.add(i, stamp, frame[i], sequences[i])
+        send(1.0, _good_frame(1.0))
+        send(1.1, _good_frame(1.1))  # supersedes 1.0
+        queue._run()  # processed
+        send(1.2, _good_frame(1.2), inputs=(0,))  # rgb alone: unmatched once 1.3 matches
+        send(1.3, _good_frame(1.3), gap=1)  # an rgb message before it lost in transport
+        queue._run()  # processed
+        blank = _good_frame(1.4)
+        blank[1] = _encode(np.zeros((CAMERA.height, CAMERA.width), np.float32), "32FC1", 1.4)
+        send(1.4, blank)
+        queue._run()  # rejected: invalid_depth
+        _fail_once(node.slam, "process")
+        send(1.5, _good_frame(1.5))
+        queue._run()  # processing_error
+        summary = node.summary()
+        node.destroy_node()
+    assert summary["frames_in"] == 7 and summary["frames_processed"] == 2 and summary["frames_pending"] == 0
+    assert summary["dropped"] == {"invalid_depth": 1, "lost_in_transport": 1, "processing_error": 1, "superseded": 1,
+                                  "unmatched": 1}
+    assert seen["torn"] == 0 and seen["adds up"] >= 10 and seen["held"] >= 10, seen
 
 
 def _fail_once(owner, name: str):

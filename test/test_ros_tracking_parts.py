@@ -245,10 +245,12 @@ def test_the_frame_accounting_adds_up_and_says_why_a_frame_publishes_nothing(map
     slam, results = mapped
     with ros_session(206) as (ctx, _):
         node = rclpy.create_node("parts", context=ctx)
-        drops = DropReport(node)
-        accounting = FrameAccounting(synchroniser(), SimpleNamespace(pending=1), drops)
+        lock = threading.RLock()
+        drops = DropReport(node, lock=lock)
+        queue = SimpleNamespace(pending=1, in_progress=1, settle=lambda: setattr(queue, "in_progress", 0))
+        accounting = FrameAccounting(synchroniser(), queue, drops, lock)
         for arrived in (time.monotonic() - 0.1, time.monotonic() - 0.2):
-            accounting.in_progress = True
+            queue.in_progress = 1
             accounting.published(arrived)
         accounting.handled_ns = 42
         drops.drop("superseded", "test")

@@ -94,9 +94,15 @@ def survives_errors(handler: Callable | None = None, *, frame: bool = True) -> C
         try:
             return handler(node, *args)
         except Exception as err:  # noqa: BLE001 -- one input must never end the node
-            node.get_logger().debug(f"{handler.__name__} failed:\n{traceback.format_exc()}")
-            node.drops.drop("processing_error", f"{handler.__name__}: {type(err).__name__}: {err}", frame=frame)
+            count_error(node, handler.__name__, err, frame)
     return guarded
+
+
+def count_error(node, name: str, err: Exception, frame: bool = True) -> None:
+    """Log the exception ``err`` that the handler ``name`` raised (the traceback at debug level) and count it on
+    ``node.drops`` as ``processing_error`` (:func:`survives_errors`)."""
+    node.get_logger().debug(f"{name} failed:\n{traceback.format_exc()}")
+    node.drops.drop("processing_error", f"{name}: {type(err).__name__}: {err}", frame=frame)
 
 
 class DropReport:
@@ -105,17 +111,20 @@ class DropReport:
     gausem/diagnostics, after every drop and whenever the node calls ``publish``. Dropped frames (``frame=True``:
     the node's main input, e.g. a synchronised rgb-d frame) are ``dropped.<reason>``; other rejected messages
     (camera_info, records) are ``rejected.<reason>``. The level is WARN after a drop, else OK, raised to what the
-    node's ``level()`` says (a DiagnosticStatus level and a message, e.g. ERROR "tracking lost"). Thread-safe."""
+    node's ``level()`` says (a DiagnosticStatus level and a message, e.g. ERROR "tracking lost"). Thread-safe:
+    ``lock`` (an RLock) is held while a count changes and while a message is assembled; a node that shares it with
+    the other counters ``status()`` reads publishes counts of one moment."""
 
     def __init__(self, node, log_period: float = 5.0, status: Callable[[], dict] = dict,
-                 level: Callable[[], tuple[int, str]] = lambda: (DiagnosticStatus.OK, "")):
+                 level: Callable[[], tuple[int, str]] = lambda: (DiagnosticStatus.OK, ""),
+                 lock: threading.RLock | None = None):
         self._node = node
         self._status = status
         self._level = level
         self._pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, EVENT_QOS)
         self._last_logged: dict[str, float] = {}
         self._log_period = log_period
-        self._lock = threading.RLock()
+        self._lock = lock or threading.RLock()
         self.counts: Counter[str] = Counter()  # dropped frames by reason
         self.rejected: Counter[str] = Counter()  # other rejected messages by reason
 
@@ -163,23 +172,36 @@ class NewestFrameQueue:
     before they were put), counted under one lock as the item is taken, so a frame dropped while another is being
     processed counts towards the next one. A frame dropped with a stamp newer than the pending frame's counts towards
     the frame after that one (a synchroniser may drop a newer frame before the pending one is taken). While
-    ``ready()`` is false the pending frame waits; call :meth:`wake` when it may have become true."""
+    ``ready()`` is false the pending frame waits; call :meth:`wake` when it may have become true. An item taken is
+    :attr:`in_progress` until ``process`` calls :meth:`settle` (or returns); ``lock``: the queue's lock, an RLock a
+    node shares with its other counters to read them in one piece."""
 
     def __init__(self, node, process: Callable, on_superseded: Callable, callback_group=None,
-                 ready: Callable[[], bool] = lambda: True):
+                 ready: Callable[[], bool] = lambda: True, lock: threading.RLock | None = None):
         self._process, self._on_superseded, self._ready = process, on_superseded, ready
         self._pending: tuple[object, float] | None = None
         self._pending_stamp: float | None = None
         self._skipped = 0  # frames superseded or reported skipped since the last item taken, before the pending one
         self._skipped_after = 0  # reported skipped with a stamp after the pending one's
         self._running = 0
-        self._lock = threading.Lock()
+        self._taken = False  # an item handed to process and not yet settled
+        self._lock = lock or threading.Lock()
         self._guard = node.create_guard_condition(self._run, callback_group=callback_group)
 
     @property
     def pending(self) -> int:
         """Frames waiting to be processed (not the one in progress)."""
         return int(self._pending is not None)
+
+    @property
+    def in_progress(self) -> int:
+        """Items taken and not yet settled (0 or 1)."""
+        return int(self._taken)
+
+    def settle(self) -> None:
+        """The item in progress is accounted for (processed or dropped): no longer :attr:`in_progress`."""
+        with self._lock:
+            self._taken = False
 
     @property
     def idle(self) -> bool:
@@ -228,12 +250,14 @@ class NewestFrameQueue:
             if entry is None:
                 return
             self._running += 1
+            self._taken = True
             skipped, self._skipped, self._skipped_after = self._skipped, self._skipped_after, 0
         try:
             self._process(*entry, skipped)
         finally:
             with self._lock:
                 self._running -= 1
+                self._taken = False
                 again = self._pending is not None
             if again:
                 self._guard.trigger()

@@ -16,6 +16,7 @@ This module holds the inputs, the call into the core and the wiring; each output
 from __future__ import annotations
 
 import math
+import threading
 import time
 from pathlib import Path
 
@@ -38,8 +39,8 @@ from gausem_core.slam.system import GauSemSLAM
 from ..qos import input_qos
 from ..sync import make_synchronizer
 from ..tf import make_transform_broadcaster
-from .common import (DropReport, FrameRejected, NewestFrameQueue, class_table, declare_parameters,
-                     declare_slam_config, run_node, survives_errors)
+from .common import (DropReport, FrameRejected, NewestFrameQueue, class_table, count_error, declare_parameters,
+                     declare_slam_config, run_node)
 from .tracking.checkpoints import SessionCheckpoints
 from .tracking.diagnostics import HEALTH_LEVELS, FrameAccounting, core_status, unpublished
 from .tracking.frame_input import NO_LABELS_FIX, FrameInput
@@ -67,7 +68,9 @@ class TrackingMappingNode(Node):
         table = class_table(p.classes) if p.use_labels else None
         self.palette = table.palette if table is not None else UNLABELLED_PALETTE
         self.device = resolve_device(self.cfg.device)
-        self.drops = DropReport(self, status=self._status, level=lambda: HEALTH_LEVELS[self.health.status])
+        counting = threading.RLock()  # the input accounting's one lock (FrameAccounting)
+        self.drops = DropReport(self, status=self._status, level=lambda: HEALTH_LEVELS[self.health.status],
+                                lock=counting)
         if self.device.type == "cuda":  # the images are subscribed once the renderer is ready
             self.get_logger().info("preparing the renderer on cuda (gsplat compiles its kernels on a machine's first "
                                    "run: one to two minutes)")
@@ -86,11 +89,13 @@ class TrackingMappingNode(Node):
         inputs = [("rgb", Image, "rgb/image"), ("depth", Image, "depth/image")] + (
             [("labels", Image, "semantic/labels")] if p.use_labels else [])
         self._inputs = make_synchronizer(self, inputs, self._on_frame, qos, queue_size=p.sync_queue_size,
-                                         slop=p.sync_slop, on_drop=self._on_sync_drop, callback_group=input_group)
+                                         slop=p.sync_slop, on_drop=self._on_sync_drop, callback_group=input_group,
+                                         lock=counting)
         self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
             "superseded", "a newer synchronised frame arrived before this one was processed"),
-            ready=self.loop_link.settled if self.loop_link else lambda: True)  # skipped frames: _process's count
-        self.accounting = FrameAccounting(self._inputs.synchronizer, self._queue, self.drops)
+            ready=self.loop_link.settled if self.loop_link else lambda: True, lock=counting)  # skipped frames:
+        # _process's count
+        self.accounting = FrameAccounting(self._inputs.synchronizer, self._queue, self.drops, counting)
         if p.sync_wait:
             self.create_timer(min(p.sync_wait / 2, 0.5), lambda: self._inputs.synchronizer.flush(p.sync_wait),
                               callback_group=input_group)
@@ -175,26 +180,32 @@ class TrackingMappingNode(Node):
         map_camera = self.slam.submaps[0].keyframes[0].obs.camera if self.slam.submaps else None
         return self.frame_input.observation(msgs, self._last_stamp, map_camera)
 
-    @survives_errors
     def _process(self, msgs: tuple[Image, ...], arrived: float, skipped: int) -> None:
-        """One synchronised frame; ``skipped``: the frames dropped since the last one the queue handed over."""
+        """One synchronised frame (in progress until counted as processed or dropped); ``skipped``: the frames
+        dropped since the last one the queue handed over. An exception is counted as a processing_error drop of the
+        frame (``survives_errors``; one raised after its pose went out: of no frame) and the node goes on."""
+        try:
+            self._process_frame(msgs, arrived, skipped)
+        except Exception as err:  # noqa: BLE001 -- one frame must never end the node
+            with self.accounting.lock:
+                frame = bool(self._queue.in_progress)
+                self._queue.settle()
+                count_error(self, "_process", err, frame)
+
+    def _process_frame(self, msgs: tuple[Image, ...], arrived: float, skipped: int) -> None:
         start = time.perf_counter()
         self.accounting.handled_ns = ma.time_to_ns(msgs[0].header.stamp)
-        self.accounting.in_progress = True  # until the frame is counted as processed or dropped
         try:
             obs = self._observation(*msgs)
         except Exception as err:
-            self.accounting.in_progress = False
             self._queue.skip(skipped)  # passed on with the next frame, as is this one when it is rejected
             if not isinstance(err, FrameRejected):
                 raise  # counted as a processing_error drop
-            self._skip(err.reason, str(err))
+            with self.accounting.lock:
+                self._queue.settle()
+                self._skip(err.reason, str(err))
             return
-        try:
-            self._track_and_publish(obs, msgs[0].header.frame_id, arrived, skipped)
-        except Exception:
-            self.accounting.in_progress = False  # counted as a processing_error drop
-            raise
+        self._track_and_publish(obs, msgs[0].header.frame_id, arrived, skipped)
         self._busy = (self._busy[0] if self._busy else start, time.perf_counter())
         if self.checkpoints is not None:
             self.checkpoints.after_frame()
@@ -212,8 +223,7 @@ class TrackingMappingNode(Node):
             self.get_logger().info(f"relocalised against the map (submap {reloc.submap_id}, inlier fraction "
                                    f"{reloc.inlier_fraction:.2f}); tracking goes on")
         if (why := unpublished(result, pose, obs.timestamp)) is not None:
-            self.accounting.in_progress = False
-            self.drops.drop(*why)
+            self.accounting.dropped(*why)
             return
         self.trajectory.publish_odometry(pose, obs.timestamp, image_frame, result.health.status == "degraded")
         self.accounting.published(arrived)
@@ -263,10 +273,11 @@ class TrackingMappingNode(Node):
     def reset(self) -> None:
         """A new map, with the trajectory and the input accounting cleared."""
         self.replace_map()
-        self.accounting.clear()
-        self._queue.clear()
-        self._inputs.synchronizer.reset()  # a replay of the same stamps must not look stale
-        self.drops.clear()
+        with self.accounting.lock:
+            self.accounting.clear()
+            self._queue.clear()
+            self._inputs.synchronizer.reset()  # a replay of the same stamps must not look stale
+            self.drops.clear()
         self.trajectory.publish_path()
 
     def _status(self) -> dict:

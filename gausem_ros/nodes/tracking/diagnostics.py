@@ -15,6 +15,7 @@ between the last frame and the newest keyframe of the map it was tracked against
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -32,42 +33,55 @@ HEALTH_LEVELS = {"ok": (DiagnosticStatus.OK, ""), "degraded": (DiagnosticStatus.
 
 class FrameAccounting:
     """Every rgb image received: processed (a pose published; the latency from its arrival kept), pending (unmatched
-    in the synchroniser, queued or in progress) or dropped (counted on the node's ``drops``)."""
+    in the synchroniser, queued or in progress) or dropped (counted on the node's ``drops``). ``lock``: the one lock
+    (an RLock) that the synchroniser, the queue and ``drops`` were made with, held by every change of a count and by
+    each reading of them, so that the counts read always add up."""
 
-    def __init__(self, sync: ApproximateTimeSync, queue: NewestFrameQueue, drops: DropReport):
-        self._sync, self._queue, self._drops = sync, queue, drops
+    def __init__(self, sync: ApproximateTimeSync, queue: NewestFrameQueue, drops: DropReport, lock: threading.RLock):
+        self._sync, self._queue, self._drops, self.lock = sync, queue, drops, lock
         self.processed = 0  # kept across load_map, cleared by gausem/reset
         self.latencies: list[float] = []  # seconds from a frame's arrival to its pose's publication
         self.handled_ns = -1  # stamp of the last synchronised frame handled (processed or dropped)
-        self.in_progress = False  # a frame is being processed
 
     def published(self, arrived: float) -> None:
-        """A frame's pose went out; it arrived at ``arrived`` (``time.monotonic``)."""
-        self.processed += 1
-        self.in_progress = False
-        self.latencies.append(time.monotonic() - arrived)
+        """The frame in progress had its pose published; it arrived at ``arrived`` (``time.monotonic``)."""
+        with self.lock:
+            self.processed += 1
+            self._queue.settle()
+            self.latencies.append(time.monotonic() - arrived)
+
+    def dropped(self, reason: str, detail: str) -> None:
+        """The frame in progress is dropped for ``reason``."""
+        with self.lock:
+            self._queue.settle()
+            self._drops.drop(reason, detail)
 
     def clear(self) -> None:
-        self.processed = 0
-        self.latencies.clear()
+        with self.lock:
+            self.processed = 0
+            self.latencies.clear()
 
     def pending(self) -> int:
         """Frames received and not yet processed or dropped: unmatched in the synchroniser, queued, in progress."""
-        return self._sync.pending(0) + self._queue.pending + self.in_progress
+        with self.lock:
+            return self._sync.pending(0) + self._queue.pending + self._queue.in_progress
 
     def status(self, state: dict) -> dict:
         """The diagnostics' values: the counts, ``state`` (the core's and the checkpoints'), the latency over the last
         100 frames and the depth and label messages the synchroniser dropped."""
-        return {"frames_in": self._frames_in(), "frames_processed": self.processed, "frames_pending": self.pending(),
-                LAST_FRAME_KEY: self.handled_ns, **state, **latency_stats(self.latencies[-100:]),
-                **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(self._sync.dropped.items())
-                   if name != self._sync.names[0]}}
+        with self.lock:
+            return {"frames_in": self._frames_in(), "frames_processed": self.processed,
+                    "frames_pending": self.pending(), LAST_FRAME_KEY: self.handled_ns, **state,
+                    **latency_stats(self.latencies[-100:]),
+                    **{f"sync.{name}.{reason}": n for (name, reason), n in sorted(self._sync.dropped.items())
+                       if name != self._sync.names[0]}}
 
     def summary(self) -> dict:
         """The whole run's: frames in = processed + dropped (by reason) + pending; latency."""
-        return {"frames_in": self._frames_in(), "frames_processed": self.processed,
-                "dropped": dict(sorted(self._drops.counts.items())), "frames_pending": self.pending(),
-                **latency_stats(self.latencies)}
+        with self.lock:
+            return {"frames_in": self._frames_in(), "frames_processed": self.processed,
+                    "dropped": dict(sorted(self._drops.counts.items())), "frames_pending": self.pending(),
+                    **latency_stats(self.latencies)}
 
     def _frames_in(self) -> int:
         """The rgb images received or lost in transport."""
