@@ -7,6 +7,7 @@ from pathlib import Path
 import torch
 
 _FIELDS = ("means", "log_radii", "opacity_logits", "colors", "semantics")
+CLASS_ID_CHUNK = 1 << 18  # Gaussians per chunk of GaussianCloud.class_ids
 
 
 @dataclass
@@ -108,10 +109,13 @@ class GaussianCloud:
         return GaussianCloud(**{k: torch.cat([getattr(c, k).detach() for c in clouds]) for k in _FIELDS})
 
     def class_ids(self, palette: torch.Tensor) -> torch.Tensor:
-        """Per-Gaussian class id: index of the nearest palette colour (C, 3) to the semantic colour."""
+        """Per-Gaussian class id: index of the nearest palette colour (C, 3) to the semantic colour (in chunks of
+        :data:`CLASS_ID_CHUNK` Gaussians: the distances held are a chunk's, not the whole map's)."""
         if len(self) == 0:
             return torch.zeros(0, dtype=torch.long, device=self.device)
-        return torch.cdist(self.semantics.detach(), palette.to(self.device, self.dtype)).argmin(-1)
+        palette = palette.to(self.device, self.dtype)
+        return torch.cat([torch.cdist(part, palette).argmin(-1)
+                          for part in self.semantics.detach().split(CLASS_ID_CHUNK)])
 
     # --- persistence --------------------------------------------------------------------------------------------
     def save(self, path: str | Path) -> None:

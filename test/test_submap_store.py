@@ -52,6 +52,24 @@ def test_lru_spill_order_under_budget(tmp_path):
         assert all(same(store.load(k), entry(100, k)) for k in range(4))
 
 
+def test_a_read_copies_and_moves_nothing(tmp_path):
+    """Issue 63: the map publisher's loads of every spilled submap each period made each resident in turn, writing
+    another to disk. A read leaves every entry where it is and the least recently used order as it was."""
+    size = tensor_bytes(entry(100, 0))
+    with SubmapStore(max_bytes=size, cache_dir=tmp_path) as store:
+        for key in range(3):
+            store.store(key, entry(100, key))
+        files = sorted(tmp_path.rglob("*.pt"))
+        read = store.read(0)
+        assert same(read, entry(100, 0)) and same(store.read(2), entry(100, 2))
+        read["means"].zero_()  # a copy
+        assert [store.on_disk(k) for k in range(3)] == [True, True, False] and store.nbytes == size
+        assert sorted(tmp_path.rglob("*.pt")) == files  # nothing written
+        store.store(3, entry(100, 3))  # 2 is still the least recently used in memory
+        assert [store.on_disk(k) for k in range(4)] == [True, True, True, False]
+        assert same(store.read(0), entry(100, 0))
+
+
 def test_evict_replace_and_errors(tmp_path):
     with SubmapStore(max_bytes=0, cache_dir=tmp_path) as store:
         store.store(0, entry(5, 0))

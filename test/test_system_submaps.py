@@ -6,12 +6,15 @@ exercise the submap machinery and do not depend on tracker accuracy; mapping run
 import threading
 import time
 
+import numpy as np
 import pytest
 import torch
 
 from gausem_core.config import from_flat
 from gausem_core.data import SYNTHETIC_CLASSES, SyntheticDataset
 from gausem_core.geometry import invert_pose, rigid_product, se3_exp
+from gausem_core.maps.occupancy import build_grid
+from gausem_core.maps.slam_grid import KeyframeRays, floor_class_id, slam_grid
 from gausem_core.slam.allocation import make_allocation, partition_keyframes
 from gausem_core.slam.depth_filter import filter_observation
 from gausem_core.slam.loop_graphs import PoseGraphUpdate
@@ -186,12 +189,20 @@ def test_trajectory_and_global_cloud_cover_all_frames(sequence):
     assert [t for t, _ in slam.trajectory()] == [o.timestamp for o in observations[:9]]
     # keyframe BA (and the boundary BA at each switch) may since have refined the poses a little
     assert all(torch.allclose(p, r.cam_to_world, atol=0.05) for (_, p), r in zip(slam.trajectory(), results))
+    store = slam.back_end.store
+    spilled = [key for key in store.keys() if store.on_disk(key)]
     cloud = slam.global_cloud()
     sizes = [s.num_gaussians for s in slam.submaps]
     assert len(slam.submaps) == 3 and len(cloud) == sum(sizes)
     parts = torch.split(cloud.means, sizes)
     for submap, part in zip(slam.submaps, parts):
         assert torch.allclose(part, submap.load_cloud().transformed(submap.anchor).means)
+    assert spilled and [key for key in store.keys() if store.on_disk(key)] == spilled  # read where they lie
+    floor = floor_class_id(SYNTHETIC_CLASSES.names, "floor")  # the grid, read a submap at a time: the whole map's
+    whole = build_grid(cloud, KeyframeRays(slam.cfg.grid.pixel_stride).views(slam), slam.cfg.grid,
+                       cloud.class_ids(SYNTHETIC_CLASSES.palette) == floor)
+    grid = slam_grid(slam, slam.cfg.grid, SYNTHETIC_CLASSES.palette, floor)
+    assert np.array_equal(grid.cells, whole.cells) and np.array_equal(grid.floor.pose, whole.floor.pose)
     directory = slam.back_end.store.directory
     assert directory.is_dir()
     slam.close()

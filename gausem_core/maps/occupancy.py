@@ -79,18 +79,23 @@ def build_grid(cloud: GaussianCloud, views: list[RayView], cfg: GridConfig,
     """The occupancy grid of a world-frame ``cloud`` and keyframe rays ``views``; ``floor_mask`` (N,) marks the floor
     class's Gaussians (None: no class ids; see :func:`~gausem_core.maps.floor.fit_floor`). ValueError without views
     or a floor."""
+    opaque = cloud.opacities.detach() >= cfg.occupied_opacity
+    return opaque_grid(cloud.means.detach()[opaque], views, cfg, None if floor_mask is None else floor_mask[opaque])
+
+
+def opaque_grid(means: torch.Tensor, views: list[RayView], cfg: GridConfig,
+                floor_mask: torch.Tensor | None = None) -> OccupancyGrid:
+    """:func:`build_grid` of the world-frame centres ``means`` (M, 3) of a cloud's opaque Gaussians (opacity at least
+    ``cfg.occupied_opacity``); ``floor_mask`` (M,) marks the floor class's among them."""
     if not views:
         raise ValueError("an occupancy grid needs at least one keyframe")
     if cfg.resolution <= 0 or cfg.pixel_stride < 1 or not cfg.min_height < cfg.max_height:
         raise ValueError("grid: resolution must be > 0, pixel_stride >= 1 and min_height < max_height, got "
                          f"{cfg.resolution}, {cfg.pixel_stride}, {cfg.min_height}, {cfg.max_height}")
-    means = cloud.means.detach()
-    opaque = cloud.opacities.detach() >= cfg.occupied_opacity
     poses = torch.stack([v.cam_to_world.to(means) for v in views])
-    floor = fit_floor(means[opaque], None if floor_mask is None else floor_mask[opaque], poses, cfg.max_tilt_deg,
-                      cfg.plane_threshold)
+    floor = fit_floor(means, floor_mask, poses, cfg.max_tilt_deg, cfg.plane_threshold)
     to_floor = torch.as_tensor(np.linalg.inv(floor.pose), dtype=means.dtype, device=means.device)
-    local = means[opaque] @ to_floor[:3, :3].T + to_floor[:3, 3]
+    local = means @ to_floor[:3, :3].T + to_floor[:3, 3]
     occupied = local[(local[:, 2] >= cfg.min_height) & (local[:, 2] <= cfg.max_height), :2]
     origins, ends, owners = [], [], []
     for k, (view, pose) in enumerate(zip(views, to_floor @ poses)):

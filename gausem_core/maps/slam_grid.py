@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import torch
 
 from gausem_core.config import GridConfig
-from gausem_core.maps.occupancy import OccupancyGrid, RayView, build_grid, depth_rays
+from gausem_core.maps.occupancy import OccupancyGrid, RayView, depth_rays, opaque_grid
 
 
 class KeyframeRays:
@@ -41,7 +41,15 @@ def floor_class_id(names: Sequence[str] | None, floor_class: str) -> int | None:
 def slam_grid(slam, cfg: GridConfig, palette: torch.Tensor | None = None, floor_class: int | None = None,
               rays: KeyframeRays | None = None) -> OccupancyGrid:
     """The grid of ``slam``'s map now; the floor from the Gaussians of class ``floor_class`` (their class: the
-    nearest ``palette`` colour) when given. ``rays``: the map's ray cache, kept between rebuilds."""
-    cloud = slam.global_cloud()
-    mask = None if palette is None or floor_class is None else cloud.class_ids(palette) == floor_class
-    return build_grid(cloud, (rays or KeyframeRays(cfg.pixel_stride)).views(slam), cfg, mask)
+    nearest ``palette`` colour) when given. ``rays``: the map's ray cache, kept between rebuilds. The map is read a
+    submap at a time, keeping only the opaque Gaussians' centres (what :func:`build_grid` of the whole map uses)."""
+    views = (rays or KeyframeRays(cfg.pixel_stride)).views(slam)
+    centres, floor = [], []
+    for submap in list(slam.submaps):
+        cloud = submap.load_cloud(slam.device).transformed(submap.anchor)
+        opaque = cloud.opacities >= cfg.occupied_opacity
+        centres.append(cloud.means[opaque])
+        if palette is not None and floor_class is not None:
+            floor.append(cloud.class_ids(palette)[opaque] == floor_class)
+    means = torch.cat(centres) if centres else torch.zeros(0, 3, device=slam.device)
+    return opaque_grid(means, views, cfg, torch.cat(floor) if floor else None)

@@ -49,6 +49,7 @@ class Submap:
     Gaussians (:meth:`grow`) wait in a pending cloud, part of the map at once. The mapping worker owns the rest: it
     takes the pending ones in with :meth:`take_cloud` before it optimises, and assigns ``cloud`` after; Gaussians
     grown meanwhile stay pending, so neither thread's work is lost. Readers (``cloud``, :meth:`load_cloud`) see both.
+    ``version`` counts the changes of the Gaussians (a reader may keep what it derived from a version).
     """
 
     def __init__(self, submap_id: int, anchor: torch.Tensor, cloud: GaussianCloud,
@@ -66,6 +67,7 @@ class Submap:
         self._growth = threading.Lock()  # guards the swaps of _cloud, _pending and _whole (never held while mapping)
         self._store: SubmapStore | None = None
         self.num_gaussians = len(cloud)
+        self.version = 0
 
     @property
     def is_active(self) -> bool:
@@ -88,6 +90,7 @@ class Submap:
             else:
                 self._store.store(self._cloud_key, cloud.tensors())
             self.num_gaussians = len(cloud) + (len(self._pending) if self._pending is not None else 0)
+            self.version += 1
 
     def take_cloud(self, device: torch.device | str | None = None) -> GaussianCloud:
         """The mapping worker's Gaussians with the pending ones taken in: what it optimises and then assigns back to
@@ -107,16 +110,18 @@ class Submap:
             self._pending = added if self._pending is None else GaussianCloud.cat([self._pending, added])
             self._whole = None
             self.num_gaussians += len(added)
+            self.version += 1
         return len(added)
 
     def load_cloud(self, device: torch.device | str | None = None) -> GaussianCloud:
         """The Gaussians on ``device`` (default: where they are; the CPU for an inactive submap). An inactive
-        submap's come back as a bit-identical copy; an active submap's are its own tensors (moved if asked)."""
+        submap's come back as a bit-identical copy (read from its store, where nothing moves: ``SubmapStore.read``);
+        an active submap's are its own tensors (moved if asked)."""
         with self._growth:
             whole = self._merged() if self._store is None else None
         if whole is not None:
             return whole if device is None else whole.to(device)
-        return GaussianCloud(**self._store.load(self._cloud_key, device or "cpu"))
+        return GaussianCloud(**self._store.read(self._cloud_key, device or "cpu"))
 
     def _merged(self) -> GaussianCloud:
         """An active submap's Gaussians and the pending ones, as one cloud (made once per change); under _growth."""

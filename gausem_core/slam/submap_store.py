@@ -4,7 +4,9 @@ A :class:`SubmapStore` holds ``dict[str, Tensor]`` entries (a submap's ``Gaussia
 images, ...) under hashable keys. Entries live in CPU memory until the in-memory total exceeds ``max_bytes``; then the
 least recently used ones (stored or loaded longest ago) are written to the cache directory with ``torch.save`` and
 dropped from memory. :meth:`SubmapStore.load` returns copies on the requested device, reading a spilled entry back
-(it becomes the most recently used in-memory entry again). Round trips are bit-identical (same dtypes, shapes and
+(it becomes the most recently used in-memory entry again); :meth:`SubmapStore.read` returns copies and moves nothing
+(a spilled entry is read from its file and stays there: a reader of the whole map does not churn the store). Round
+trips are bit-identical (same dtypes, shapes and
 values). The store owns a fresh temporary directory (inside ``cache_dir`` when given) and deletes it on
 :meth:`SubmapStore.close` or on leaving a ``with`` block. It is safe to use from several threads (the mapping worker
 spills while a node's map publisher loads): each call holds the store's own lock.
@@ -108,6 +110,16 @@ class SubmapStore:
             path.unlink()
             self._spill(keep=key)
         self._memory.move_to_end(key)
+        return {name: t.to(device, copy=True) for name, t in self._memory[key].items()}
+
+    @_locked
+    def read(self, key: Hashable, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+        """Copies of ``key``'s tensors on ``device``; nothing moves (a spilled entry stays on disk, no entry becomes
+        more recently used)."""
+        self._check_open()
+        self._check_key(key)
+        if key in self._disk:
+            return torch.load(self._disk[key][0], map_location=device, weights_only=True)
         return {name: t.to(device, copy=True) for name, t in self._memory[key].items()}
 
     @_locked
