@@ -1,7 +1,8 @@
 """Pure conversions between GauSem core types and standard ROS 2 messages. No nodes, no spinning."""
 import gausem_core  # noqa: F401 (first: its OpenMP setting must precede torch's import)
 from .camera_info import camera_info_to_camera, camera_to_camera_info
-from .gaussian_map import cloud_to_pointcloud2, pointcloud2_to_cloud
+from .gaussian_map import (MAP_DTYPE, cloud_to_pointcloud2, cloud_to_points, pointcloud2_to_cloud,
+                           transform_points)
 from .images import (ImageEncodingError, depth_to_image, image_to_depth, image_to_labels, image_to_numpy,
                      image_to_rgb, labels_to_image, numpy_to_image, rgb_to_image)
 from .loops import (information_to_sigmas, loop_candidate_to_record, loop_constraint_to_record,

@@ -34,15 +34,40 @@ def unpack_rgb(packed: np.ndarray) -> np.ndarray:
 
 def cloud_to_pointcloud2(cloud: GaussianCloud, header: Header, palette: torch.Tensor) -> PointCloud2:
     """The map as PointCloud2; ``palette`` (C, 3) gives each Gaussian's class id (nearest palette colour)."""
+    return structured_to_pointcloud2(cloud_to_points(cloud, palette), header)
+
+
+def cloud_to_points(cloud: GaussianCloud, palette: torch.Tensor, voxel_size: float = 0.0) -> np.ndarray:
+    """The Gaussians as points of :data:`MAP_DTYPE`; with ``voxel_size`` > 0 (metres), one per voxel of that side
+    that holds any: the most opaque (in the order of ``cloud``)."""
     c = cloud.detach().to(device="cpu", dtype=torch.float32)
-    points = np.empty(len(c), MAP_DTYPE)
-    means = c.means.numpy()
-    points["x"], points["y"], points["z"] = means[:, 0], means[:, 1], means[:, 2]
-    points["rgb"] = pack_rgb(c.colors.numpy())
-    points["label"] = c.class_ids(palette).numpy()
-    points["opacity"] = c.opacities.numpy()
-    points["radius"] = c.radii.numpy()
-    return structured_to_pointcloud2(points, header)
+    means, opacity = c.means.numpy(), c.opacities.numpy()
+    keep = slice(None) if voxel_size <= 0 or not len(c) else _voxel_representatives(means, opacity, voxel_size)
+    points = np.empty(len(means[keep]), MAP_DTYPE)
+    points["x"], points["y"], points["z"] = means[keep, 0], means[keep, 1], means[keep, 2]
+    points["rgb"] = pack_rgb(c.colors.numpy()[keep])
+    points["label"] = c.class_ids(palette).numpy()[keep]
+    points["opacity"] = opacity[keep]
+    points["radius"] = c.radii.numpy()[keep]
+    return points
+
+
+def _voxel_representatives(means: np.ndarray, weights: np.ndarray, size: float) -> np.ndarray:
+    """Indices (ascending) of the largest-``weights`` point in each voxel of side ``size`` that holds points."""
+    keys = np.floor(means / size).astype(np.int64)
+    order = np.lexsort((-weights, keys[:, 2], keys[:, 1], keys[:, 0]))
+    keys = keys[order]
+    first = np.ones(len(keys), bool)
+    first[1:] = (keys[1:] != keys[:-1]).any(1)
+    return np.sort(order[first])
+
+
+def transform_points(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Points of :data:`MAP_DTYPE` moved by the rigid 4x4 ``pose`` (a copy)."""
+    out = points.copy()
+    xyz = np.stack([points["x"], points["y"], points["z"]], -1).astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    out["x"], out["y"], out["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    return out
 
 
 def pointcloud2_to_cloud(msg: PointCloud2, palette: torch.Tensor | None = None) -> tuple[GaussianCloud, np.ndarray]:

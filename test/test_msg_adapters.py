@@ -287,6 +287,23 @@ def test_map_round_trip():
     assert unlabelled.semantics.abs().sum() == 0
 
 
+def test_map_points_one_per_voxel_the_most_opaque_and_moved_rigidly():
+    means = torch.tensor([[0.01, 0.01, 0.01], [0.04, 0.02, 0.03], [0.07, 0.0, 0.0], [-0.01, 0.0, 0.0]])
+    cloud = GaussianCloud.from_points(means, torch.rand(4, 3), PALETTE[torch.tensor([0, 1, 2, 1])].float(),
+                                      torch.full((4,), 0.01), torch.tensor([0.3, 0.9, 0.5, 0.2]))
+    every = ma.cloud_to_points(cloud, PALETTE)
+    assert len(every) == 4 and list(every["label"]) == [0, 1, 2, 1]
+    kept = ma.cloud_to_points(cloud, PALETTE, voxel_size=0.05)  # voxels x < 0, 0 <= x < 0.05 (two), x >= 0.05
+    assert list(kept["label"]) == [1, 2, 1] and kept["opacity"][0] == pytest.approx(0.9)
+    pose = np.eye(4)
+    pose[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    pose[:3, 3] = [1.0, 2.0, 3.0]
+    moved = ma.transform_points(every, pose)
+    xyz = np.stack([moved["x"], moved["y"], moved["z"]], -1)
+    np.testing.assert_allclose(xyz, means.numpy() @ pose[:3, :3].T + pose[:3, 3], atol=1e-6)
+    assert np.array_equal(moved["label"], every["label"]) and np.array_equal(every["x"], means[:, 0].numpy())
+
+
 def test_map_rejects_foreign_clouds():
     msg = structured_to_pointcloud2(np.zeros(2, [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]), HEADER)
     with pytest.raises(ValueError, match="missing fields"):

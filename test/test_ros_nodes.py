@@ -82,7 +82,7 @@ def test_tracking_node_in_lockstep_with_the_player(tmp_path):
     with ros_session(102) as (ctx, executor):
         tracking = TrackingMappingNode(context=ctx, parameter_overrides=overrides(
             {**FAST_SLAM, "map_publish_period": 0.2, "output_dir": str(tmp_path / "out"),
-             "loop_closure": "nodes"}))  # applies gausem/pose_graph answers
+             "loop_closure": "nodes", "map_voxel_size": 0.0}))  # applies gausem/pose_graph answers; every Gaussian
         player = Player(open_source("synthetic", size=(80, 60), max_frames=frames), rate=0.0, lockstep=True,
                         timeout=30.0, context=ctx)
         recorder = Recorder(ctx, [(Odometry, "gausem/odometry", EVENT_QOS), (Path, "gausem/path", LATCHED_QOS),

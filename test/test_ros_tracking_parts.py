@@ -24,6 +24,8 @@ from gausem_core.slam.events import Correction, FrameEvents  # noqa: E402
 from gausem_core.slam.health import TrackingHealth  # noqa: E402
 from gausem_core.slam.observation import Observation  # noqa: E402
 from gausem_core.slam.relocalisation import RelocalisationResult  # noqa: E402
+from gausem_core.slam.submap import Submap  # noqa: E402
+from gausem_core.slam.submap_store import SubmapStore  # noqa: E402
 from gausem_core.slam.system import GauSemSLAM  # noqa: E402
 from gausem_ros.nodes.common import LAST_FRAME_KEY, DropReport, FrameRejected  # noqa: E402
 from gausem_ros.nodes.tracking.checkpoints import SessionCheckpoints  # noqa: E402
@@ -119,15 +121,71 @@ def test_trajectory_publishes_odometry_and_a_growing_path_rebuilt_after_a_correc
 
 
 class SlowMap:
-    """A core whose map takes until ``release`` is set to read."""
+    """A core of one active submap whose Gaussians take until ``release`` is set to read."""
 
     def __init__(self):
         self.reading, self.release = threading.Event(), threading.Event()
+        self.lock = threading.RLock()
+        self.submaps = [SimpleNamespace(submap_id=0, version=0, is_active=True, anchor=torch.eye(4),
+                                        load_cloud=self.load_cloud)]
 
-    def global_cloud(self):
+    def load_cloud(self, device=None):
+        del device
         self.reading.set()
         assert self.release.wait(10.0)
         return GaussianCloud.empty()
+
+
+def random_cloud(count: int, seed: int) -> GaussianCloud:
+    """``count`` Gaussians in the unit cube, random colours, opacities, radii and classes of the synthetic table."""
+    g = torch.Generator().manual_seed(seed)
+    palette = SYNTHETIC_CLASSES.palette.float()
+    return GaussianCloud.from_points(torch.rand(count, 3, generator=g), torch.rand(count, 3, generator=g),
+                                     palette[torch.randint(len(palette), (count,), generator=g)],
+                                     torch.rand(count, generator=g) * 0.01 + 0.005, torch.rand(count, generator=g))
+
+
+def test_the_map_message_reads_a_spilled_submap_only_when_its_gaussians_changed(tmp_path):
+    """Issue 63: the map publisher read every submap each period, those spilled to disk included, and joined them all
+    into one cloud. Now an inactive submap's points are kept in its frame: a loop closure's new anchor moves them
+    without a read, new Gaussians (a new version) are read once; with map_voxel_size, one point per voxel."""
+    store = SubmapStore(0, tmp_path)  # every inactive submap's tensors spilled to disk at once
+    clouds = [random_cloud(400, seed) for seed in range(3)]
+    anchors = [torch.eye(4) for _ in clouds]
+    for k, anchor in enumerate(anchors):
+        anchor[:3, 3] = torch.tensor([2.0 * k, 0.0, 0.0])
+    submaps = [Submap(k, anchor, cloud) for k, (anchor, cloud) in enumerate(zip(anchors, clouds))]
+    for submap in submaps[:2]:
+        submap.offload(store)
+    reads = []
+    read = store.read
+    store.read = lambda key, device="cpu": (reads.append(key), read(key, device))[1]
+    slam = SimpleNamespace(lock=threading.RLock(), submaps=submaps)
+    with ros_session(207) as (ctx, _):
+        node = rclpy.create_node("parts", context=ctx)
+        for voxel in (0.0, 0.25):
+            outputs = MapPublisher(node, params(map_voxel_size=voxel, grid_publish_period=0.0),
+                                   from_flat(flatten(SlamConfig())).grid, SYNTHETIC_CLASSES.palette, None, None,
+                                   lambda: 1.0)
+            outputs.reset(slam)
+            reads.clear()
+            points = outputs.map_points()
+            assert reads == [("cloud", 0), ("cloud", 1)] and all(store.on_disk(key) for key in reads)
+            expected = [ma.cloud_to_points(c, SYNTHETIC_CLASSES.palette, voxel) for c in clouds]
+            assert len(points) == sum(map(len, expected))
+            assert len(points) == 1200 if not voxel else len(points) <= 3 * 4 ** 3
+            assert np.allclose(points["x"][:len(expected[0])], expected[0]["x"])
+            submaps[1].anchor = submaps[1].anchor.clone()
+            submaps[1].anchor[2, 3] = 1.0  # a loop closure moves submap 1
+            moved = outputs.map_points()
+            assert len(reads) == 2 and np.allclose(moved["z"] - points["z"], np.repeat([0.0, 1.0, 0.0],
+                                                                                        list(map(len, expected))))
+            submaps[0].cloud = clouds[2]  # new Gaussians of submap 0 (refined after a loop): read once
+            assert len(outputs.map_points()) == len(points) - len(expected[0]) + len(expected[2])
+            assert reads == [("cloud", 0), ("cloud", 1), ("cloud", 0)]
+            submaps[0].cloud = clouds[0]
+            submaps[1].anchor = anchors[1]
+    store.close()
 
 
 def test_the_map_is_built_off_the_frame_path_and_only_after_it_changed():

@@ -1,11 +1,14 @@
 """The map's outputs: ``gausem/map`` (PointCloud2 of the Gaussians, latched, at most once per ``map_publish_period``
-s, after new frames) and ``gausem/grid`` (nav_msgs/OccupancyGrid, latched, rebuilt after new keyframes and map
-corrections at most once per ``grid_publish_period`` s: ``gausem_core.maps``, parameters ``grid.*``; in
-``grid_frame``, level on the estimated floor, ``map_frame -> grid_frame`` on /tf_static).
+s, after new frames; with ``map_voxel_size`` one per voxel of each submap, the most opaque) and ``gausem/grid``
+(nav_msgs/OccupancyGrid, latched, rebuilt after new keyframes and map corrections at most once per
+``grid_publish_period`` s: ``gausem_core.maps``, parameters ``grid.*``; in ``grid_frame``, level on the estimated
+floor, ``map_frame -> grid_frame`` on /tf_static).
 
 Both are built on their timers' own callback group, off the frame path: with a multi-threaded executor (every GauSem
 entry point's) a frame never waits for a rebuild (a grid takes 140-190 ms at 160x120 on a 2-core CPU); they read the
-map as the mapping worker leaves it, under its lock where poses must agree (``slam.lock``)."""
+map as the mapping worker leaves it, under its lock where poses must agree (``slam.lock``). The points of an inactive
+submap are kept (in its frame) while its Gaussians stay the same (``Submap.version``): a map message reads only the
+active submaps' Gaussians, not the ones spilled to disk, and its size is bounded by the voxels the submaps cover."""
 from __future__ import annotations
 
 import threading
@@ -19,6 +22,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import PointCloud2
 
 import msg_adapters as ma
+from msg_adapters.pointcloud2 import structured_to_pointcloud2
 from gausem_core.config import GridConfig
 from gausem_core.maps.slam_grid import KeyframeRays, slam_grid
 from gausem_core.slam.system import GauSemSLAM
@@ -52,6 +56,7 @@ class MapPublisher:
         with self._building:
             self._slam = slam
             self._rays = KeyframeRays(self._grid_cfg.pixel_stride)  # the map's keyframe rays, for its grids
+            self._points: dict[tuple[int, int], np.ndarray] = {}  # (submap id, version): an inactive submap's points
             self.map_dirty = self.grid_dirty = False
             self._grid_floor: str | None = None  # where the last grid's floor came from (logged when it changes)
             self._grid_floor_pose: np.ndarray | None = None  # map-from-floor last sent on /tf_static (grid_frame)
@@ -77,9 +82,26 @@ class MapPublisher:
             if not self.map_dirty:
                 return
             self.map_dirty = False
-            cloud = self._slam.global_cloud()
             header = ma.make_header(self._stamp(), self._params.map_frame)
-            self._map_pub.publish(ma.cloud_to_pointcloud2(cloud, header, self._palette))
+            self._map_pub.publish(structured_to_pointcloud2(self.map_points(), header))
+
+    def map_points(self) -> np.ndarray:
+        """The map message's points (``msg_adapters.MAP_DTYPE``) in the map frame: each submap's in its frame (an
+        inactive one's as kept, else from its Gaussians), moved by its anchor."""
+        with self._slam.lock:
+            submaps = [(s, s.version, s.is_active, s.anchor.detach().cpu().double().numpy())
+                       for s in self._slam.submaps]
+        kept, parts = {}, []
+        for submap, version, active, anchor in submaps:
+            key = (submap.submap_id, version)
+            points = None if active else self._points.get(key)
+            if points is None:
+                points = ma.cloud_to_points(submap.load_cloud("cpu"), self._palette, self._params.map_voxel_size)
+            if not active:
+                kept[key] = points
+            parts.append(ma.transform_points(points, anchor))
+        self._points = kept  # what a later version or a gone submap replaced is dropped
+        return np.concatenate(parts) if parts else np.empty(0, ma.MAP_DTYPE)
 
     def publish_grid(self) -> None:
         """The occupancy grid, when keyframes or a correction changed the map since the last one (none while the

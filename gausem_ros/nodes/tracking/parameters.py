@@ -20,6 +20,7 @@ NODE_DEFAULTS = {
     "sync_wait": 5.0,            # seconds an rgb/depth/labels message waits for its partners before it is dropped as
     # unmatched (0: until a later frame matches; a lock-step replay sends none, so its player would wait its timeout)
     "map_publish_period": 2.0,   # seconds
+    "map_voxel_size": 0.05,      # metres: gausem/map holds one Gaussian per voxel of each submap (0: every Gaussian)
     "grid_frame": "floor",       # the grid's frame: level, on the estimated floor, map -> grid_frame on /tf_static
     # (re-sent when the floor estimate moves); "": the map frame, the grid's origin then tilted in it
     "grid_publish_period": 5.0,  # seconds between occupancy grids at most (one after new keyframes or a map
@@ -64,6 +65,8 @@ def check_parameters(cfg: SlamConfig, p: SimpleNamespace) -> None:
                          "and base_frame (\"\" puts the grid in map_frame)")
     if p.sync_wait < 0:
         raise ValueError(f"tracking_mapping: sync_wait must be >= 0 (0: off), got {p.sync_wait}")
+    if p.map_voxel_size < 0:
+        raise ValueError(f"tracking_mapping: map_voxel_size must be >= 0 (0: every Gaussian), got {p.map_voxel_size}")
     if p.grid_publish_period < 0:
         raise ValueError(f"tracking_mapping: grid_publish_period must be >= 0 (0: no grid), got "
                          f"{p.grid_publish_period}")
