@@ -21,7 +21,7 @@ message's stamp in seconds; None for one never received). Reasons:
   the DDS publication sequence number of the message info, which rclpy hands to a two-argument callback); a
   subscription whose queue overflowed before the node took its messages loses them this way. Counted in ``lost``.
 
-``lock``: a caller's lock (an RLock) held through each :meth:`~ApproximateTimeSync.add` and
+``lock``: a caller's reentrant lock held through each :meth:`~ApproximateTimeSync.add` and
 :meth:`~ApproximateTimeSync.flush`, the callbacks included, so that a caller reading its own counts and these under
 it sees every message in one place (received, queued, matched and handed on, or dropped).
 
@@ -46,7 +46,8 @@ from .qos import INPUT_QOS_HINT, subscribe_camera
 class ApproximateTimeSync:
     def __init__(self, names: Sequence[str], callback: Callable[..., None], queue_size: int = 10,
                  slop: float = 0.02, on_drop: Callable[[int, str, str, float | None], None] = lambda *drop: None,
-                 clock: Callable[[], float] = time.monotonic, lock: threading.RLock | None = None):
+                 clock: Callable[[], float] = time.monotonic,
+                 lock: contextlib.AbstractContextManager | None = None):
         if len(names) < 1 or queue_size < 1 or not slop >= 0:
             raise ValueError(f"ApproximateTimeSync needs at least one input, queue_size >= 1 and slop >= 0, "
                              f"got {list(names)}, {queue_size}, {slop}")
@@ -195,7 +196,8 @@ def _feed(sync: ApproximateTimeSync, index: int, msg, info: dict) -> None:
 def make_synchronizer(node, inputs: Sequence[tuple[str, type, str]], callback: Callable[..., None], qos, *,
                       queue_size: int = 10, slop: float = 0.02,
                       on_drop: Callable[[int, str, str, float | None], None] = lambda *drop: None,
-                      callback_group=None, lock: threading.RLock | None = None) -> SynchronizedInputs:
+                      callback_group=None, lock: contextlib.AbstractContextManager | None = None
+                      ) -> SynchronizedInputs:
     """Subscribe ``node`` to ``inputs`` ((name, msg type, topic), stamped messages) and call ``callback(*msgs)``
     with approximately synchronised messages, in the order of ``inputs`` (subscribed with :func:`subscribe_camera`);
     ``lock``: :class:`ApproximateTimeSync`'s."""

@@ -3,6 +3,7 @@ input are counted and the node goes on, and a seeded fuzz of every node's inputs
 import threading
 import time
 from collections import Counter
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -180,23 +181,27 @@ def test_an_exception_while_handling_an_input_is_counted_and_the_node_goes_on():
 
 def test_the_input_accounting_adds_up_whenever_another_thread_can_read_it():
     """Issue 63: a soak's diagnostics message now and then did not add up (frames in = processed + dropped +
-    pending), read between two steps of a frame's way. A reader thread looks before and after every step of every way
+    pending), read between two steps of a frame's way, or sent by a drop amid a change of several counts (an rgb
+    image left unmatched by a match not yet queued). A reader thread looks before and after every step of every way
     (superseded, unmatched, lost in transport, rejected, an exception, processed): it finds the counts being changed
-    (the accounting's lock held) or adding up."""
+    (the accounting's lock held) or adding up; so does every message sent."""
     with ros_session(144) as (ctx, _):
         node = TrackingMappingNode(context=ctx, parameter_overrides=overrides(FAST_SLAM))
         node.frame_input.camera_info(ma.camera_to_camera_info(CAMERA, ma.make_header(0.0, "cam")))
-        seen = Counter()
+        seen, sent = Counter(), []
+        node.drops._pub = SimpleNamespace(publish=sent.append)
+
+        def adds_up(values: dict) -> str:
+            dropped = sum(int(n) for key, n in values.items() if key.startswith("dropped."))
+            return "adds up" if int(values["frames_in"]) == int(values["frames_processed"]) + dropped + int(
+                values["frames_pending"]) else "torn"
 
         def read():
             if not node.accounting.lock.acquire(blocking=False):
                 seen["held"] += 1
                 return
             try:
-                values = node.drops.values()
-                dropped = sum(n for key, n in values.items() if key.startswith("dropped."))
-                seen["adds up" if values["frames_in"] == values["frames_processed"] + dropped
-                     + values["frames_pending"] else "torn"] += 1
+                seen[adds_up(node.drops.values())] += 1
             finally:
                 node.accounting.lock.release()
 
@@ -243,6 +248,8 @@ def test_the_input_accounting_adds_up_whenever_another_thread_can_read_it():
     assert summary["dropped"] == {"invalid_depth": 1, "lost_in_transport": 1, "processing_error": 1, "superseded": 1,
                                   "unmatched": 1}
     assert seen["torn"] == 0 and seen["adds up"] >= 10 and seen["held"] >= 10, seen
+    messages = Counter(adds_up({kv.key: kv.value for kv in msg.status[0].values}) for msg in sent)
+    assert messages == {"adds up": 7}  # one at each drop and each processed frame
 
 
 def _fail_once(owner, name: str):

@@ -27,7 +27,7 @@ from gausem_core.slam.relocalisation import RelocalisationResult  # noqa: E402
 from gausem_core.slam.submap import Submap  # noqa: E402
 from gausem_core.slam.submap_store import SubmapStore  # noqa: E402
 from gausem_core.slam.system import GauSemSLAM  # noqa: E402
-from gausem_ros.nodes.common import LAST_FRAME_KEY, DropReport, FrameRejected  # noqa: E402
+from gausem_ros.nodes.common import LAST_FRAME_KEY, AccountingLock, DropReport, FrameRejected  # noqa: E402
 from gausem_ros.nodes.tracking.checkpoints import SessionCheckpoints  # noqa: E402
 from gausem_ros.nodes.tracking.diagnostics import FrameAccounting, core_status, unpublished  # noqa: E402
 from gausem_ros.nodes.tracking.frame_input import FrameInput  # noqa: E402
@@ -303,7 +303,7 @@ def test_the_frame_accounting_adds_up_and_says_why_a_frame_publishes_nothing(map
     slam, results = mapped
     with ros_session(206) as (ctx, _):
         node = rclpy.create_node("parts", context=ctx)
-        lock = threading.RLock()
+        lock = AccountingLock()
         drops = DropReport(node, lock=lock)
         queue = SimpleNamespace(pending=1, in_progress=1, settle=lambda: setattr(queue, "in_progress", 0))
         accounting = FrameAccounting(synchroniser(), queue, drops, lock)

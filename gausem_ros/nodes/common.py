@@ -105,6 +105,47 @@ def count_error(node, name: str, err: Exception, frame: bool = True) -> None:
     node.drops.drop("processing_error", f"{name}: {type(err).__name__}: {err}", frame=frame)
 
 
+class AccountingLock:
+    """A reentrant lock for counts that change in several steps (a node's input accounting): held by ``with`` (or
+    :meth:`acquire` / :meth:`release`); :meth:`defer` runs an action (a report of the counts) at once when no other
+    change is under way, else as the outermost holder lets go, so that what it reads is finished changes only."""
+
+    def __init__(self):
+        self._lock = threading.RLock()
+        self._depth = 0  # how many times the holder holds it
+        self._owed: Callable[[], None] | None = None
+
+    def acquire(self, blocking: bool = True) -> bool:
+        if not self._lock.acquire(blocking):
+            return False
+        self._depth += 1
+        return True
+
+    def release(self) -> None:
+        try:
+            if self._depth == 1 and self._owed is not None:
+                owed, self._owed = self._owed, None
+                owed()
+        finally:
+            self._depth -= 1
+            self._lock.release()
+
+    def __enter__(self) -> "AccountingLock":
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+    def defer(self, action: Callable[[], None]) -> None:
+        """Run ``action`` now if the caller holds the lock once, else when it lets go of the outermost hold."""
+        with self:
+            if self._depth == 2:
+                action()
+            else:
+                self._owed = action
+
+
 class DropReport:
     """Counts dropped inputs by reason, logs each reason's first drop and then at most one per ``log_period`` s, and
     publishes the counts (plus the node's ``status()`` values) as ``diagnostic_msgs/DiagnosticArray`` on
@@ -112,19 +153,20 @@ class DropReport:
     the node's main input, e.g. a synchronised rgb-d frame) are ``dropped.<reason>``; other rejected messages
     (camera_info, records) are ``rejected.<reason>``. The level is WARN after a drop, else OK, raised to what the
     node's ``level()`` says (a DiagnosticStatus level and a message, e.g. ERROR "tracking lost"). Thread-safe:
-    ``lock`` (an RLock) is held while a count changes and while a message is assembled; a node that shares it with
-    the other counters ``status()`` reads publishes counts of one moment."""
+    ``lock`` is held while a count changes and while a message is assembled, and a drop inside a longer change of the
+    counts (``with lock``) is published when that change ends; a node that shares it with the other counters
+    ``status()`` reads publishes counts of finished changes only."""
 
     def __init__(self, node, log_period: float = 5.0, status: Callable[[], dict] = dict,
                  level: Callable[[], tuple[int, str]] = lambda: (DiagnosticStatus.OK, ""),
-                 lock: threading.RLock | None = None):
+                 lock: AccountingLock | None = None):
         self._node = node
         self._status = status
         self._level = level
         self._pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, EVENT_QOS)
         self._last_logged: dict[str, float] = {}
         self._log_period = log_period
-        self._lock = lock or threading.RLock()
+        self._lock = lock or AccountingLock()
         self.counts: Counter[str] = Counter()  # dropped frames by reason
         self.rejected: Counter[str] = Counter()  # other rejected messages by reason
 
@@ -137,7 +179,7 @@ class DropReport:
                 self._last_logged[reason] = now
                 what = "input" if frame else "message"
                 self._node.get_logger().warning(f"dropped {what} ({reason}, {counter[reason]} so far): {detail}")
-            self.publish()
+            self._lock.defer(self.publish)
 
     def clear(self) -> None:
         with self._lock:
@@ -173,11 +215,11 @@ class NewestFrameQueue:
     processed counts towards the next one. A frame dropped with a stamp newer than the pending frame's counts towards
     the frame after that one (a synchroniser may drop a newer frame before the pending one is taken). While
     ``ready()`` is false the pending frame waits; call :meth:`wake` when it may have become true. An item taken is
-    :attr:`in_progress` until ``process`` calls :meth:`settle` (or returns); ``lock``: the queue's lock, an RLock a
-    node shares with its other counters to read them in one piece."""
+    :attr:`in_progress` until ``process`` calls :meth:`settle` (or returns); ``lock``: the queue's lock, an
+    :class:`AccountingLock` a node shares with its other counters to read them in one piece."""
 
     def __init__(self, node, process: Callable, on_superseded: Callable, callback_group=None,
-                 ready: Callable[[], bool] = lambda: True, lock: threading.RLock | None = None):
+                 ready: Callable[[], bool] = lambda: True, lock: AccountingLock | None = None):
         self._process, self._on_superseded, self._ready = process, on_superseded, ready
         self._pending: tuple[object, float] | None = None
         self._pending_stamp: float | None = None

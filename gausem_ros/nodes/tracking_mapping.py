@@ -16,7 +16,6 @@ This module holds the inputs, the call into the core and the wiring; each output
 from __future__ import annotations
 
 import math
-import threading
 import time
 from pathlib import Path
 
@@ -39,8 +38,8 @@ from gausem_core.slam.system import GauSemSLAM
 from ..qos import input_qos
 from ..sync import make_synchronizer
 from ..tf import make_transform_broadcaster
-from .common import (DropReport, FrameRejected, NewestFrameQueue, class_table, count_error, declare_parameters,
-                     declare_slam_config, run_node)
+from .common import (AccountingLock, DropReport, FrameRejected, NewestFrameQueue, class_table, count_error,
+                     declare_parameters, declare_slam_config, run_node)
 from .tracking.checkpoints import SessionCheckpoints
 from .tracking.diagnostics import HEALTH_LEVELS, FrameAccounting, core_status, unpublished
 from .tracking.frame_input import NO_LABELS_FIX, FrameInput
@@ -68,7 +67,7 @@ class TrackingMappingNode(Node):
         table = class_table(p.classes) if p.use_labels else None
         self.palette = table.palette if table is not None else UNLABELLED_PALETTE
         self.device = resolve_device(self.cfg.device)
-        counting = threading.RLock()  # the input accounting's one lock (FrameAccounting)
+        counting = AccountingLock()  # the input accounting's one lock (FrameAccounting)
         self.drops = DropReport(self, status=self._status, level=lambda: HEALTH_LEVELS[self.health.status],
                                 lock=counting)
         if self.device.type == "cuda":  # the images are subscribed once the renderer is ready

@@ -15,7 +15,6 @@ between the last frame and the newest keyframe of the map it was tracked against
 from __future__ import annotations
 
 import math
-import threading
 import time
 
 import numpy as np
@@ -25,7 +24,7 @@ from gausem_core.slam.health import TrackingHealth
 from gausem_core.slam.system import FrameResult, GauSemSLAM
 
 from ...sync import ApproximateTimeSync
-from ..common import LAST_FRAME_KEY, DropReport, NewestFrameQueue
+from ..common import LAST_FRAME_KEY, AccountingLock, DropReport, NewestFrameQueue
 
 HEALTH_LEVELS = {"ok": (DiagnosticStatus.OK, ""), "degraded": (DiagnosticStatus.WARN, "tracking degraded"),
                  "lost": (DiagnosticStatus.ERROR, "tracking lost")}
@@ -33,11 +32,12 @@ HEALTH_LEVELS = {"ok": (DiagnosticStatus.OK, ""), "degraded": (DiagnosticStatus.
 
 class FrameAccounting:
     """Every rgb image received: processed (a pose published; the latency from its arrival kept), pending (unmatched
-    in the synchroniser, queued or in progress) or dropped (counted on the node's ``drops``). ``lock``: the one lock
-    (an RLock) that the synchroniser, the queue and ``drops`` were made with, held by every change of a count and by
-    each reading of them, so that the counts read always add up."""
+    in the synchroniser, queued or in progress) or dropped (counted on the node's ``drops``). ``lock``: the one
+    :class:`~gausem_ros.nodes.common.AccountingLock` that the synchroniser, the queue and ``drops`` were made with,
+    held by every change of a count and by each reading of them, so that the counts read always add up."""
 
-    def __init__(self, sync: ApproximateTimeSync, queue: NewestFrameQueue, drops: DropReport, lock: threading.RLock):
+    def __init__(self, sync: ApproximateTimeSync, queue: NewestFrameQueue, drops: DropReport,
+                 lock: AccountingLock):
         self._sync, self._queue, self._drops, self.lock = sync, queue, drops, lock
         self.processed = 0  # kept across load_map, cleared by gausem/reset
         self.latencies: list[float] = []  # seconds from a frame's arrival to its pose's publication
