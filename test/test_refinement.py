@@ -129,7 +129,8 @@ def test_a_run_keeps_the_poses_as_tracked_apart_from_the_refined_ones():
 
     cfg = load_config(None, {"loop.enabled": False, "device": "cpu", "backend": "torch", "mapping.every": 2,
                              "mapping.init_iterations": 5, "mapping.iterations": 3,
-                             "refinement.iterations_per_keyframe": 2})
+                             "refinement.iterations_per_keyframe": 2,
+                             "health.lost_coverage": 0.0})  # this thin map renders no silhouette pixel
     result = Pipeline(open_dataset("synthetic", size=(40, 30), max_frames=3), cfg, progress=False).run()
     assert result.tracked_poses.shape == result.poses.shape == (3, 4, 4)
     np.testing.assert_allclose(result.tracked_poses[0], result.poses[0])  # the fixed first keyframe
@@ -151,7 +152,8 @@ def test_a_run_names_the_frames_whose_loop_correction_moved_the_map():
     from gausem_core.slam.system import GauSemSLAM
 
     cfg = load_config(None, {"loop.enabled": False, "refinement.enabled": False, "device": "cpu", "backend": "torch",
-                             "mapping.init_iterations": 5, "mapping.iterations": 3})
+                             "mapping.init_iterations": 5, "mapping.iterations": 3,
+                             "health.lost_coverage": 0.0})  # this thin map renders no silhouette pixel
     pipeline = Pipeline(open_dataset("synthetic", size=(40, 30), max_frames=4), cfg, progress=False)
     slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
     process, corrections = slam.process, {2: Correction(1, 3), 3: Correction(0, 0)}

@@ -231,7 +231,9 @@ def test_the_motion_model_counts_the_frames_a_caller_skipped():
     from gausem_core.slam.submap import FrameRecord
     from gausem_core.slam.system import GauSemSLAM
 
-    cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "mapping.init_iterations": 5})
+    # a 40x30 map of 5 iterations renders views with no silhouette pixel: every frame would be lost by coverage
+    cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "mapping.init_iterations": 5,
+                                                "health.lost_coverage": 0.0})
     dataset = open_dataset("synthetic", size=(40, 30), max_frames=17)
     pipeline = Pipeline(dataset, cfg, progress=False)
     slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))
@@ -355,7 +357,7 @@ def test_the_search_starts_only_where_the_feature_start_finds_no_pose(monkeypatc
     from gausem_core.slam.tracker import TrackingResult
 
     cfg = load_config("params/synthetic.yaml", {"device": "cpu", "loop.enabled": False, "mapping.init_iterations": 5,
-                                                "mapping.iterations": 2})
+                                                "mapping.iterations": 2, "health.lost_coverage": 0.0})  # thin map
     dataset = open_dataset("synthetic", size=(40, 30), max_frames=12)
     pipeline = Pipeline(dataset, cfg, progress=False)
     slam = GauSemSLAM(cfg, "cpu", num_classes=len(pipeline.palette))

@@ -1,17 +1,12 @@
 """The tracking-and-mapping node: owns :class:`GauSemSLAM` (and so the Gaussian map).
 
-Subscribes (relative names, remappable) ``rgb/image``, ``depth/image``, ``rgb/camera_info`` and ``semantic/labels``
-(not with ``use_labels: false``), approximately synchronised, in their own callback group: with a multi-threaded
-executor (every GauSem entry point's) inputs keep arriving while a frame is processed. Frames are processed one at a
-time, the newest synchronised one first (``NewestFrameQueue``), so a tracker that falls behind skips frames instead
-of building a backlog; every rgb image received is processed, pending or dropped and counted by reason (docs/ROS.md,
-"Every frame accounted for"). The core hears of the frames dropped before it with the next frame it gets, as skipped
-ones (``GauSemSLAM.process``), so its motion model treats that frame as following a gap. With ``worker.mode: async``
-(this node's default; ``sync`` in lock-step replays, as ``gausem run``) a frame's odometry goes out once it is tracked
-and its keyframe's events once the mapping worker has mapped it, with a later frame.
-
-This module holds the inputs, the call into the core and the wiring; each output is a part in
-:mod:`gausem_ros.nodes.tracking`, whose module says what it publishes. Topics, services, parameters: docs/ROS.md.
+Subscribes ``rgb/image``, ``depth/image``, ``rgb/camera_info`` and ``semantic/labels`` (not with ``use_labels:
+false``), approximately synchronised, in their own callback group, so inputs keep arriving while a frame is processed.
+Frames are processed one at a time, the newest first (``NewestFrameQueue``): a tracker that falls behind skips frames
+(counted by reason, docs/ROS.md "Every frame accounted for"; the core hears of them as skipped ones) instead of
+building a backlog. In ``worker.mode: async`` (the default) a frame's odometry goes out once it is tracked and its
+keyframe's events once the mapping worker has mapped it. This module holds the inputs, the call into the core and the
+wiring; each output is a part in :mod:`gausem_ros.nodes.tracking`. Topics, services, parameters: docs/ROS.md.
 """
 from __future__ import annotations
 
@@ -71,8 +66,7 @@ class TrackingMappingNode(Node):
         self.drops = DropReport(self, status=self._status, level=lambda: HEALTH_LEVELS[self.health.status],
                                 lock=counting)
         if self.device.type == "cuda":  # the images are subscribed once the renderer is ready
-            self.get_logger().info("preparing the renderer on cuda (gsplat compiles its kernels on a machine's first "
-                                   "run: one to two minutes)")
+            self.get_logger().info("preparing the renderer on cuda (gsplat compiles on a machine's first run: 1-2 min)")
         tf_static = make_transform_broadcaster(self, static=True) if p.base_frame or p.grid_frame else None
         self.trajectory = TrajectoryPublisher(self, p, tf_static)
         self.records = RecordPublisher(self)
@@ -92,8 +86,7 @@ class TrackingMappingNode(Node):
                                          lock=counting)
         self._queue = NewestFrameQueue(self, self._process, lambda _: self.drops.drop(
             "superseded", "a newer synchronised frame arrived before this one was processed"),
-            ready=self.loop_link.settled if self.loop_link else lambda: True, lock=counting)  # skipped frames:
-        # _process's count
+            ready=self.loop_link.settled if self.loop_link else lambda: True, lock=counting)
         self.accounting = FrameAccounting(self._inputs.synchronizer, self._queue, self.drops, counting)
         if p.sync_wait:
             self.create_timer(min(p.sync_wait / 2, 0.5), lambda: self._inputs.synchronizer.flush(p.sync_wait),
@@ -119,8 +112,7 @@ class TrackingMappingNode(Node):
 
     @property
     def seconds(self) -> float:
-        """Wall time from the start of the first processed frame (message conversion included) to the end of the
-        last one: the ROS counterpart of the offline pipeline's loop time (0 before any frame)."""
+        """Wall time from the first processed frame's start to the last one's end (0 before any frame)."""
         return self._busy[1] - self._busy[0] if self._busy else 0.0
 
     def stamp(self) -> float:
@@ -136,8 +128,7 @@ class TrackingMappingNode(Node):
         self._last_stamp = -math.inf
         self.map_age = 0  # frames between the last frame and the newest keyframe of the map it was tracked against
         self.health = TrackingHealth("ok")  # the last frame's
-        self.health_log: list[tuple[int, float, TrackingHealth]] = []  # (frame, stamp, health) of every frame the
-        # core took, dropped ones included (the report's tracking_status.csv)
+        self.health_log: list[tuple[int, float, TrackingHealth]] = []  # every frame the core took, dropped ones too
         self.frame_input.reset()
         for part in (self.trajectory, self.map_outputs, self.checkpoints, self.loop_link):
             if part is not None:
@@ -153,8 +144,7 @@ class TrackingMappingNode(Node):
         self._queue.put(msgs, ma.header_seconds(msgs[0].header))
 
     def _on_sync_drop(self, index: int, reason: str, detail: str, stamp: float | None) -> None:
-        """An rgb image the synchroniser dropped is a lost frame (counted by reason; the diagnostics name it as
-        handled, which answers a lock-step player); depth and labels are counted by the synchroniser."""
+        """An rgb image the synchroniser dropped: a lost frame, counted by reason and named as handled."""
         if index:
             return
         if stamp is not None:
@@ -169,8 +159,7 @@ class TrackingMappingNode(Node):
         self._skip(SYNC_REASONS.get(reason, reason), detail, stamp)
 
     def _skip(self, reason: str, detail: str, stamp: float | None = None) -> None:
-        """A frame (stamped ``stamp`` where known) dropped before the core: counted by reason, and passed on to the
-        core with the next frame after it as a skipped one (its motion model then knows the camera moved on longer)."""
+        """A frame dropped before the core: counted by reason, passed on with the next frame as a skipped one."""
         self._queue.skip(stamp=stamp)
         self.drops.drop(reason, detail)
 
@@ -180,9 +169,8 @@ class TrackingMappingNode(Node):
         return self.frame_input.observation(msgs, self._last_stamp, map_camera)
 
     def _process(self, msgs: tuple[Image, ...], arrived: float, skipped: int) -> None:
-        """One synchronised frame (in progress until counted as processed or dropped); ``skipped``: the frames
-        dropped since the last one the queue handed over. An exception is counted as a processing_error drop of the
-        frame (``survives_errors``; one raised after its pose went out: of no frame) and the node goes on."""
+        """One synchronised frame, ``skipped`` dropped before it; an exception is counted as a processing_error drop
+        of the frame (one raised after its pose went out: of no frame) and the node goes on."""
         try:
             self._process_frame(msgs, arrived, skipped)
         except Exception as err:  # noqa: BLE001 -- one frame must never end the node
@@ -221,6 +209,9 @@ class TrackingMappingNode(Node):
         if reloc is not None and reloc.accepted:
             self.get_logger().info(f"relocalised against the map (submap {reloc.submap_id}, inlier fraction "
                                    f"{reloc.inlier_fraction:.2f}); tracking goes on")
+        if "new_segment" in result.health.reasons:
+            self.get_logger().warning(f"map lost for good: a new tracking segment starts (submap {result.submap_id}) "
+                                      "at the last good pose; a loop to the old map will merge them")
         if (why := unpublished(result, pose, obs.timestamp)) is not None:
             self.accounting.dropped(*why)
             return
@@ -254,9 +245,8 @@ class TrackingMappingNode(Node):
         self.map_outputs.grid_changed()
 
     def finish(self) -> None:
-        """End of the sequence: the core's end of a run (``loop_closure: core``: the loop keyframes whose check never
-        came are checked, ``loop.check_at_end``; then the global refinement, ``refinement.enabled``), counted in
-        ``seconds``; then the outputs are re-published (``MapServices.republish``)."""
+        """End of the sequence: the core's end of a run (``GauSemSLAM.finish``), counted in ``seconds``; then the
+        outputs are re-published (``MapServices.republish``)."""
         start = time.perf_counter()
         loop = self.slam.finish()
         if self._busy:
