@@ -197,8 +197,8 @@ class FrontEnd:
     def _gives_up(self, obs: Observation) -> bool:
         """Whether a frame that relocalisation failed to place starts a new tracking segment instead of being dropped
         (the ``relocalisation.new_segment_after``-th failure in a row)."""
-        after = self.cfg.relocalisation.new_segment_after
-        return 0 < after <= self.dropped + 1 and float(obs.valid_depth.float().mean()) >= self.cfg.health.degraded_valid_depth
+        after, depth = self.cfg.relocalisation.new_segment_after, float(obs.valid_depth.float().mean())
+        return 0 < after <= self.dropped + 1 and depth >= self.cfg.health.degraded_valid_depth
 
     def _track_or_relocalise(self, obs: Observation, motion: MotionPrediction, submap: Submap, cloud: GaussianCloud,
                              keyframe: KeyframeView | None

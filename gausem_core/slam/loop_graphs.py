@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gausem_core.config import LoopConfig
-from gausem_core.slam.pose_graph import PoseGraph, chain_links, components, optimise_chain
+from gausem_core.slam.pose_graph import PoseGraph, as_matrix, chain_links, components, optimise_chain
 
 
 @dataclass(frozen=True)
@@ -60,11 +60,11 @@ class LoopGraphs:
 
     def set_keyframe(self, frame_id: int, submap_id: int, pose) -> None:
         """The latest pose of a keyframe in its submap's frame."""
-        self.keyframes[int(frame_id)] = (int(submap_id), _matrix(pose))
+        self.keyframes[int(frame_id)] = (int(submap_id), as_matrix(pose))
 
     def set_anchor(self, submap_id: int, anchor, starts_segment: bool = False) -> None:
         """The latest anchor (world-from-submap) of a submap, and whether it starts a disconnected segment."""
-        self.anchors[int(submap_id)] = _matrix(anchor)
+        self.anchors[int(submap_id)] = as_matrix(anchor)
         (self.breaks.add if starts_segment else self.breaks.discard)(int(submap_id))
 
     def segments(self) -> list[set[int]]:
@@ -115,9 +115,3 @@ class LoopGraphs:
         self.last_error = (result.error_before, result.error_after)
         return result.poses
 
-
-def _matrix(pose) -> np.ndarray:
-    """A pose (torch tensor or array) as a float64 4x4 array."""
-    if hasattr(pose, "detach"):
-        pose = pose.detach().cpu().double().numpy()
-    return np.array(pose, dtype=np.float64)

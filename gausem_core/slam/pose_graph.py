@@ -202,8 +202,7 @@ def joined(poses: Mapping[int, object], links: Iterable[tuple[int, int]],
            loops: Sequence[tuple[int, int, object, tuple[float, float]]]) -> dict[int, np.ndarray]:
     """``poses`` (float64 4x4) with each segment (nodes joined by ``links``) that a loop joins to the first node's
     moved rigidly so that the first such loop holds exactly; segments no loop reaches stay where they are."""
-    out = {key: np.asarray(pose.detach().cpu() if hasattr(pose, "detach") else pose, dtype=np.float64)
-           for key, pose in poses.items()}
+    out = {key: as_matrix(pose) for key, pose in poses.items()}
     segments = components(sorted(out), links)
     segment_of = {key: i for i, group in enumerate(segments) for key in group}
     placed = {segment_of[min(out)]} if out else set()
@@ -211,7 +210,7 @@ def joined(poses: Mapping[int, object], links: Iterable[tuple[int, int]],
     while moved:
         moved = False
         for a, b, relative, _ in loops:
-            relative = np.asarray(relative.detach().cpu() if hasattr(relative, "detach") else relative, np.float64)
+            relative = as_matrix(relative)
             if (segment_of[a] in placed) == (segment_of[b] in placed):
                 continue
             if segment_of[a] in placed:  # b's segment goes where a^-1 b = relative
@@ -223,3 +222,10 @@ def joined(poses: Mapping[int, object], links: Iterable[tuple[int, int]],
             placed.add(other)
             moved = True
     return out
+
+
+def as_matrix(pose) -> np.ndarray:
+    """A pose (torch tensor or array) as a float64 4x4 array."""
+    if hasattr(pose, "detach"):
+        pose = pose.detach().cpu().double().numpy()
+    return np.array(pose, dtype=np.float64)
